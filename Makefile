@@ -1,0 +1,43 @@
+# The README's commands live here so they stay in one place.
+# `make repro`: set up and run the default pipeline. `make test`: set up and run the test suite (what CI runs).
+
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# Stage commands call `python`, `dvc`; the venv must come first on PATH.
+export PATH := $(CURDIR)/$(BIN):$(PATH)
+# One BLAS/OpenMP thread per process by default: the simulator and the policy share two cores.
+export OMP_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
+
+.PHONY: setup repro test test-fast lint benchmark ui sweep
+
+setup: $(STAMP)
+
+$(STAMP): requirements.lock pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -r requirements.lock
+	$(BIN)/python -m pip install --quiet --no-deps -e .
+	touch $(STAMP)
+
+repro: setup
+	dvc repro
+
+test: setup
+	$(BIN)/python -m pytest
+
+test-fast: setup
+	$(BIN)/python -m pytest -m "not slow"
+
+lint: setup
+	$(BIN)/ruff check src pipeline tests benchmarks
+	$(BIN)/ruff format --check src pipeline tests benchmarks
+
+benchmark: setup
+	$(BIN)/python benchmarks/tokenizer_throughput.py
+	$(BIN)/python benchmarks/policy_speed.py
+
+ui: setup
+	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000

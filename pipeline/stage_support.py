@@ -1,0 +1,111 @@
+"""What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run."""
+
+import argparse
+import logging
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from carp.config import ConfigError, Params, flatten_params, load_params
+
+logger = logging.getLogger("carp.pipeline")
+
+PROJECT_DIR = Path(__file__).resolve().parents[1]
+
+
+def project_root() -> Path:
+    """The user's workspace, even when DVC runs the stage in a temporary copy (``dvc exp run --temp/--queue``).
+
+    DVC's temporary workspaces live under ``<root>/.dvc/tmp/exps/``; MLflow and Optuna stores must stay in ``<root>``
+    so that runs made there land in the project's store.
+    """
+    parts = PROJECT_DIR.parts
+    for index in range(len(parts) - 2):
+        if parts[index : index + 3] == (".dvc", "tmp", "exps"):
+            return Path(*parts[:index])
+    return PROJECT_DIR
+
+
+def parse_args(description: str, per_task: bool = False) -> argparse.Namespace:
+    """Common command line: ``--params`` and, for per-task stages, ``--task``."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
+    if per_task:
+        parser.add_argument("--task", required=True)
+    return parser.parse_args()
+
+
+def load(path: Path) -> Params:
+    """Load params or exit non-zero with the one-line validation message."""
+    try:
+        return load_params(path)
+    except ConfigError as error:
+        fail(str(error))
+
+
+def fail(message: str) -> None:
+    """Print a one-line error and exit with status 1."""
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(1)
+
+
+def select_device(params: Params) -> torch.device:
+    """``auto`` picks CUDA when present; an explicit ``cuda`` without a GPU is an error."""
+    if params.device == "cuda" and not torch.cuda.is_available():
+        fail("device=cuda but no CUDA device is available (set device: auto or cpu)")
+    if params.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(params.device)
+
+
+def git_commit() -> str:
+    """HEAD's commit of the project, or ``unknown`` outside a git checkout."""
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=PROJECT_DIR, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def dvc_experiment_name() -> str:
+    """Name of the DVC experiment running this stage (DVC exports ``DVC_EXP_NAME``), or empty."""
+    return os.environ.get("DVC_EXP_NAME", "")
+
+
+def tracking_uri(params: Params) -> str:
+    """The params' tracking URI with relative SQLite paths anchored at the project root."""
+    from carp.tracking.runs import resolve_tracking_uri
+
+    return resolve_tracking_uri(params.tracking.uri, project_root())
+
+
+@contextmanager
+def mlflow_stage(params: Params, stage: str, experiment: str, extra_tags: dict | None = None) -> Iterator:
+    """An MLflow run for this stage, tagged with commit, stage, DVC experiment and params hash."""
+    from carp.tracking.runs import stage_run
+
+    tags = {
+        "carp.git_commit": git_commit(),
+        "carp.dvc_stage": stage,
+        "carp.dvc_experiment": dvc_experiment_name(),
+        **(extra_tags or {}),
+    }
+    with stage_run(
+        tracking_uri(params),
+        experiment_name=f"{params.tracking.experiment_prefix}-{experiment}",
+        run_name=stage,
+        flat_params=flatten_params(params),
+        tags=tags,
+    ) as run:
+        yield run
+
+
+def setup_logging() -> None:
+    """INFO logs to stderr; tqdm bars print there too."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)

@@ -1,0 +1,3 @@
+"""carp: coarse-to-fine autoregressive prediction (CARP) for robot imitation learning."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,131 @@
+"""Ingestion: a robomimic-schema HDF5 file -> replay buffer + normalization statistics.
+
+Absolute 7-D actions (pos, axis-angle, gripper) are stored as 10-D (pos, 6-D rotation, gripper) and converted back
+exactly when executed; delta actions are kept as they are. The output directory is built under a temporary name and
+renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path.
+"""
+
+import json
+import os
+import shutil
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from carp.data.normalizer import MinMaxNormalizer, save_normalizers
+from carp.data.replay_buffer import ReplayBuffer
+from carp.data.robomimic_io import DatasetError, read_demonstrations
+from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
+
+BUFFER_DIRNAME = "replay.zarr"
+NORMALIZATION_FILENAME = "normalization.json"
+SUMMARY_FILENAME = "summary.json"
+
+
+@dataclass(frozen=True)
+class IngestSummary:
+    """What an ingestion produced."""
+
+    source: str
+    episodes: int
+    valid_episodes: int
+    steps: int
+    obs_dim: int
+    action_dim: int
+    mean_episode_steps: float
+
+
+def ingest_demonstrations(
+    raw_path: Path,
+    output_dir: Path,
+    obs_keys: Sequence[str],
+    controller: str = "absolute",
+    filter_key: str | None = None,
+    valid_fraction: float = 0.1,
+) -> IngestSummary:
+    """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
+
+    Args:
+        raw_path: robomimic-schema HDF5 with 7-D actions.
+        output_dir: replaced atomically on success; untouched on failure.
+        obs_keys: low-dim obs keys, concatenated in this order into ``obs`` (N, Do).
+        controller: ``absolute`` converts actions to 10-D; ``delta`` keeps 7-D.
+        filter_key: optional ``mask/<filter_key>`` restricting the demos.
+        valid_fraction: share of episodes held out when the file has no ``mask/valid``.
+
+    Raises:
+        DatasetError: one line naming the file, demo and key of the first problem found.
+    """
+    raw_path, output_dir = Path(raw_path), Path(output_dir)
+    demos = read_demonstrations(raw_path, obs_keys, action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key)
+    valid_names = _valid_demo_names(demos.names, demos.masks.get("valid", []), valid_fraction)
+
+    obs_parts, action_parts, ends = [], [], []
+    total = 0
+    for episode in demos.episodes:
+        obs_parts.append(np.concatenate([episode.obs[key] for key in obs_keys], axis=1))
+        actions = absolute_to_rot6d_actions(episode.actions) if controller == "absolute" else episode.actions
+        action_parts.append(actions)
+        total += episode.length
+        ends.append(total)
+    # Statistics are fitted on the float32 values the buffer stores, so normalized data lies exactly in [-1, 1].
+    obs = np.concatenate(obs_parts).astype(np.float32)
+    action = np.concatenate(action_parts).astype(np.float32)
+    first = demos.episodes[0]
+    buffer = ReplayBuffer(
+        obs=obs,
+        action=action,
+        episode_ends=np.asarray(ends, dtype=np.int64),
+        valid_episodes=np.asarray([name in valid_names for name in demos.names]),
+        attrs={
+            "obs_keys": list(obs_keys),
+            "obs_widths": [int(first.obs[key].shape[1]) for key in obs_keys],
+            "controller": controller,
+            "source": str(raw_path),
+            "env_args": demos.env_args,
+            "demo_names": demos.names,
+        },
+    )
+    summary = IngestSummary(
+        source=str(raw_path),
+        episodes=buffer.num_episodes,
+        valid_episodes=int(buffer.valid_episodes.sum()),
+        steps=int(total),
+        obs_dim=int(obs.shape[1]),
+        action_dim=int(action.shape[1]),
+        mean_episode_steps=float(total / buffer.num_episodes),
+    )
+
+    output_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = output_dir.with_name(f".{output_dir.name}.{os.getpid()}.tmp")
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        staging.mkdir()
+        buffer.save(staging / BUFFER_DIRNAME)
+        save_normalizers(
+            staging / NORMALIZATION_FILENAME,
+            {"obs": MinMaxNormalizer.fit(obs), "action": MinMaxNormalizer.fit(action)},
+        )
+        (staging / SUMMARY_FILENAME).write_text(json.dumps(asdict(summary), indent=2))
+        if output_dir.exists():
+            shutil.rmtree(output_dir)
+        os.replace(staging, output_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return summary
+
+
+def _valid_demo_names(names: list[str], listed_valid: list[str], valid_fraction: float) -> set[str]:
+    """Held-out demos: the file's ``mask/valid`` when it selects a proper subset, else the last ``valid_fraction``."""
+    selected = set(listed_valid) & set(names)
+    if selected and len(selected) < len(names):
+        return selected
+    if len(names) < 2 or valid_fraction <= 0:
+        return set()
+    count = max(1, int(round(valid_fraction * len(names))))
+    return set(names[-count:])
+
+
+__all__ = ["DatasetError", "IngestSummary", "ingest_demonstrations"]

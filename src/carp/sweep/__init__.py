@@ -1,0 +1,1 @@
+"""sweep package of carp."""

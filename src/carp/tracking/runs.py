@@ -1,0 +1,121 @@
+"""MLflow runs for pipeline stages: the only module (with the registry and the sweep) that imports mlflow.
+
+One run per stage execution, tagged with the git commit, the DVC stage, the DVC experiment name (when run under
+``dvc exp run``) and a hash of the params; params are logged flattened (``policy.depth``).
+"""
+
+import hashlib
+import json
+import logging
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import mlflow
+from mlflow.tracking import MlflowClient
+
+logger = logging.getLogger(__name__)
+
+# MLflow caps a param value at 6000 characters; longer values (e.g. nested lists) are cut with a marker.
+MAX_PARAM_LENGTH = 6000
+
+
+def resolve_tracking_uri(uri: str, project_root: Path) -> str:
+    """Make a relative ``sqlite:///relative.db`` URI absolute against ``project_root``.
+
+    Args:
+        uri: a tracking URI; ``sqlite:///x.db`` is relative, ``sqlite:////abs/x.db`` absolute.
+        project_root: directory that relative paths refer to (the main workspace, never a DVC temp workspace).
+    """
+    prefix = "sqlite:///"
+    if uri.startswith(prefix) and not uri[len(prefix) :].startswith("/"):
+        return f"{prefix}{(Path(project_root) / uri[len(prefix) :]).resolve()}"
+    return uri
+
+
+def params_hash(flat_params: Mapping[str, str]) -> str:
+    """Short sha256 of the flattened params, stable across key order."""
+    return hashlib.sha256(json.dumps(dict(sorted(flat_params.items()))).encode()).hexdigest()[:16]
+
+
+@dataclass
+class StageRun:
+    """Handle on an active MLflow run."""
+
+    run_id: str
+    experiment_id: str
+
+    def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
+        """Log numeric metrics (non-numbers are skipped); names keep only MLflow-safe characters."""
+        clean = {_metric_name(k): float(v) for k, v in metrics.items() if isinstance(v, (int, float))}
+        if clean:
+            mlflow.log_metrics(clean, step=step)
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        """Copy a file or directory into the run's artifacts."""
+        path = Path(path)
+        if path.is_dir():
+            mlflow.log_artifacts(str(path), artifact_path=artifact_path)
+        elif path.exists():
+            mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+    def set_tags(self, tags: Mapping[str, str]) -> None:
+        """Add tags to the run."""
+        mlflow.set_tags(dict(tags))
+
+
+def _metric_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "_-./ " else "_" for c in name)
+
+
+@contextmanager
+def stage_run(
+    tracking_uri: str,
+    experiment_name: str,
+    run_name: str,
+    flat_params: Mapping[str, str],
+    tags: Mapping[str, str],
+    parent_run_id: str | None = None,
+) -> Iterator[StageRun]:
+    """Open an MLflow run for one stage execution; ends it FAILED if the body raises.
+
+    Args:
+        tracking_uri: absolute tracking URI (see :func:`resolve_tracking_uri`).
+        experiment_name: created when missing.
+        run_name: e.g. ``train_policy@lift``.
+        flat_params: dotted-key params; logged as run params.
+        tags: e.g. git commit, DVC stage, DVC experiment; the params hash is added.
+        parent_run_id: makes this a nested (child) run, e.g. a sweep trial under its study's run.
+    """
+    mlflow.set_tracking_uri(tracking_uri)
+    experiment = mlflow.set_experiment(experiment_name)
+    all_tags = {**tags, "carp.params_hash": params_hash(flat_params)}
+    if parent_run_id is not None:
+        all_tags["mlflow.parentRunId"] = parent_run_id
+    with mlflow.start_run(run_name=run_name, tags=all_tags) as run:
+        params = {key: value[:MAX_PARAM_LENGTH] for key, value in flat_params.items()}
+        # MLflow accepts at most 100 params per call.
+        items = list(params.items())
+        for start in range(0, len(items), 100):
+            mlflow.log_params(dict(items[start : start + 100]))
+        yield StageRun(run_id=run.info.run_id, experiment_id=experiment.experiment_id)
+
+
+def find_runs(tracking_uri: str, experiment_name: str, filter_string: str = "") -> list[dict]:
+    """Runs of an experiment as plain dicts (id, name, status, tags, metrics), newest first."""
+    client = MlflowClient(tracking_uri=tracking_uri)
+    experiment = client.get_experiment_by_name(experiment_name)
+    if experiment is None:
+        return []
+    runs = client.search_runs([experiment.experiment_id], filter_string=filter_string, order_by=["start_time DESC"])
+    return [
+        {
+            "run_id": run.info.run_id,
+            "run_name": run.info.run_name,
+            "status": run.info.status,
+            "tags": dict(run.data.tags),
+            "metrics": dict(run.data.metrics),
+        }
+        for run in runs
+    ]

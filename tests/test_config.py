@@ -1,0 +1,79 @@
+from pathlib import Path
+
+import pytest
+
+from carp.config import ConfigError, Params, flatten_params, load_params, params_from_dict
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_repository_params_load_and_match_defaults_shape():
+    params = load_params(REPO / "params.yaml")
+    assert params.scales[-1] == params.latent_length == 4
+    assert params.codebook_size >= 2
+    assert params.action_space == "panda-abs10"
+    assert params.data.action_dim == 10
+
+
+def test_defaults_follow_the_design():
+    params = Params()
+    assert params.scales == (1, 2, 3, 4)
+    assert params.codebook_size == 512
+    assert params.tasks == ("lift",)
+    assert (params.data.obs_steps, params.data.action_horizon, params.data.action_steps) == (2, 16, 8)
+    assert (params.policy.depth, params.policy.width, params.policy.num_heads) == (8, 64, 8)
+    assert params.tokenizer.latent_channels == 8
+
+
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        ({"scales": [1, 2, 3]}, "scales=[1, 2, 3]: must end at the latent length"),
+        ({"scales": [1, 3, 2, 4]}, "scales=[1, 3, 2, 4]: must be positive and strictly increasing"),
+        ({"codebook_size": 1}, "codebook_size=1: must be >= 2"),
+        ({"tasks": ["stack"]}, "tasks=('stack',): every task must be one of"),
+        ({"tasks": []}, "tasks=(): must list at least one task"),
+        ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
+        ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
+        ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
+        ({"policy": {"width": 64, "num_heads": 5}}, "policy.num_heads=5: must divide policy.width=64"),
+        ({"policy": {"depth": "deep"}}, "policy.depth='deep': expected an integer"),
+        ({"policy": {"use_ema": "yes"}}, "policy.use_ema='yes': expected true or false"),
+        ({"policy": {"learning_rate": 0}}, "policy.learning_rate=0.0: must be > 0"),
+        ({"tokenizer": {"source": "mlflow://x"}}, "tokenizer.source='mlflow://x': must be 'pipeline' or"),
+        ({"tokenizer": {"registry_alias": "latest"}}, "tokenizer.registry_alias='latest'"),
+        ({"eval": {"episodes": 0}}, "eval.episodes=0: must be >= 1"),
+        ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
+        ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
+        ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
+        ({"colour": "red"}, "colour: unknown key"),
+        ({"data": [1, 2]}, "data: expected a mapping"),
+    ],
+)
+def test_bad_values_are_refused_with_the_key_named(raw, message):
+    with pytest.raises(ConfigError) as error:
+        params_from_dict(raw)
+    assert message in str(error.value)
+
+
+def test_load_params_names_the_file(tmp_path):
+    path = tmp_path / "params.yaml"
+    path.write_text("codebook_size: 1\n")
+    with pytest.raises(ConfigError, match=r"params.yaml: codebook_size=1"):
+        load_params(path)
+    with pytest.raises(ConfigError, match="params file not found"):
+        load_params(tmp_path / "missing.yaml")
+    path.write_text("scales: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_params(path)
+
+
+def test_params_are_frozen_and_flatten():
+    params = params_from_dict({"scales": [1, 2, 4], "codebook_size": 256})
+    assert params.scales == (1, 2, 4)
+    with pytest.raises(AttributeError):
+        params.codebook_size = 3  # type: ignore[misc]
+    flat = flatten_params(params)
+    assert flat["codebook_size"] == "256"
+    assert flat["policy.depth"] == "8"
+    assert flat["scales"] == "[1, 2, 4]"
