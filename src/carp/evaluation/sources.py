@@ -1,0 +1,80 @@
+"""Action sources for the rollout loop: the trained CARP policy and the scripted experts."""
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from carp.data.rotation import rot6d_to_absolute_actions
+from carp.evaluation.rollout import ChunkTiming
+
+
+class ExpertSource:
+    """A scripted expert (privileged state) behind the same interface as the policy; one action per decision."""
+
+    def __init__(self, task: str) -> None:
+        self.task = task
+        self._expert = None
+
+    def reset(self, env) -> None:
+        """Bind a fresh expert to the just-reset env."""
+        from carp.data.experts import make_expert
+
+        self._expert = make_expert(self.task, env)
+        self._expert.reset()
+
+    def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, None]:
+        """(1, 7) the expert's next action."""
+        return self._expert.act()[None, :], None
+
+
+class PolicySource:
+    """A trained policy checkpoint: predicts ``H`` actions, executes ``actions[To-1 : To-1+Ta]``.
+
+    Args:
+        checkpoint_path: self-contained policy checkpoint (``models/policy/policy.pt``).
+        controller: ``absolute`` converts the 10-D actions back to the controller's 7-D form.
+        top_k: 1 = greedy; >1 samples from the top-k tokens with a generator seeded per episode.
+        task_index: task id for multi-task policies.
+        device: torch device for inference.
+    """
+
+    def __init__(
+        self,
+        checkpoint_path: Path,
+        controller: str,
+        obs_steps: int,
+        action_steps: int,
+        top_k: int = 1,
+        task_index: int | None = None,
+        device: str = "cpu",
+    ) -> None:
+        from carp.policy.policy import CarpPolicy
+
+        self.policy = CarpPolicy.load(Path(checkpoint_path), map_location=device)
+        self.controller = controller
+        self.obs_steps = obs_steps
+        self.action_steps = action_steps
+        self.top_k = top_k
+        self.task_index = task_index
+        self.device = torch.device(device)
+        self._generator = torch.Generator(device=self.device)
+        self._episodes = 0
+
+    def reset(self, env) -> None:
+        """New episode: re-seed sampling so that results do not depend on episode order."""
+        self._generator.manual_seed(self._episodes)
+        self._episodes += 1
+
+    def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming]:
+        """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time."""
+        actions, prediction_seconds, decoding_seconds = self.policy.predict_action_timed(
+            observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
+        )
+        started = time.perf_counter()
+        executed = np.asarray(actions[0, self.obs_steps - 1 : self.obs_steps - 1 + self.action_steps], dtype=np.float64)
+        if self.controller == "absolute":
+            executed = rot6d_to_absolute_actions(executed)
+        decoding_seconds += time.perf_counter() - started
+        return executed, ChunkTiming(prediction=prediction_seconds, decoding=decoding_seconds)

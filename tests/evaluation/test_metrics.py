@@ -1,0 +1,37 @@
+import math
+
+import pytest
+
+from carp.evaluation.metrics import latency_summary, wilson_interval
+
+
+@pytest.mark.parametrize(
+    ("successes", "trials", "expected"),
+    [
+        # Reference values of the Wilson score interval at 95% (z = 1.959964).
+        (45, 50, (0.7864, 0.9565)),
+        (50, 50, (0.9287, 1.0)),
+        (0, 50, (0.0, 0.0713)),
+        (25, 50, (0.3664, 0.6336)),
+        (1, 10, (0.0179, 0.4042)),
+    ],
+)
+def test_wilson_interval_matches_reference_values(successes, trials, expected):
+    lower, upper = wilson_interval(successes, trials)
+    assert lower == pytest.approx(expected[0], abs=1e-4)
+    assert upper == pytest.approx(expected[1], abs=1e-4)
+
+
+def test_wilson_interval_contains_the_estimate_and_rejects_bad_counts():
+    lower, upper = wilson_interval(7, 9)
+    assert lower < 7 / 9 < upper
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    with pytest.raises(ValueError, match="successes=5 must lie in"):
+        wilson_interval(5, 3)
+
+
+def test_latency_summary_in_milliseconds():
+    summary = latency_summary([0.001 * i for i in range(1, 11)], "predict")
+    assert summary["predict_ms_median"] == pytest.approx(5.5)
+    assert summary["predict_ms_p90"] == pytest.approx(9.1)
+    assert math.isnan(latency_summary([], "decode")["decode_ms_median"])
