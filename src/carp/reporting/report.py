@@ -1,0 +1,262 @@
+"""The run report: ``report.md`` and a self-contained ``report.html`` built from the pipeline's metrics files.
+
+Both documents come from one list of sections (text, tables as DataFrames, PNG figures), so they never disagree.
+The HTML embeds its figures as base64 data URIs and carries no scripts, fonts or stylesheets from the network, so
+it reads offline.
+"""
+
+import base64
+import html
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from carp.evaluation.metrics import wilson_interval  # noqa: E402
+
+
+@dataclass
+class Section:
+    """One report section: a title, paragraphs, tables and figures in that order."""
+
+    title: str
+    paragraphs: list[str] = field(default_factory=list)
+    tables: list[pd.DataFrame] = field(default_factory=list)
+    figures: list[Path] = field(default_factory=list)
+    code: str = ""
+
+
+@dataclass
+class ReportInputs:
+    """Everything a report is made of (all optional except the evaluation metrics).
+
+    Attributes:
+        evaluation: task -> evaluation metrics dict (``reports/eval/<task>.json``).
+        tokenizer_metrics: tokenizer reconstruction metrics (``reports/tokenizer/metrics.json``).
+        tokenizer_history: per-epoch tokenizer losses.
+        policy_histories: task -> per-epoch policy losses and token accuracies.
+        reconstruction_figure: raw vs reconstructed actions PNG.
+        sweep_trials: the Optuna sweep's trials table, when a sweep ran.
+        versions: package -> version (robosuite, mujoco, torch, ...).
+        git_commit: commit the pipeline ran at.
+        params_yaml: the params file's text.
+    """
+
+    evaluation: Mapping[str, Mapping]
+    tokenizer_metrics: Mapping | None = None
+    tokenizer_history: pd.DataFrame | None = None
+    policy_histories: Mapping[str, pd.DataFrame] = field(default_factory=dict)
+    reconstruction_figure: Path | None = None
+    sweep_trials: pd.DataFrame | None = None
+    versions: Mapping[str, str] = field(default_factory=dict)
+    git_commit: str = "unknown"
+    params_yaml: str = ""
+
+
+def success_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
+    """One row per task: successes, rate, 95% Wilson interval, mean episode length."""
+    rows = []
+    for task, metrics in evaluation.items():
+        successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
+        lower, upper = wilson_interval(successes, episodes)
+        rows.append(
+            {
+                "task": task,
+                "success": f"{successes}/{episodes}",
+                "rate": f"{100 * successes / episodes:.1f}%",
+                "95% interval": f"{100 * lower:.1f}-{100 * upper:.1f}%",
+                "mean steps": f"{metrics.get('mean_episode_steps', float('nan')):.0f}",
+                "crashed": int(metrics.get("crashed_episodes", 0)),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def latency_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
+    """Per task: per-chunk latency (ms) of prediction and decoding, at batch 1 in rollouts and batched."""
+    rows = []
+    for task, metrics in evaluation.items():
+        for setting, prefix in (("batch 1 (rollouts)", "latency"), ("batched", "batched_latency")):
+            if f"{prefix}_predict_ms_median" not in metrics:
+                continue
+            batch = metrics.get("batched_latency_batch_size", "") if prefix == "batched_latency" else 1
+            rows.append(
+                {
+                    "task": task,
+                    "setting": f"{setting}" + (f", B={batch}" if prefix == "batched_latency" else ""),
+                    "predict median": f"{metrics[f'{prefix}_predict_ms_median']:.2f}",
+                    "predict p90": f"{metrics[f'{prefix}_predict_ms_p90']:.2f}",
+                    "decode median": f"{metrics[f'{prefix}_decode_ms_median']:.2f}",
+                    "decode p90": f"{metrics[f'{prefix}_decode_ms_p90']:.2f}",
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path: Path, log_scale: bool = True) -> Path:
+    """Plot per-epoch columns of a history table to a PNG."""
+    figure, axis = plt.subplots(figsize=(6, 3.2))
+    for column in columns:
+        if column in history:
+            axis.plot(history["epoch"], history[column], label=column)
+    axis.set_xlabel("epoch")
+    axis.set_title(title)
+    if log_scale and (history[[c for c in columns if c in history]] > 0).all().all():
+        axis.set_yscale("log")
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
+    """Success against the number of scales K, one line per codebook size (like the paper's ablation on K)."""
+    figure, axis = plt.subplots(figsize=(5, 3.2))
+    for size, group in trials.groupby("codebook_size"):
+        ordered = group.sort_values("num_scales")
+        axis.plot(ordered["num_scales"], 100 * ordered["success_rate"], marker="o", label=f"V={size}")
+    axis.set_xlabel("number of scales K")
+    axis.set_ylabel("success rate (%)")
+    axis.set_ylim(0, 105)
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
+    """Assemble the report's sections; figures are written into ``figures_dir``."""
+    sections = [
+        Section(
+            "Success rate",
+            paragraphs=[
+                "Episodes with fixed seeds disjoint from the collection seeds; success is the env's own check."
+            ],
+            tables=[success_table(inputs.evaluation)],
+        ),
+        Section(
+            "Inference latency per chunk (ms)",
+            paragraphs=["Prediction is the coarse-to-fine token prediction; decoding turns tokens into actions."],
+            tables=[latency_table(inputs.evaluation)],
+        ),
+    ]
+    tokenizer = Section("Action tokenizer")
+    if inputs.tokenizer_metrics:
+        metrics = inputs.tokenizer_metrics
+        per_dimension = pd.DataFrame(metrics.get("per_dimension", []))
+        tokenizer.paragraphs.append(
+            "Reconstruction error on held-out windows, in original action units "
+            f"(mean RMSE {metrics.get('mean_rmse', float('nan')):.4f}, "
+            f"mean RMSE / range {100 * metrics.get('mean_rmse_fraction_of_range', float('nan')):.2f}%)."
+        )
+        if not per_dimension.empty:
+            tokenizer.tables.append(per_dimension.round(4))
+    if inputs.reconstruction_figure and Path(inputs.reconstruction_figure).exists():
+        tokenizer.figures.append(Path(inputs.reconstruction_figure))
+    if tokenizer.paragraphs or tokenizer.figures:
+        sections.append(tokenizer)
+
+    curves = Section("Training curves")
+    if inputs.tokenizer_history is not None and not inputs.tokenizer_history.empty:
+        columns = [c for c in inputs.tokenizer_history.columns if c.endswith("loss")]
+        curves.figures.append(
+            plot_curves(inputs.tokenizer_history, columns, "tokenizer", figures_dir / "tokenizer_curves.png")
+        )
+    for task, history in inputs.policy_histories.items():
+        columns = [c for c in history.columns if c.endswith("loss")]
+        curves.figures.append(
+            plot_curves(history, columns, f"policy ({task})", figures_dir / f"policy_{task}_loss.png")
+        )
+        accuracy = [c for c in history.columns if c.startswith("token_accuracy")]
+        if accuracy:
+            curves.figures.append(
+                plot_curves(
+                    history, accuracy, f"token accuracy ({task})", figures_dir / f"policy_{task}_acc.png", False
+                )
+            )
+    if curves.figures:
+        sections.append(curves)
+
+    if inputs.sweep_trials is not None and not inputs.sweep_trials.empty:
+        sweep = Section("Sweep over scales and codebook size", tables=[inputs.sweep_trials])
+        if {"num_scales", "codebook_size", "success_rate"} <= set(inputs.sweep_trials.columns):
+            sweep.figures.append(plot_sweep(inputs.sweep_trials, figures_dir / "sweep_scales.png"))
+        sections.append(sweep)
+
+    versions = ", ".join(f"{name} {version}" for name, version in inputs.versions.items())
+    sections.append(
+        Section(
+            "Provenance",
+            paragraphs=[f"git commit `{inputs.git_commit}`", f"versions: {versions}"],
+            code=inputs.params_yaml,
+        )
+    )
+    return sections
+
+
+def render_markdown(sections: Sequence[Section], title: str, base_dir: Path) -> str:
+    """Markdown with figures referenced by paths relative to ``base_dir``."""
+    lines = [f"# {title}", ""]
+    for section in sections:
+        lines += [f"## {section.title}", ""]
+        for paragraph in section.paragraphs:
+            lines += [paragraph, ""]
+        for table in section.tables:
+            lines += [table.to_markdown(index=False, disable_numparse=True), ""]
+        for figure in section.figures:
+            lines += [f"![{figure.stem}]({os.path.relpath(figure, base_dir)})", ""]
+        if section.code:
+            lines += ["```yaml", section.code.rstrip(), "```", ""]
+    return "\n".join(lines)
+
+
+def render_html(sections: Sequence[Section], title: str) -> str:
+    """Self-contained HTML: inline CSS, figures as data URIs, no external resources."""
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{html.escape(title)}</title>",
+        "<style>body{font-family:sans-serif;max-width:60em;margin:2em auto;padding:0 1em}"
+        "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}"
+        "img{max-width:100%}pre{background:#f6f6f6;padding:1em;overflow:auto}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+    ]
+    for section in sections:
+        parts.append(f"<h2>{html.escape(section.title)}</h2>")
+        parts += [f"<p>{html.escape(paragraph).replace('`', '')}</p>" for paragraph in section.paragraphs]
+        parts += [table.to_html(index=False, border=0) for table in section.tables]
+        for figure in section.figures:
+            encoded = base64.b64encode(Path(figure).read_bytes()).decode()
+            parts.append(f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{encoded}'>")
+        if section.code:
+            parts.append(f"<pre>{html.escape(section.code)}</pre>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_report(inputs: ReportInputs, output_dir: Path, title: str = "carp report") -> tuple[Path, Path]:
+    """Write ``report.md``, ``report.html`` and ``figures/`` into ``output_dir``; returns the two document paths."""
+    output_dir = Path(output_dir)
+    figures_dir = output_dir / "figures"
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    sections = build_sections(inputs, figures_dir)
+    markdown_path, html_path = output_dir / "report.md", output_dir / "report.html"
+    for path, text in (
+        (markdown_path, render_markdown(sections, title, output_dir)),
+        (html_path, render_html(sections, title)),
+    ):
+        temporary = path.with_name(f".{path.name}.tmp")
+        temporary.write_text(text)
+        os.replace(temporary, path)
+    return markdown_path, html_path

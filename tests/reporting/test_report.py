@@ -1,0 +1,84 @@
+import base64
+import re
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import pandas as pd
+import pytest
+
+from carp.evaluation.metrics import summarize_episodes
+from carp.reporting.report import ReportInputs, write_report
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    figure = tmp_path / "reconstruction.png"
+    plt.plot([0, 1], [1, 0])
+    plt.savefig(figure)
+    plt.close()
+    lift = summarize_episodes(
+        successes=[True] * 45 + [False] * 5,
+        steps=[120] * 50,
+        crashed=[False] * 49 + [True],
+        prediction_seconds=[0.002] * 10,
+        decoding_seconds=[0.0005] * 10,
+    )
+    lift.update(
+        {
+            "batched_latency_batch_size": 64,
+            "batched_latency_predict_ms_median": 9.0,
+            "batched_latency_predict_ms_p90": 10.0,
+            "batched_latency_decode_ms_median": 1.0,
+            "batched_latency_decode_ms_p90": 1.5,
+        }
+    )
+    history = pd.DataFrame({"epoch": [1, 2, 3], "loss": [3.0, 2.0, 1.0], "token_accuracy_scale_1": [0.2, 0.5, 0.9]})
+    return ReportInputs(
+        evaluation={"lift": lift},
+        tokenizer_metrics={
+            "mean_rmse": 0.002,
+            "mean_rmse_fraction_of_range": 0.01,
+            "per_dimension": [{"dimension": "x", "rmse": 0.001, "max_error": 0.004}],
+        },
+        tokenizer_history=pd.DataFrame({"epoch": [1, 2], "loss": [0.5, 0.1], "reconstruction_loss": [0.4, 0.05]}),
+        policy_histories={"lift": history},
+        reconstruction_figure=figure,
+        sweep_trials=pd.DataFrame(
+            {"num_scales": [2, 4, 2, 4], "codebook_size": [64, 64, 256, 256], "success_rate": [0.5, 0.9, 0.6, 0.95]}
+        ),
+        versions={"robosuite": "1.5.2", "mujoco": "3.3.7", "torch": "2.13.0"},
+        git_commit="abc123",
+        params_yaml="scales: [1, 2, 3, 4]\n",
+    )
+
+
+def test_report_contains_every_section_and_numbers(tmp_path, inputs):
+    markdown_path, html_path = write_report(inputs, tmp_path / "reports")
+    markdown = markdown_path.read_text()
+    for heading in (
+        "Success rate",
+        "Inference latency",
+        "Action tokenizer",
+        "Training curves",
+        "Sweep over scales",
+        "Provenance",
+    ):
+        assert f"## {heading}" in markdown
+    assert "45/50" in markdown and "90.0%" in markdown and "78.6-95.7%" in markdown
+    assert "2.00" in markdown and "B=64" in markdown
+    assert "robosuite 1.5.2" in markdown and "abc123" in markdown and "scales: [1, 2, 3, 4]" in markdown
+    for figure in re.findall(r"!\[[^]]*\]\(([^)]+)\)", markdown):
+        assert (markdown_path.parent / figure).exists()
+    assert (markdown_path.parent / "figures" / "sweep_scales.png").exists()
+
+
+def test_html_is_self_contained(tmp_path, inputs):
+    _, html_path = write_report(inputs, tmp_path / "reports")
+    page = html_path.read_text()
+    assert "<script" not in page and "http://" not in page and "https://" not in page
+    images = re.findall(r"src='data:image/png;base64,([^']+)'", page)
+    assert len(images) >= 4
+    assert base64.b64decode(images[0])[:4] == b"\x89PNG"
+    assert "45/50" in page
