@@ -34,6 +34,25 @@ def resolve_tracking_uri(uri: str, project_root: Path) -> str:
     return uri
 
 
+def artifact_root(tracking_uri: str) -> str | None:
+    """Artifacts next to a SQLite store (``<dir>/mlartifacts``), so runs never write into the working directory."""
+    prefix = "sqlite:///"
+    if tracking_uri.startswith(prefix):
+        return (Path(tracking_uri[len(prefix) :]).parent / "mlartifacts").as_uri()
+    return None
+
+
+def ensure_experiment(tracking_uri: str, experiment_name: str) -> str:
+    """Id of the named experiment, created (with its artifact root beside the store) when missing."""
+    client = MlflowClient(tracking_uri=tracking_uri)
+    experiment = client.get_experiment_by_name(experiment_name)
+    if experiment is not None:
+        return experiment.experiment_id
+    root = artifact_root(tracking_uri)
+    location = f"{root}/{experiment_name}" if root else None
+    return client.create_experiment(experiment_name, artifact_location=location)
+
+
 def params_hash(flat_params: Mapping[str, str]) -> str:
     """Short sha256 of the flattened params, stable across key order."""
     return hashlib.sha256(json.dumps(dict(sorted(flat_params.items()))).encode()).hexdigest()[:16]
@@ -89,7 +108,7 @@ def stage_run(
         parent_run_id: makes this a nested (child) run, e.g. a sweep trial under its study's run.
     """
     mlflow.set_tracking_uri(tracking_uri)
-    experiment = mlflow.set_experiment(experiment_name)
+    experiment = mlflow.set_experiment(experiment_id=ensure_experiment(tracking_uri, experiment_name))
     all_tags = {**tags, "carp.params_hash": params_hash(flat_params)}
     if parent_run_id is not None:
         all_tags["mlflow.parentRunId"] = parent_run_id

@@ -1,0 +1,94 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.tokenizer.spec import TokenizerSpec
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.tokenizer.artifact import (
+    TokenizerMismatchError,
+    check_compatible,
+    load_tokenizer_artifact,
+    save_tokenizer_artifact,
+)
+from carp.tracking.registry import TokenizerReference, fetch_registered_tokenizer, register_tokenizer
+from carp.tracking.runs import find_runs, stage_run
+
+SPEC = TokenizerSpec(action_dim=2, action_horizon=8, scales=(1, 2), codebook_size=8, latent_channels=4)
+
+
+def make_artifact(directory, seed=0):
+    torch.manual_seed(seed)
+    tokenizer = MultiScaleActionTokenizer(SPEC)
+    normalizer = MinMaxNormalizer(minimum=np.array([-1.0, 0.0]), maximum=np.array([1.0, 2.0]))
+    sha = save_tokenizer_artifact(directory, tokenizer, normalizer, "panda-test2", ["lift"])
+    return tokenizer, sha
+
+
+def register(uri, directory, sha, alias="default"):
+    with stage_run(uri, "carp-tokenizer", "register_tokenizer", {"a": "1"}, {"carp.dvc_stage": "register"}) as run:
+        return register_tokenizer(uri, directory, "carp-tokenizer-panda-test2", alias, run.run_id, sha)
+
+
+@pytest.mark.slow
+def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    directory = tmp_path / "tokenizer"
+    tokenizer, sha = make_artifact(directory)
+    first = register(uri, directory, sha)
+    again = register(uri, directory, sha)
+    assert first.version == again.version == "1"
+    assert first.sha256 == sha and first.uri == "models:/carp-tokenizer-panda-test2@default"
+    assert len(find_runs(uri, "carp-tokenizer")) == 2
+    assert (tmp_path / "mlartifacts").exists()  # artifacts beside the store, not in the working directory
+
+    other_directory = tmp_path / "other"
+    _, other_sha = make_artifact(other_directory, seed=1)
+    assert other_sha != sha
+    assert register(uri, other_directory, other_sha, alias="candidate").version == "2"
+
+    actions = torch.rand(5, 8, 2) * 2 - 1
+    expected = tokenizer.encode_to_sequence(actions).tolist()
+    script = (
+        "import json, sys, torch\n"
+        "from carp.tracking.registry import fetch_registered_tokenizer\n"
+        "artifact, ref = fetch_registered_tokenizer(sys.argv[1], 'models:/carp-tokenizer-panda-test2@default')\n"
+        "actions = torch.tensor(json.loads(sys.argv[2]))\n"
+        "print(json.dumps({'ids': artifact.tokenizer.encode_to_sequence(actions).tolist(), 'version': ref.version}))\n"
+    )
+    output = subprocess.run(
+        [sys.executable, "-c", script, uri, json.dumps(actions.tolist())], capture_output=True, text=True, check=True
+    )
+    loaded = json.loads(output.stdout.strip().splitlines()[-1])
+    assert loaded == {"ids": expected, "version": "1"}
+
+    candidate, reference = fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@candidate")
+    assert reference.version == "2" and candidate.sha256 == other_sha
+    with pytest.raises(LookupError, match="not found in the registry"):
+        fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@nope")
+
+
+def test_sha_mismatch_and_incompatible_params_are_refused(tmp_path):
+    directory = tmp_path / "tokenizer"
+    _, sha = make_artifact(directory)
+    artifact = load_tokenizer_artifact(directory, expected_sha256=sha)
+    assert artifact.sha256 == sha
+    with pytest.raises(TokenizerMismatchError, match="differs from the referenced"):
+        load_tokenizer_artifact(directory, expected_sha256="0" * 64)
+    check_compatible(artifact, "panda-test2", (1, 2), 8)
+    with pytest.raises(TokenizerMismatchError, match=r"tokenizer scales is \[1, 2\] but the params ask for \[2\]"):
+        check_compatible(artifact, "panda-test2", (2,), 8)
+    with pytest.raises(TokenizerMismatchError, match="codebook_size is 8 but the params ask for 256"):
+        check_compatible(artifact, "panda-test2", (1, 2), 256)
+    with pytest.raises(TokenizerMismatchError, match="action space is 'panda-test2' but the params ask for 'panda-abs10'"):
+        check_compatible(artifact, "panda-abs10", (1, 2), 8)
+
+
+def test_reference_file_round_trip(tmp_path):
+    reference = TokenizerReference("carp-tokenizer-x", "3", "default", "run", "f" * 64)
+    reference.save(tmp_path / "ref.json")
+    assert TokenizerReference.load(tmp_path / "ref.json") == reference
