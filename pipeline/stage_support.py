@@ -1,6 +1,7 @@
 """What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run."""
 
 import argparse
+import json
 import logging
 import os
 import subprocess
@@ -16,6 +17,19 @@ from carp.config import ConfigError, Params, flatten_params, load_params
 logger = logging.getLogger("carp.pipeline")
 
 PROJECT_DIR = Path(__file__).resolve().parents[1]
+
+# Fixed, untimestamped artifact paths (declared in dvc.yaml).
+RAW_DIR = PROJECT_DIR / "data" / "raw"
+PROCESSED_DIR = PROJECT_DIR / "data" / "processed"
+TOKENIZER_DIR = PROJECT_DIR / "models" / "tokenizer"
+TOKENIZER_REF = PROJECT_DIR / "models" / "tokenizer_ref.json"
+POLICY_DIR = PROJECT_DIR / "models" / "policy"
+REPORTS_DIR = PROJECT_DIR / "reports"
+TOKENIZER_REPORT_DIR = REPORTS_DIR / "tokenizer"
+POLICY_REPORT_DIR = REPORTS_DIR / "policy"
+EVAL_REPORT_DIR = REPORTS_DIR / "eval"
+# Training states for resuming after an interruption; not DVC outputs (DVC deletes outputs before a stage runs).
+CHECKPOINT_DIR = PROJECT_DIR / "checkpoints"
 
 
 def project_root() -> Path:
@@ -104,6 +118,14 @@ def mlflow_stage(params: Params, stage: str, experiment: str, extra_tags: dict |
         tags=tags,
     ) as run:
         yield run
+
+
+def write_json(path: Path, payload: dict) -> None:
+    """Write JSON atomically (temp file, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(json.dumps(payload, indent=2, sort_keys=True))
+    os.replace(temporary, path)
 
 
 def setup_logging() -> None:
