@@ -38,9 +38,14 @@ def inputs(tmp_path):
     return ReportInputs(
         evaluation={"lift": lift},
         tokenizer_metrics={
-            "mean_rmse": 0.002,
-            "mean_rmse_fraction_of_range": 0.01,
-            "per_dimension": [{"dimension": "x", "rmse": 0.001, "max_error": 0.004}],
+            "rmse/x": 0.001,
+            "rmse/mean": 0.001,
+            "rmse_percent_range/x": 0.75,
+            "rmse_percent_range/mean": 0.75,
+            "max_error/x": 0.004,
+            "max_error/max": 0.004,
+            "usage/all_scales/x": 0.5,
+            "perplexity/x": 40.0,
         },
         tokenizer_history=pd.DataFrame({"epoch": [1, 2], "loss": [0.5, 0.1], "reconstruction_loss": [0.4, 0.05]}),
         policy_histories={"lift": history},
@@ -68,6 +73,7 @@ def test_report_contains_every_section_and_numbers(tmp_path, inputs):
         assert f"## {heading}" in markdown
     assert "45/50" in markdown and "90.0%" in markdown and "78.6-95.7%" in markdown
     assert "2.00" in markdown and "B=64" in markdown
+    assert "| x " in markdown and "0.75% of each dimension's range" in markdown
     assert "robosuite 1.5.2" in markdown and "abc123" in markdown and "scales: [1, 2, 3, 4]" in markdown
     for figure in re.findall(r"!\[[^]]*\]\(([^)]+)\)", markdown):
         assert (markdown_path.parent / figure).exists()

@@ -99,6 +99,28 @@ def latency_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+TOKENIZER_COLUMNS = {
+    "rmse": "RMSE",
+    "rmse_percent_range": "RMSE % of range",
+    "max_error": "max error",
+    "usage/all_scales": "code usage",
+    "perplexity": "perplexity",
+}
+
+
+def tokenizer_table(metrics: Mapping[str, float]) -> pd.DataFrame:
+    """Per-dimension rows from flat tokenizer metrics keyed ``<metric>/<dimension>``."""
+    dimensions = [key.split("/", 1)[1] for key in metrics if key.startswith("rmse/")]
+    rows = []
+    for dimension in dimensions:
+        row = {"dimension": dimension}
+        for key, label in TOKENIZER_COLUMNS.items():
+            value = metrics.get(f"{key}/{dimension}")
+            row[label] = "" if value is None else f"{value:.4g}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path: Path, log_scale: bool = True) -> Path:
     """Plot per-epoch columns of a history table to a PNG."""
     figure, axis = plt.subplots(figsize=(6, 3.2))
@@ -155,14 +177,12 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     tokenizer = Section("Action tokenizer")
     if inputs.tokenizer_metrics:
         metrics = inputs.tokenizer_metrics
-        per_dimension = pd.DataFrame(metrics.get("per_dimension", []))
         tokenizer.paragraphs.append(
-            "Reconstruction error on held-out windows, in original action units "
-            f"(mean RMSE {metrics.get('mean_rmse', float('nan')):.4f}, "
-            f"mean RMSE / range {100 * metrics.get('mean_rmse_fraction_of_range', float('nan')):.2f}%)."
+            "Reconstruction of held-out windows in original action units: mean RMSE "
+            f"{metrics.get('rmse_percent_range/mean', float('nan')):.2f}% of each dimension's range, "
+            f"worst error {metrics.get('max_error/max', float('nan')):.4f}."
         )
-        if not per_dimension.empty:
-            tokenizer.tables.append(per_dimension.round(4))
+        tokenizer.tables.append(tokenizer_table(metrics))
     if inputs.reconstruction_figure and Path(inputs.reconstruction_figure).exists():
         tokenizer.figures.append(Path(inputs.reconstruction_figure))
     if tokenizer.paragraphs or tokenizer.figures:

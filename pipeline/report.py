@@ -1,0 +1,53 @@
+"""report stage: every metrics file -> reports/report.md and a self-contained reports/report.html."""
+
+import json
+from importlib.metadata import version
+
+import pandas as pd
+from stage_support import (
+    EVAL_REPORT_DIR,
+    POLICY_REPORT_DIR,
+    PROJECT_DIR,
+    REPORTS_DIR,
+    TOKENIZER_REPORT_DIR,
+    git_commit,
+    load,
+    parse_args,
+    setup_logging,
+)
+
+from carp.reporting.report import ReportInputs, write_report
+
+SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
+
+
+def main() -> None:
+    setup_logging()
+    args = parse_args(__doc__)
+    params = load(args.params)
+    tokenizer_history = TOKENIZER_REPORT_DIR / "history.csv"
+    inputs = ReportInputs(
+        evaluation={task: json.loads((EVAL_REPORT_DIR / f"{task}.json").read_text()) for task in params.tasks},
+        tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
+        tokenizer_history=pd.read_csv(tokenizer_history) if tokenizer_history.exists() else None,
+        policy_histories={
+            task: pd.read_csv(POLICY_REPORT_DIR / task / "history.csv")
+            for task in params.tasks
+            if (POLICY_REPORT_DIR / task / "history.csv").exists()
+        },
+        reconstruction_figure=TOKENIZER_REPORT_DIR / "reconstruction.png",
+        sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
+        versions={name: version(name) for name in ("robosuite", "mujoco", "torch", "dvc", "mlflow")},
+        git_commit=git_commit(),
+        params_yaml=args.params.read_text(),
+    )
+    markdown, html = write_report(inputs, REPORTS_DIR, title=f"carp report: {', '.join(params.tasks)}")
+    print(f"wrote {markdown.relative_to(PROJECT_DIR)} and {html.relative_to(PROJECT_DIR)}")
+
+
+def _json_or_none(path):
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+if __name__ == "__main__":
+    main()
