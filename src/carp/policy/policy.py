@@ -1,0 +1,216 @@
+"""The deployable CARP policy: normalizers, the frozen tokenizer and the coarse-to-fine transformer in one object.
+
+`predict_action` maps raw observations to raw action chunks: normalize, predict the K scales of tokens, decode
+f_hat, un-normalize. Rotation conversion (10-D -> 7-D) and choosing the executed slice `[To-1 : To-1+Ta]` stay with the
+caller (`carp.evaluation`), so the policy is independent of the action space. A checkpoint is one self-contained file
+(specs, weights, normalizer statistics, metadata) that loads strictly.
+"""
+
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.policy.sampling import generate_chunk
+from carp.policy.spec import PolicySpec
+from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.spec import TokenizerSpec
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.checkpoint import atomic_torch_save
+
+POLICY_FORMAT_VERSION = 1
+
+
+class TimedPrediction(NamedTuple):
+    """Actions of one call and where its time went.
+
+    Attributes:
+        actions: (B, H, A) float32 raw actions.
+        prediction_seconds: normalization plus the K coarse-to-fine steps.
+        decoding_seconds: tokenizer decoding of f_hat plus un-normalization.
+    """
+
+    actions: np.ndarray
+    prediction_seconds: float
+    decoding_seconds: float
+
+
+def check_specs_match(policy_spec: PolicySpec, tokenizer_spec: TokenizerSpec) -> None:
+    """Raise ValueError unless the transformer was sized for this tokenizer (A, scales, C, V)."""
+    pairs = {
+        "action_dim": (policy_spec.action_dim, tokenizer_spec.action_dim),
+        "scales": (policy_spec.scales, tokenizer_spec.scales),
+        "latent_channels": (policy_spec.latent_channels, tokenizer_spec.latent_channels),
+        "codebook_size": (policy_spec.codebook_size, tokenizer_spec.codebook_size),
+    }
+    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
+    if mismatched:
+        details = ", ".join(
+            f"{name}: policy {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
+        )
+        raise ValueError(f"policy spec does not match the tokenizer spec ({details})")
+
+
+class CarpPolicy(nn.Module):
+    """Normalizers + frozen tokenizer + coarse-to-fine transformer.
+
+    Args:
+        tokenizer: trained tokenizer; frozen here (eval mode, no gradients).
+        transformer: trained coarse-to-fine transformer.
+        obs_normalizer: per-feature min-max statistics of the `Do` observation features.
+        action_normalizer: per-feature min-max statistics of the `A` action dimensions.
+        metadata: plain values stored in the checkpoint (e.g. the tokenizer's registry reference, the task names).
+    """
+
+    def __init__(
+        self,
+        tokenizer: MultiScaleActionTokenizer,
+        transformer: CoarseToFineTransformer,
+        obs_normalizer: MinMaxNormalizer,
+        action_normalizer: MinMaxNormalizer,
+        metadata: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        check_specs_match(transformer.spec, tokenizer.spec)
+        if obs_normalizer.num_features != transformer.spec.obs_dim:
+            raise ValueError(
+                f"obs normalizer has {obs_normalizer.num_features} features, the policy expects Do = "
+                f"{transformer.spec.obs_dim}"
+            )
+        if action_normalizer.num_features != tokenizer.spec.action_dim:
+            raise ValueError(
+                f"action normalizer has {action_normalizer.num_features} features, the tokenizer has A = "
+                f"{tokenizer.spec.action_dim}"
+            )
+        self.tokenizer = tokenizer.eval().requires_grad_(False)
+        self.transformer = transformer.eval()
+        self.obs_normalizer = obs_normalizer
+        self.action_normalizer = action_normalizer
+        self.metadata = dict(metadata or {})
+
+    @property
+    def spec(self) -> PolicySpec:
+        """The transformer's spec."""
+        return self.transformer.spec
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the weights."""
+        return self.transformer.position_embedding.device
+
+    def train(self, mode: bool = True) -> "CarpPolicy":
+        """Switch the transformer's mode; the tokenizer stays frozen in eval mode."""
+        super().train(mode)
+        self.tokenizer.eval()
+        return self
+
+    def _observations(self, obs: np.ndarray | torch.Tensor) -> torch.Tensor:
+        spec = self.spec
+        observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
+        if observations.dim() != 3 or tuple(observations.shape[1:]) != (spec.obs_steps, spec.obs_dim):
+            raise ValueError(
+                f"obs must have shape (B, To, Do) = (B, {spec.obs_steps}, {spec.obs_dim}), got "
+                f"{tuple(observations.shape)}"
+            )
+        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
+
+    def _task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
+        if task_index is None:
+            return None
+        task_ids = torch.as_tensor(task_index, dtype=torch.long, device=self.device).reshape(-1)
+        if task_ids.numel() == 1:
+            task_ids = task_ids.expand(batch_size)
+        if task_ids.numel() != batch_size:
+            raise ValueError(f"task_index must be one index or one per sample ({batch_size}), got {task_ids.numel()}")
+        if self.spec.num_tasks > 0 and not bool(((task_ids >= 0) & (task_ids < self.spec.num_tasks)).all()):
+            raise ValueError(f"task indices must be in [0, {self.spec.num_tasks}), got {task_ids.tolist()}")
+        return task_ids  # (B,)
+
+    def predict_action_timed(
+        self,
+        obs: np.ndarray | torch.Tensor,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
+        top_k: int = 1,
+        generator: torch.Generator | None = None,
+    ) -> TimedPrediction:
+        """Predict raw action chunks and time prediction and decoding separately.
+
+        Args:
+            obs: (B, To, Do) raw observations (numpy or torch).
+            task_index: None for single-task policies; otherwise one task index for the whole batch or (B,).
+            top_k: 1 = greedy; k > 1 samples from the top-k tokens (see `carp.policy.sampling.select_tokens`).
+            generator: random source for top-k sampling, on the policy's device.
+
+        Returns:
+            Actions (B, H, A) raw float32 and the two durations in seconds.
+        """
+        with torch.inference_mode():
+            started = time.perf_counter()
+            observations = self._observations(obs)  # (B, To, Do)
+            task_ids = self._task_ids(task_index, observations.shape[0])
+            chunk = generate_chunk(self.transformer, self.tokenizer, observations, task_ids, top_k, generator)
+            predicted = time.perf_counter()
+            normalized_actions = self.tokenizer.decode_latent(chunk.latent)  # (B, H, A)
+            actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
+            decoded = time.perf_counter()
+        return TimedPrediction(actions, predicted - started, decoded - predicted)
+
+    def predict_action(
+        self,
+        obs: np.ndarray | torch.Tensor,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
+        top_k: int = 1,
+        generator: torch.Generator | None = None,
+    ) -> np.ndarray:
+        """Predict raw action chunks (B, H, A) float32 from raw observations (B, To, Do).
+
+        See :meth:`predict_action_timed` for the arguments.
+        """
+        return self.predict_action_timed(obs, task_index, top_k, generator).actions
+
+    def to_checkpoint(self) -> dict[str, Any]:
+        """Self-contained state: format version, both specs, both weights, normalizer statistics, metadata."""
+        return {
+            "format_version": POLICY_FORMAT_VERSION,
+            "policy_spec": self.spec.to_dict(),
+            "tokenizer_spec": self.tokenizer.spec.to_dict(),
+            "tokenizer_state": self.tokenizer.state_dict(),
+            "transformer_state": self.transformer.state_dict(),
+            "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
+            "metadata": self.metadata,
+        }
+
+    def save(self, path: Path) -> None:
+        """Atomically write :meth:`to_checkpoint` to `path`."""
+        atomic_torch_save(self.to_checkpoint(), Path(path))
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint: dict[str, Any]) -> "CarpPolicy":
+        """Rebuild a policy from :meth:`to_checkpoint` output, loading weights strictly."""
+        version = checkpoint.get("format_version") if isinstance(checkpoint, dict) else None
+        if version != POLICY_FORMAT_VERSION:
+            raise ValueError(
+                f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
+            )
+        tokenizer = MultiScaleActionTokenizer(TokenizerSpec.from_dict(checkpoint["tokenizer_spec"]))
+        tokenizer.load_state_dict(checkpoint["tokenizer_state"], strict=True)
+        transformer = CoarseToFineTransformer(PolicySpec.from_dict(checkpoint["policy_spec"]))
+        transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
+        normalizers = checkpoint["normalizers"]
+        return cls(
+            tokenizer,
+            transformer,
+            MinMaxNormalizer.from_dict(normalizers["obs"]),
+            MinMaxNormalizer.from_dict(normalizers["action"]),
+            checkpoint["metadata"],
+        )
+
+    @classmethod
+    def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":
+        """Read a checkpoint written by :meth:`save` onto `map_location`."""
+        checkpoint = torch.load(Path(path), map_location=map_location, weights_only=True)
+        return cls.from_checkpoint(checkpoint).to(map_location)

@@ -1,0 +1,219 @@
+"""Coarse-to-fine autoregressive transformer: next-scale prediction of action tokens (DESIGN.md section 5).
+
+Follows VAR (FoundationVision/VAR, `models/var.py`) and the official CARP (`singletask/CFAP/autoreg.py`): a
+decoder-only GPT-2-style stack with AdaLN conditioning. The first scale's tokens are the condition plus a learned
+start embedding; scale k > 1 reads a linear projection of the tokenizer latent accumulated from scales < k,
+area-downsampled to `s_k`. A learned per-token position embedding and a per-scale level embedding are added.
+Training is teacher-forced under a block-causal mask; inference runs K steps with a kv-cache.
+
+Deviations from those sources: the condition comes from flattened low-dim observations (+ a task embedding) rather
+than a class label, so there is no classifier-free guidance; all AdaLN modulations (every block's and the head's)
+come from one projection of SiLU(cond) that inference computes once per chunk instead of once per block and scale;
+the head has one vocabulary per action dimension (see :class:`~carp.policy.blocks.PerDimensionHead`).
+"""
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS, AdaptiveBlock, KeyValueCache, PerDimensionHead
+from carp.policy.layout import TokenLayout
+from carp.policy.spec import TASK_EMBEDDING_DIM, PolicySpec
+
+EMBEDDING_INIT_STD = 0.02
+GATE_INIT_GAIN = 1e-5
+"""Gates start near zero so every block starts close to the identity (VAR's `init_adaln_gamma`)."""
+HEAD_INIT_GAIN = 0.02
+"""Near-uniform initial logits (VAR's `init_head`)."""
+
+
+@dataclass
+class InferenceState:
+    """What K-step inference carries from one scale to the next.
+
+    Attributes:
+        condition: (B, D) condition vector.
+        modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
+        position_and_level: (1, L, D) position plus level embedding of every token.
+        cache: keys and values of the scales processed so far.
+        next_scale: index (0-based) of the scale the next call predicts.
+    """
+
+    condition: torch.Tensor
+    modulations: tuple[torch.Tensor, ...]
+    position_and_level: torch.Tensor
+    cache: KeyValueCache
+    next_scale: int = 0
+
+
+class CoarseToFineTransformer(nn.Module):
+    """Predicts the token ids of every scale of an action chunk given observation features.
+
+    Args:
+        spec: model hyper-parameters.
+    """
+
+    def __init__(self, spec: PolicySpec) -> None:
+        super().__init__()
+        self.spec = spec
+        self.layout = TokenLayout(spec.action_dim, spec.scales)
+        width, length = spec.width, spec.sequence_length
+        first_length = self.layout.scale_lengths[0]
+
+        self.task_embedding = nn.Embedding(spec.num_tasks, TASK_EMBEDDING_DIM) if spec.num_tasks > 0 else None
+        self.condition_projection = nn.Linear(spec.condition_features, width)
+        self.start_embedding = nn.Parameter(torch.empty(1, first_length, width))
+        self.token_projection = nn.Linear(spec.latent_channels, width)
+        self.position_embedding = nn.Parameter(torch.empty(1, length, width))
+        self.level_embedding = nn.Parameter(torch.empty(spec.num_scales, width))
+
+        self.num_modulations = MODULATIONS_PER_BLOCK * spec.depth + 2
+        self.modulation = nn.Linear(width, self.num_modulations * width)
+        # Scale modulations are applied as (1 + scale); adding the one here once saves an op per use.
+        scale_rows = torch.zeros(self.num_modulations, 1)
+        scale_rows[1 : MODULATIONS_PER_BLOCK * spec.depth : 3] = 1.0
+        scale_rows[-1] = 1.0
+        self.register_buffer("modulation_offset", scale_rows.expand(-1, width).reshape(-1), persistent=False)
+
+        self.blocks = nn.ModuleList(
+            AdaptiveBlock(width, spec.num_heads, spec.hidden_width, spec.dropout, index) for index in range(spec.depth)
+        )
+        self.head = PerDimensionHead(spec.action_dim, width, spec.codebook_size)
+
+        self.register_buffer("level_ids", self.layout.level_ids(), persistent=False)
+        self.register_buffer("attention_mask", self.layout.attention_mask(), persistent=False)
+        self._initialize_weights()
+
+    def _initialize_weights(self) -> None:
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+                nn.init.zeros_(module.bias)
+            elif isinstance(module, nn.Embedding):
+                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+        for parameter in (self.start_embedding, self.position_embedding, self.level_embedding):
+            nn.init.trunc_normal_(parameter, std=EMBEDDING_INIT_STD)
+        # GPT-2: residual branch outputs shrink with depth so the residual stream's variance stays bounded.
+        residual_gain = 1.0 / math.sqrt(2 * self.spec.depth)
+        for block in self.blocks:
+            block.attention.output.weight.data.mul_(residual_gain)
+            block.feed_forward.contract.weight.data.mul_(residual_gain)
+        width = self.spec.width
+        weight = self.modulation.weight.data.view(self.num_modulations, width, width)
+        weight[2 : MODULATIONS_PER_BLOCK * self.spec.depth : 3].mul_(GATE_INIT_GAIN)
+        self.head.weight.data.mul_(HEAD_INIT_GAIN)
+
+    def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Project observations (and task) to the condition vector.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations (or already flattened (B, To * Do)).
+            task_ids: (B,) long task indices; required exactly when the spec has `num_tasks > 0`.
+
+        Returns:
+            (B, D) condition.
+        """
+        spec = self.spec
+        features = obs_features.reshape(obs_features.shape[0], -1)  # (B, To * Do)
+        expected = spec.obs_steps * spec.obs_dim
+        if features.shape[1] != expected:
+            raise ValueError(
+                f"observations have {features.shape[1]} features per sample ({tuple(obs_features.shape)}), "
+                f"expected To * Do = {spec.obs_steps} * {spec.obs_dim} = {expected}"
+            )
+        if self.task_embedding is not None:
+            if task_ids is None:
+                raise ValueError(f"this policy is multi-task ({spec.num_tasks} tasks): pass task ids")
+            features = torch.cat((features, self.task_embedding(task_ids)), dim=1)  # (B, To * Do + 3)
+        elif task_ids is not None:
+            raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
+        return self.condition_projection(features)  # (B, D)
+
+    def _modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        modulation = self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
+        return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.width).unbind(1)
+
+    def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
+        return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
+
+    def _position_and_level(self) -> torch.Tensor:
+        return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
+
+    def _logits(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        shift, scale = modulations[-2:]
+        normed = F.layer_norm(hidden, hidden.shape[-1:], eps=NORM_EPS)
+        return self.head(torch.addcmul(shift, normed, scale))  # (B, N, V)
+
+    def forward(
+        self,
+        obs_features: torch.Tensor,
+        teacher_inputs: torch.Tensor,
+        task_ids: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Teacher-forced logits of all L tokens.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            teacher_inputs: (B, L - s_1 * A, C) float, the tokenizer's teacher-forcing inputs of scales 2..K in
+                sequence order (area-downsampled accumulated latent of the ground-truth tokens of coarser scales).
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary.
+        """
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        modulations = self._modulations(condition)
+        tokens = torch.cat(
+            (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
+        )  # (B, L, D)
+        hidden = tokens + self._position_and_level()
+        for index, block in enumerate(self.blocks):
+            start = index * MODULATIONS_PER_BLOCK
+            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
+        return self._logits(hidden, modulations)  # (B, L, V)
+
+    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
+        """Encode the condition and open an empty kv-cache for K-step inference.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            State to pass to :meth:`next_scale_logits` K times.
+        """
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        return InferenceState(
+            condition, self._modulations(condition), self._position_and_level(), KeyValueCache(self.spec.depth)
+        )
+
+    def next_scale_logits(self, state: InferenceState, scale_inputs: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits of the next scale's tokens, extending the kv-cache (no mask: cached keys are all coarser scales).
+
+        Args:
+            state: from :meth:`start_inference`, advanced by one scale per call.
+            scale_inputs: None for the first scale; afterwards (B, s_k * A, C) float, the area-downsampled latent
+                accumulated from the predicted scales, in sequence order.
+
+        Returns:
+            (B, s_k * A, V) logits of scale k = `state.next_scale`.
+        """
+        scale_index = state.next_scale
+        if scale_index >= self.layout.num_scales:
+            raise RuntimeError(f"all {self.layout.num_scales} scales were already predicted")
+        start, end = self.layout.scale_bounds[scale_index]
+        if scale_index == 0:
+            tokens = self._first_scale_tokens(state.condition)  # (B, s_1 * A, D)
+        else:
+            if scale_inputs is None:
+                raise ValueError(f"scale {scale_index + 1} needs the accumulated latent of the coarser scales")
+            tokens = self.token_projection(scale_inputs)  # (B, s_k * A, D)
+        hidden = tokens + state.position_and_level[:, start:end]
+        for index, block in enumerate(self.blocks):
+            offset = index * MODULATIONS_PER_BLOCK
+            hidden = block(hidden, state.modulations[offset : offset + MODULATIONS_PER_BLOCK], None, state.cache)
+        state.next_scale += 1
+        return self._logits(hidden, state.modulations)  # (B, s_k * A, V)

@@ -1,0 +1,323 @@
+"""Train the coarse-to-fine transformer against a frozen tokenizer, resumable and deterministic on CPU.
+
+Recipe (DESIGN.md section 5, after VAR and the official CARP trainer): teacher forcing with ground-truth tokens, cross
+entropy over all L tokens, AdamW (betas 0.9/0.95 as in VAR, no weight decay on biases and embeddings), linear warm-up
+then cosine decay per step, optional EMA of the weights.
+
+Because the tokenizer is frozen, the ground-truth token ids and the teacher-forcing inputs of every window never change;
+they are computed once before training instead of re-encoding every batch as the official trainer does.
+
+Learning rate: DESIGN.md's rule is 1e-4 x batch / 256 for the paper's 4,000 epochs on a GPU. The CPU budget here is
+tens of epochs, so the default peak is 1e-3 (x10) with 100 warm-up steps; the model is small (D = 64) and the AdaLN
+gates start near zero, which keeps the early steps stable at this rate, and the cosine decay to 1% of the peak
+recovers the fine convergence of the lower rate (see the measurements in the module's report).
+"""
+
+import hashlib
+import logging
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from tqdm.auto import tqdm
+
+from carp.policy.layout import TokenLayout
+from carp.policy.policy import check_specs_match
+from carp.policy.spec import PolicySpec
+from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
+from carp.training.tokenizer_trainer import resolve_device
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "policy_training_state.pt"
+TOKENIZE_BATCH_SIZE = 4096
+ADAM_BETAS = (0.9, 0.95)
+FINAL_LEARNING_RATE_FRACTION = 0.01
+
+
+@dataclass(frozen=True)
+class PolicyTrainingSettings:
+    """Optimization settings of the coarse-to-fine transformer.
+
+    Attributes:
+        epochs: passes over the training windows.
+        batch_size: windows per step.
+        learning_rate: peak AdamW learning rate (see the module docstring for the default).
+        weight_decay: AdamW weight decay of the weight matrices.
+        warmup_steps: optimizer steps of linear warm-up before the cosine decay.
+        use_ema: keep an exponential moving average of the weights and return it.
+        ema_decay: EMA decay per step.
+        seed: seeds initialization and shuffling.
+        checkpoint_every: epochs between training-state checkpoints (the last epoch is always saved).
+        device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
+    """
+
+    epochs: int = 60
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    weight_decay: float = 0.05
+    warmup_steps: int = 100
+    use_ema: bool = False
+    ema_decay: float = 0.999
+    seed: int = 0
+    checkpoint_every: int = 10
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "checkpoint_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"PolicyTrainingSettings.{name} must be a positive integer, got {value!r}")
+        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ValueError(f"PolicyTrainingSettings.warmup_steps must be an integer >= 0, got {self.warmup_steps!r}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"PolicyTrainingSettings.learning_rate must be > 0, got {self.learning_rate!r}")
+        if not self.weight_decay >= 0:
+            raise ValueError(f"PolicyTrainingSettings.weight_decay must be >= 0, got {self.weight_decay!r}")
+        if not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"PolicyTrainingSettings.ema_decay must be in (0, 1), got {self.ema_decay!r}")
+
+
+@dataclass
+class PolicyTrainingData:
+    """Normalized training windows.
+
+    Attributes:
+        obs: (N, To, Do) float normalized observations.
+        actions: (N, H, A) float normalized actions.
+        task_ids: (N,) long task indices for multi-task policies, else None.
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    task_ids: torch.Tensor | None = None
+
+
+@dataclass
+class TokenTargets:
+    """Tokenizer outputs of every training window, computed once.
+
+    Attributes:
+        token_sequence: (N, L) long ground-truth ids in sequence order.
+        teacher_inputs: (N, L - s_1 * A, C) float teacher-forcing inputs of scales 2..K.
+    """
+
+    token_sequence: torch.Tensor
+    teacher_inputs: torch.Tensor
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The training loss became NaN or infinite."""
+
+
+@torch.no_grad()
+def compute_token_targets(tokenizer: MultiScaleActionTokenizer, actions: torch.Tensor) -> TokenTargets:
+    """Tokenize (N, H, A) normalized action windows with the frozen tokenizer, in batches."""
+    tokenizer.eval()
+    sequences, inputs = [], []
+    for batch in torch.split(actions, TOKENIZE_BATCH_SIZE):
+        token_ids = tokenizer.encode_to_ids(batch)  # K x (b, A, s_k)
+        sequences.append(tokenizer.ids_to_sequence(token_ids))  # (b, L)
+        inputs.append(tokenizer.teacher_forcing_sequence(token_ids))  # (b, L - s_1 * A, C)
+    return TokenTargets(torch.cat(sequences), torch.cat(inputs))
+
+
+def _check_data(spec: PolicySpec, tokenizer: MultiScaleActionTokenizer, data: PolicyTrainingData) -> None:
+    count = data.obs.shape[0]
+    if data.obs.dim() != 3 or tuple(data.obs.shape[1:]) != (spec.obs_steps, spec.obs_dim):
+        raise ValueError(
+            f"obs must have shape (N, To, Do) = (N, {spec.obs_steps}, {spec.obs_dim}), got {tuple(data.obs.shape)}"
+        )
+    expected_actions = (count, tokenizer.spec.action_horizon, spec.action_dim)
+    if tuple(data.actions.shape) != expected_actions:
+        raise ValueError(f"actions must have shape (N, H, A) = {expected_actions}, got {tuple(data.actions.shape)}")
+    if count == 0:
+        raise ValueError("there are no training windows")
+    if spec.num_tasks > 0:
+        if data.task_ids is None or tuple(data.task_ids.shape) != (count,):
+            raise ValueError(f"a multi-task policy needs task_ids of shape (N,) = ({count},)")
+        if int(data.task_ids.min()) < 0 or int(data.task_ids.max()) >= spec.num_tasks:
+            raise ValueError(f"task_ids must be in [0, {spec.num_tasks})")
+    elif data.task_ids is not None:
+        raise ValueError("task_ids were given but the policy spec is single-task (num_tasks = 0)")
+
+
+def _make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) -> torch.optim.AdamW:
+    decayed, undecayed = [], []
+    for name, parameter in transformer.named_parameters():
+        # Weight matrices decay; biases and the learned embeddings (VAR's no-decay list) do not.
+        is_matrix = parameter.dim() > 1 and "embedding" not in name
+        (decayed if is_matrix else undecayed).append(parameter)
+    groups = [
+        {"params": decayed, "weight_decay": settings.weight_decay},
+        {"params": undecayed, "weight_decay": 0.0},
+    ]
+    return torch.optim.AdamW(groups, lr=settings.learning_rate, betas=ADAM_BETAS)
+
+
+def _make_scheduler(
+    optimizer: torch.optim.Optimizer, total_steps: int, warmup_steps: int
+) -> torch.optim.lr_scheduler.LRScheduler:
+    warmup_steps = min(warmup_steps, total_steps - 1)
+    cosine = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimizer,
+        T_max=max(1, total_steps - warmup_steps),
+        eta_min=optimizer.param_groups[0]["lr"] * FINAL_LEARNING_RATE_FRACTION,
+    )
+    if warmup_steps <= 0:
+        return cosine
+    warmup = torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=1.0 / warmup_steps, total_iters=warmup_steps)
+    return torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[warmup_steps])
+
+
+def _seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
+
+
+def _epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
+    # A generator per epoch makes the shuffle independent of earlier epochs' randomness, so resuming is exact.
+    return torch.randperm(count, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
+
+
+def _run_metadata(
+    spec: PolicySpec, settings: PolicyTrainingSettings, tokenizer: MultiScaleActionTokenizer, data: PolicyTrainingData
+) -> dict:
+    # Everything that changes the result; device and checkpoint cadence do not.
+    relevant = {key: value for key, value in asdict(settings).items() if key not in ("device", "checkpoint_every")}
+    digest = hashlib.sha256()
+    tensors = [data.obs, data.actions] + ([data.task_ids] if data.task_ids is not None else [])
+    tensors += [value for _, value in sorted(tokenizer.state_dict().items())]
+    for tensor in tensors:
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return {"spec": spec.to_dict(), "settings": relevant, "data_and_tokenizer_sha256": digest.hexdigest()}
+
+
+def _epoch_metrics(
+    loss_sum: float, correct: torch.Tensor, count: int, spec: PolicySpec, learning_rate: float, seconds: float
+) -> dict[str, float]:
+    metrics = {"loss": loss_sum / count, "token_accuracy": float(correct.sum()) / (count * spec.sequence_length)}
+    bounds = TokenLayout(spec.action_dim, spec.scales).scale_bounds
+    for scale_index, (start, end) in enumerate(bounds):
+        metrics[f"token_accuracy_scale_{scale_index + 1}"] = float(correct[start:end].sum()) / (count * (end - start))
+    metrics["learning_rate"] = learning_rate
+    metrics["epoch_seconds"] = seconds
+    metrics["samples_per_second"] = count / seconds
+    return metrics
+
+
+def train_policy(
+    spec: PolicySpec,
+    tokenizer: MultiScaleActionTokenizer,
+    data: PolicyTrainingData,
+    settings: PolicyTrainingSettings,
+    checkpoint_dir: Path,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> CoarseToFineTransformer:
+    """Train a transformer, resuming from `checkpoint_dir` if an interrupted run of the same setup left a state there.
+
+    Args:
+        spec: transformer architecture; must match the tokenizer (A, scales, C, V).
+        tokenizer: trained tokenizer; frozen (not modified).
+        data: normalized training windows.
+        settings: optimization settings.
+        checkpoint_dir: directory for the training state (`policy_training_state.pt`); created if missing. A state
+            from another spec, settings, tokenizer or data is ignored (with a warning) and overwritten.
+        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based index) with loss (mean
+            cross entropy per token), token_accuracy, token_accuracy_scale_<k> (k = 1..K), learning_rate,
+            epoch_seconds and samples_per_second.
+
+    Returns:
+        The trained transformer in eval mode on the training device; with `use_ema` it holds the EMA weights.
+
+    Raises:
+        NonFiniteLossError: the loss became NaN or infinite (the message names the epoch and step).
+    """
+    check_specs_match(spec, tokenizer.spec)
+    _check_data(spec, tokenizer, data)
+    device = resolve_device(settings.device)
+    tokenizer = tokenizer.to(device).eval()
+    obs = data.obs.to(device=device, dtype=torch.float32)
+    task_ids = data.task_ids.to(device=device, dtype=torch.long) if data.task_ids is not None else None
+    targets = compute_token_targets(tokenizer, data.actions.to(device=device, dtype=torch.float32))
+
+    _seed_everything(settings.seed)
+    transformer = CoarseToFineTransformer(spec).to(device)
+    ema = None
+    if settings.use_ema:
+        ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay), use_buffers=True)
+    # One module holding both so a training state saves and restores them together.
+    trained = nn.ModuleDict({"transformer": transformer} | ({"ema": ema} if ema is not None else {}))
+    optimizer = _make_optimizer(transformer, settings)
+    num_windows = obs.shape[0]
+    steps_per_epoch = math.ceil(num_windows / settings.batch_size)
+    scheduler = _make_scheduler(optimizer, settings.epochs * steps_per_epoch, settings.warmup_steps)
+
+    checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
+    metadata = _run_metadata(spec, settings, tokenizer, data)
+    start_epoch = 0
+    if checkpoint_path.exists():
+        if read_training_metadata(checkpoint_path) == metadata:
+            start_epoch = load_training_state(checkpoint_path, trained, optimizer, scheduler)
+            logger.info("resuming policy training from %s at epoch %d", checkpoint_path, start_epoch)
+        else:
+            logger.warning("ignoring %s: it was written for another spec, settings, tokenizer or data", checkpoint_path)
+
+    vocabulary = spec.codebook_size
+    for epoch in range(start_epoch, settings.epochs):
+        transformer.train()
+        started = time.perf_counter()
+        loss_sum = 0.0
+        correct = torch.zeros(spec.sequence_length, dtype=torch.long, device=device)
+        order = _epoch_order(settings.seed, epoch, num_windows).to(device)
+        progress = tqdm(
+            torch.split(order, settings.batch_size), desc=f"policy epoch {epoch + 1}/{settings.epochs}", leave=False
+        )
+        for step, batch in enumerate(progress):
+            batch_targets = targets.token_sequence[batch]  # (b, L)
+            logits = transformer(
+                obs[batch], targets.teacher_inputs[batch], task_ids[batch] if task_ids is not None else None
+            )  # (b, L, V)
+            loss = F.cross_entropy(logits.view(-1, vocabulary), batch_targets.view(-1))
+            loss_value = float(loss.detach())
+            if not math.isfinite(loss_value):
+                raise NonFiniteLossError(
+                    f"policy training loss is {loss_value} at epoch {epoch + 1}, step {step + 1} of {steps_per_epoch}"
+                    f" (learning rate {optimizer.param_groups[0]['lr']:.3g})"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            scheduler.step()
+            if ema is not None:
+                ema.update_parameters(transformer)
+            loss_sum += loss_value * batch.numel()
+            correct += (logits.detach().argmax(dim=-1) == batch_targets).sum(dim=0)
+            progress.set_postfix(loss=f"{loss_value:.4f}")
+        metrics = _epoch_metrics(
+            loss_sum, correct, num_windows, spec, optimizer.param_groups[0]["lr"], time.perf_counter() - started
+        )
+        if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
+            save_training_state(checkpoint_path, trained, optimizer, scheduler, epoch + 1, metadata)
+        logger.info(
+            "policy epoch %d/%d: %s",
+            epoch + 1,
+            settings.epochs,
+            ", ".join(f"{key}={value:.4g}" for key, value in metrics.items()),
+        )
+        if on_epoch_end is not None:
+            on_epoch_end(epoch, metrics)
+    if ema is not None:
+        transformer.load_state_dict(ema.module.state_dict())
+    return transformer.eval()

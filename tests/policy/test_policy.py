@@ -1,0 +1,107 @@
+import numpy as np
+import pytest
+import torch
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.policy.policy import CarpPolicy
+from carp.policy.sampling import generate_chunk
+from tests.policy.factories import (
+    OBS_DIM,
+    OBS_STEPS,
+    scrambled_transformer,
+    tiny_policy,
+    tiny_policy_spec,
+    tiny_tokenizer,
+)
+
+
+def _raw_obs(policy: CarpPolicy, batch: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    low, high = policy.obs_normalizer.minimum, policy.obs_normalizer.maximum
+    return rng.uniform(low, high, size=(batch, OBS_STEPS, OBS_DIM)).astype(np.float32)
+
+
+def test_predict_action_normalizes_predicts_decodes_and_unnormalizes():
+    policy = tiny_policy()
+    obs = _raw_obs(policy, 4)
+    actions = policy.predict_action(obs)
+    assert actions.shape == (4, 8, 2) and actions.dtype == np.float32
+    with torch.inference_mode():
+        normalized_obs = policy.obs_normalizer.normalize(torch.from_numpy(obs))
+        chunk = generate_chunk(policy.transformer, policy.tokenizer, normalized_obs)
+        expected = policy.action_normalizer.unnormalize(policy.tokenizer.decode_latent(chunk.latent))
+    np.testing.assert_allclose(actions, expected.numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(policy.predict_action(torch.from_numpy(obs)), actions)
+
+
+def test_timed_prediction_reports_both_durations():
+    policy = tiny_policy()
+    actions, prediction_seconds, decoding_seconds = policy.predict_action_timed(_raw_obs(policy, 1))
+    assert actions.shape == (1, 8, 2)
+    assert 0 < prediction_seconds < 5 and 0 < decoding_seconds < 5
+
+
+def test_save_load_round_trip_gives_identical_actions(tmp_path):
+    policy = tiny_policy(num_tasks=2)
+    obs = _raw_obs(policy, 3)
+    path = tmp_path / "policy" / "policy.pt"
+    policy.save(path)
+    loaded = CarpPolicy.load(path)
+    assert loaded.spec == policy.spec
+    assert loaded.tokenizer.spec == policy.tokenizer.spec
+    assert loaded.metadata == {"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}}
+    np.testing.assert_array_equal(loaded.obs_normalizer.minimum, policy.obs_normalizer.minimum)
+    for task in (0, 1):
+        np.testing.assert_array_equal(loaded.predict_action(obs, task), policy.predict_action(obs, task))
+    sampled = [
+        model.predict_action(obs, 1, top_k=3, generator=torch.Generator().manual_seed(7)) for model in (policy, loaded)
+    ]
+    np.testing.assert_array_equal(*sampled)
+    assert [file.name for file in path.parent.iterdir()] == ["policy.pt"]
+
+
+def test_loading_is_strict(tmp_path):
+    policy = tiny_policy()
+    checkpoint = policy.to_checkpoint()
+    checkpoint["transformer_state"]["unexpected"] = torch.zeros(1)
+    with pytest.raises(RuntimeError, match="Unexpected key"):
+        CarpPolicy.from_checkpoint(checkpoint)
+    with pytest.raises(ValueError, match="format_version 99"):
+        CarpPolicy.from_checkpoint(policy.to_checkpoint() | {"format_version": 99})
+
+
+def test_task_index_broadcasts_and_is_checked():
+    policy = tiny_policy(num_tasks=3)
+    obs = _raw_obs(policy, 2)
+    np.testing.assert_array_equal(policy.predict_action(obs, 2), policy.predict_action(obs, np.array([2, 2])))
+    assert not np.array_equal(policy.predict_action(obs, 0), policy.predict_action(obs, 2))
+    with pytest.raises(ValueError, match="task indices must be in \\[0, 3\\)"):
+        policy.predict_action(obs, 3)
+    with pytest.raises(ValueError, match="one index or one per sample \\(2\\)"):
+        policy.predict_action(obs, [0, 1, 2])
+
+
+def test_bad_observations_are_rejected():
+    policy = tiny_policy()
+    with pytest.raises(ValueError, match="obs must have shape \\(B, To, Do\\) = \\(B, 2, 3\\), got \\(2, 3\\)"):
+        policy.predict_action(np.zeros((2, 3)))
+
+
+def test_parts_must_fit_together():
+    tokenizer = tiny_tokenizer((1, 2))
+    normalizers = (MinMaxNormalizer(np.zeros(OBS_DIM), np.ones(OBS_DIM)), MinMaxNormalizer(np.zeros(2), np.ones(2)))
+    with pytest.raises(ValueError, match="codebook_size: policy 16 vs tokenizer 8"):
+        CarpPolicy(tokenizer, scrambled_transformer(tiny_policy_spec(codebook_size=16)), *normalizers)
+    with pytest.raises(ValueError, match="obs normalizer has 4 features, the policy expects Do = 3"):
+        CarpPolicy(
+            tokenizer,
+            scrambled_transformer(tiny_policy_spec()),
+            MinMaxNormalizer(np.zeros(4), np.ones(4)),
+            normalizers[1],
+        )
+
+
+def test_tokenizer_stays_frozen_in_train_mode():
+    policy = tiny_policy().train()
+    assert policy.transformer.training and not policy.tokenizer.training
+    assert not any(parameter.requires_grad for parameter in policy.tokenizer.parameters())
