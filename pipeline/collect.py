@@ -32,16 +32,19 @@ def main() -> None:
             print(f"{args.task}: copied {len(demos.episodes)} demos from {source}")
             return
 
-        from carp.data.collect import collect_demonstrations
+        from carp.data.collect import CollectionError, collect_demonstrations
 
-        summary = collect_demonstrations(
-            task=args.task,
-            num_demos=params.data.num_demos,
-            output_path=output,
-            seed=params.data.collection_seed,
-            controller=params.data.controller,
-            max_steps=params.eval.max_steps[args.task],
-        )
+        try:
+            summary = collect_demonstrations(
+                task=args.task,
+                num_demos=params.data.num_demos,
+                output_path=output,
+                seed=params.data.collection_seed,
+                controller=params.data.controller,
+                max_steps=params.data.collection_max_steps,
+            )
+        except CollectionError as error:
+            fail(str(error))
         run.log_metrics(
             {
                 "expert_success_rate": summary.success_rate,

@@ -46,6 +46,8 @@ def test_defaults_follow_the_design():
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
+        ({"eval": {"seed": 100}, "data": {"num_demos": 50}}, "eval.seed=100: evaluation seeds [100, 150) overlap"),
+        ({"tokenizer": {"tasks": ["can"]}}, "tokenizer.tasks=['can']: every tokenizer task must also be in tasks"),
         ({"colour": "red"}, "colour: unknown key"),
         ({"data": [1, 2]}, "data: expected a mapping"),
     ],

@@ -39,6 +39,7 @@ class DataConfig:
     Attributes:
         num_demos: successful scripted demos collected per task.
         collection_seed: first seed of collection; episode i uses ``collection_seed + i`` (failures included).
+        collection_max_steps: step limit of one scripted episode (failures are discarded).
         controller: ``absolute`` (default, 10-D actions with 6-D rotation) or ``delta`` (7-D, kept as-is).
         obs_keys: low-dim observation keys concatenated (in this order) into the policy's input.
         obs_steps: ``To``, observation steps fed to the policy.
@@ -51,6 +52,7 @@ class DataConfig:
 
     num_demos: int = 50
     collection_seed: int = 0
+    collection_max_steps: int = 500
     controller: str = "absolute"
     obs_keys: tuple[str, ...] = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
     obs_steps: int = 2
@@ -63,6 +65,7 @@ class DataConfig:
     def __post_init__(self) -> None:
         _require(self.num_demos >= 1, "data.num_demos", self.num_demos, "must be at least 1")
         _require(self.collection_seed >= 0, "data.collection_seed", self.collection_seed, "must be >= 0")
+        _require(self.collection_max_steps >= 1, "data.collection_max_steps", self.collection_max_steps, "must be >= 1")
         _require(self.controller in CONTROLLERS, "data.controller", self.controller, f"must be one of {CONTROLLERS}")
         _require(len(self.obs_keys) > 0, "data.obs_keys", self.obs_keys, "must name at least one key")
         _require(self.obs_steps >= 1, "data.obs_steps", self.obs_steps, "must be at least 1")
@@ -282,6 +285,23 @@ class Params:
                 "sweep.scale_schedules",
                 [list(s) for s in self.sweep.scale_schedules],
                 f"every schedule must be strictly increasing and end at l = {latent_length}",
+            )
+        # Collection may try up to 3 seeds per kept demo (see carp.data.collect); evaluation must never reuse them.
+        collection_end = self.data.collection_seed + 3 * self.data.num_demos
+        evaluation_end = self.eval.seed + self.eval.episodes
+        _require(
+            evaluation_end <= self.data.collection_seed or self.eval.seed >= collection_end,
+            "eval.seed",
+            self.eval.seed,
+            f"evaluation seeds [{self.eval.seed}, {evaluation_end}) overlap the collection seeds "
+            f"[{self.data.collection_seed}, {collection_end})",
+        )
+        for task in self.tokenizer.tasks:
+            _require(
+                task in self.tasks,
+                "tokenizer.tasks",
+                list(self.tokenizer.tasks),
+                f"every tokenizer task must also be in tasks={list(self.tasks)} (its demos are ingested there)",
             )
         for task in self.tasks:
             _require(task in self.eval.max_steps, "eval.max_steps", self.eval.max_steps, f"has no entry for '{task}'")

@@ -110,7 +110,10 @@ TOKENIZER_COLUMNS = {
 
 def tokenizer_table(metrics: Mapping[str, float]) -> pd.DataFrame:
     """Per-dimension rows from flat tokenizer metrics keyed ``<metric>/<dimension>``."""
-    dimensions = [key.split("/", 1)[1] for key in metrics if key.startswith("rmse/")]
+    # Aggregates ("mean", "max") are summarized in the text, not listed as dimensions.
+    dimensions = [
+        key.split("/", 1)[1] for key in metrics if key.startswith("rmse/") and key not in ("rmse/mean", "rmse/max")
+    ]
     rows = []
     for dimension in dimensions:
         row = {"dimension": dimension}

@@ -1,0 +1,111 @@
+"""train_policy stage: processed data of a task + the referenced tokenizer -> models/policy/<task>/policy.pt."""
+
+from dataclasses import asdict
+
+import pandas as pd
+import torch
+from stage_support import (
+    CHECKPOINT_DIR,
+    POLICY_DIR,
+    POLICY_REPORT_DIR,
+    PROCESSED_DIR,
+    TOKENIZER_DIR,
+    TOKENIZER_REF,
+    fail,
+    load,
+    mlflow_stage,
+    parse_args,
+    select_device,
+    setup_logging,
+    tracking_uri,
+    write_json,
+)
+
+from carp.data.dataset import load_task_windows
+from carp.evaluation.offline import held_out_action_errors
+from carp.policy.policy import CarpPolicy
+from carp.policy.spec import PolicySpec
+from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
+from carp.tracking.registry import TokenizerReference, fetch_registered_tokenizer
+from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
+
+
+def main() -> None:
+    setup_logging()
+    args = parse_args(__doc__, per_task=True)
+    params = load(args.params)
+    data, config = params.data, params.policy
+    reference = TokenizerReference.load(TOKENIZER_REF)
+    try:
+        if params.tokenizer.source == "pipeline":
+            artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256)
+        else:
+            artifact, _ = fetch_registered_tokenizer(tracking_uri(params), params.tokenizer.source)
+        check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
+    except (LookupError, TokenizerMismatchError, FileNotFoundError) as error:
+        fail(str(error))
+    tokenizer, action_normalizer = artifact.tokenizer, artifact.action_normalizer
+
+    windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
+    obs_normalizer = windows.obs_normalizer
+    train_data = PolicyTrainingData(
+        obs=torch.as_tensor(obs_normalizer.normalize(windows.train_obs), dtype=torch.float32),
+        actions=torch.as_tensor(action_normalizer.normalize(windows.train_actions), dtype=torch.float32),
+    )
+    spec = PolicySpec(
+        obs_dim=obs_normalizer.num_features,
+        obs_steps=data.obs_steps,
+        action_dim=data.action_dim,
+        scales=params.scales,
+        latent_channels=tokenizer.spec.latent_channels,
+        codebook_size=params.codebook_size,
+        depth=config.depth,
+        width=config.width,
+        num_heads=config.num_heads,
+        mlp_ratio=config.mlp_ratio,
+        dropout=config.dropout,
+    )
+    settings = PolicyTrainingSettings(
+        epochs=config.epochs,
+        batch_size=config.batch_size,
+        learning_rate=config.learning_rate,
+        weight_decay=config.weight_decay,
+        warmup_steps=config.warmup_steps,
+        use_ema=config.use_ema,
+        ema_decay=config.ema_decay,
+        seed=config.seed,
+        checkpoint_every=config.checkpoint_every,
+        device=str(select_device(params)),
+    )
+    history: list[dict] = []
+    with mlflow_stage(params, f"train_policy@{args.task}", args.task, {"carp.tokenizer": reference.uri}) as run:
+
+        def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
+            history.append({"epoch": epoch + 1, **metrics})
+            run.log_metrics(metrics, step=epoch + 1)
+
+        transformer = train_policy(
+            spec, tokenizer, train_data, settings, CHECKPOINT_DIR / "policy" / args.task, on_epoch_end=log_epoch
+        )
+        metadata = {"task": args.task, "tokenizer": asdict(reference), "mlflow_run_id": run.run_id}
+        policy = CarpPolicy(tokenizer.cpu(), transformer.cpu(), obs_normalizer, action_normalizer, metadata).eval()
+        held_out = held_out_action_errors(
+            policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
+        )
+        run.log_metrics(held_out)
+        checkpoint = POLICY_DIR / args.task / "policy.pt"
+        checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        policy.save(checkpoint)
+        report_dir = POLICY_REPORT_DIR / args.task
+        report_dir.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame(history).to_csv(report_dir / "history.csv", index=False)
+        write_json(report_dir / "metrics.json", {**held_out, "final_loss": history[-1]["loss"]})
+        run.log_artifact(checkpoint, "checkpoint")
+    print(
+        f"{args.task}: final loss {history[-1]['loss']:.4f}, token accuracy {history[-1]['token_accuracy']:.3f}, "
+        f"held-out action RMSE {held_out.get('valid_action_rmse', float('nan')):.4f}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,29 @@
+"""Offline checks of a policy: its greedy action chunks against demonstrated ones on held-out windows."""
+
+import numpy as np
+
+
+def held_out_action_errors(
+    policy, obs: np.ndarray, actions: np.ndarray, obs_steps: int, action_steps: int, batch_size: int = 512
+) -> dict[str, float]:
+    """RMSE in original action units of the whole chunk and of the executed part ``[To-1 : To-1+Ta]``.
+
+    Args:
+        policy: a :class:`carp.policy.policy.CarpPolicy`.
+        obs: (N, To, Do) raw observations.
+        actions: (N, H, A) raw demonstrated actions.
+        obs_steps: ``To``.
+        action_steps: ``Ta``.
+        batch_size: windows per call.
+    """
+    if len(obs) == 0:
+        return {}
+    predicted = np.concatenate(
+        [policy.predict_action(obs[start : start + batch_size]) for start in range(0, len(obs), batch_size)]
+    )  # (N, H, A)
+    error = predicted - actions
+    executed = error[:, obs_steps - 1 : obs_steps - 1 + action_steps]
+    return {
+        "valid_action_rmse": float(np.sqrt(np.mean(error**2))),
+        "valid_executed_action_rmse": float(np.sqrt(np.mean(executed**2))),
+    }
