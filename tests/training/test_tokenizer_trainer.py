@@ -1,0 +1,186 @@
+import logging
+
+import pytest
+import torch
+
+from carp.tokenizer.metrics import reconstruction_metrics
+from carp.tokenizer.spec import TokenizerSpec
+from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
+from carp.training.checkpoint import read_training_metadata
+from carp.training.tokenizer_trainer import (
+    CHECKPOINT_NAME,
+    TokenizerTrainingSettings,
+    train_tokenizer,
+)
+
+TINY_SPEC = TokenizerSpec(action_dim=2, action_horizon=8, scales=(1, 2), codebook_size=8, latent_channels=4)
+
+
+def normalized_windows(num_episodes: int, spec: TokenizerSpec, seed: int):
+    windows = sliding_windows(synthetic_action_episodes(num_episodes, spec.action_dim, seed=seed), spec.action_horizon)
+    low, high = min_max_bounds(windows)
+    return torch.as_tensor((windows - low) / (high - low) * 2 - 1)
+
+
+@pytest.fixture
+def windows():
+    train = normalized_windows(1, TINY_SPEC, seed=0)[:40]
+    valid = normalized_windows(1, TINY_SPEC, seed=1)[:12]
+    return train, valid
+
+
+def tiny_settings(**overrides) -> TokenizerTrainingSettings:
+    values = {"epochs": 4, "batch_size": 16, "learning_rate": 1e-2, "seed": 3, "checkpoint_every": 2, "device": "cpu"}
+    return TokenizerTrainingSettings(**{**values, **overrides})
+
+
+def parameters_of(tokenizer):
+    return {name: value.detach().clone() for name, value in tokenizer.state_dict().items()}
+
+
+def test_training_reports_metrics_and_saves_a_checkpoint(tmp_path, windows):
+    reported = []
+    tokenizer = train_tokenizer(
+        TINY_SPEC,
+        *windows,
+        tiny_settings(),
+        tmp_path,
+        on_epoch_end=lambda epoch, metrics: reported.append((epoch, metrics)),
+    )
+    assert [epoch for epoch, _ in reported] == [0, 1, 2, 3]
+    expected_keys = {
+        "train_loss",
+        "train_reconstruction_mse",
+        "train_vq_loss",
+        "valid_reconstruction_mse",
+        "learning_rate",
+        "restarted_codes",
+        "epoch_seconds",
+    }
+    assert all(set(metrics) == expected_keys for _, metrics in reported)
+    assert reported[-1][1]["train_loss"] < reported[0][1]["train_loss"]
+    assert not tokenizer.training
+    metadata = read_training_metadata(tmp_path / CHECKPOINT_NAME)
+    assert metadata["spec"] == TINY_SPEC.to_dict()
+
+
+def test_training_is_deterministic(tmp_path, windows):
+    first = train_tokenizer(TINY_SPEC, *windows, tiny_settings(epochs=2), tmp_path / "first")
+    second = train_tokenizer(TINY_SPEC, *windows, tiny_settings(epochs=2), tmp_path / "second")
+    for name, value in parameters_of(first).items():
+        assert torch.equal(value, parameters_of(second)[name]), name
+
+
+class Interrupted(Exception):
+    pass
+
+
+def test_rerun_after_interruption_resumes_and_matches_an_uninterrupted_run(tmp_path, windows):
+    uninterrupted_metrics = []
+    uninterrupted = train_tokenizer(
+        TINY_SPEC,
+        *windows,
+        tiny_settings(),
+        tmp_path / "full",
+        on_epoch_end=lambda epoch, metrics: uninterrupted_metrics.append(metrics),
+    )
+
+    def crash_after_third_epoch(epoch, metrics):
+        if epoch == 2:
+            raise Interrupted
+
+    with pytest.raises(Interrupted):
+        train_tokenizer(
+            TINY_SPEC, *windows, tiny_settings(), tmp_path / "resumed", on_epoch_end=crash_after_third_epoch
+        )
+    resumed_epochs = []
+    resumed_metrics = []
+
+    def record(epoch, metrics):
+        resumed_epochs.append(epoch)
+        resumed_metrics.append(metrics)
+
+    resumed = train_tokenizer(TINY_SPEC, *windows, tiny_settings(), tmp_path / "resumed", on_epoch_end=record)
+    assert resumed_epochs == [2, 3], "the checkpoint after epoch 2 must be picked up"
+    for name, value in parameters_of(uninterrupted).items():
+        assert torch.equal(value, parameters_of(resumed)[name]), name
+    assert resumed_metrics[-1]["train_loss"] == uninterrupted_metrics[-1]["train_loss"]
+
+
+def test_a_checkpoint_of_another_setup_is_ignored(tmp_path, windows, caplog):
+    train_tokenizer(TINY_SPEC, *windows, tiny_settings(epochs=2), tmp_path)
+    epochs_run = []
+    with caplog.at_level(logging.WARNING):
+        train_tokenizer(
+            TINY_SPEC,
+            *windows,
+            tiny_settings(epochs=2, seed=4),
+            tmp_path,
+            on_epoch_end=lambda epoch, metrics: epochs_run.append(epoch),
+        )
+    assert epochs_run == [0, 1]
+    assert "written for another spec, settings or data" in caplog.text
+    assert read_training_metadata(tmp_path / CHECKPOINT_NAME)["settings"]["seed"] == 4
+
+
+def test_codebook_starts_from_data_and_restarts_dead_codes(tmp_path, windows):
+    reported = []
+    train_tokenizer(
+        TINY_SPEC,
+        *windows,
+        tiny_settings(restart_fraction=1.0),
+        tmp_path,
+        on_epoch_end=lambda epoch, metrics: reported.append(metrics["restarted_codes"]),
+    )
+    # Some of the 8 codes per dimension go unused in an epoch; while restarts are enabled they are re-seeded.
+    assert sum(reported) > 0
+    no_restart = []
+    train_tokenizer(
+        TINY_SPEC,
+        *windows,
+        tiny_settings(restart_fraction=0.0),
+        tmp_path / "none",
+        on_epoch_end=lambda epoch, metrics: no_restart.append(metrics["restarted_codes"]),
+    )
+    assert no_restart == [0.0] * 4
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"epochs": 0}, "epochs must be a positive integer"),
+        ({"batch_size": 2.0}, "batch_size must be a positive"),
+        ({"learning_rate": 0.0}, "learning_rate must be > 0"),
+        ({"restart_fraction": 1.5}, "restart_fraction must be"),
+    ],
+)
+def test_invalid_settings_are_rejected(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        tiny_settings(**overrides)
+
+
+def test_windows_of_the_wrong_shape_are_rejected(tmp_path):
+    with pytest.raises(ValueError, match=r"train_windows must have shape \(N, H, A\) = \(N, 8, 2\)"):
+        train_tokenizer(TINY_SPEC, torch.zeros(4, 8, 3), torch.zeros(0, 8, 2), tiny_settings(), tmp_path)
+
+
+@pytest.mark.slow
+def test_default_settings_meet_the_quality_bar_on_synthetic_demos(tmp_path):
+    """About 40 pick-and-place-like demos, A = 10: mean RMSE <= 2% of each dimension's range on held-out demos."""
+    torch.set_num_threads(2)
+    spec = TokenizerSpec(action_dim=10)
+    episodes = synthetic_action_episodes(48, spec.action_dim, seed=0)
+    train_raw = sliding_windows(episodes[:40], spec.action_horizon)
+    valid_raw = sliding_windows(episodes[40:], spec.action_horizon)
+    low, high = (torch.as_tensor(bound) for bound in min_max_bounds(train_raw))
+
+    def normalize(values):
+        return (torch.as_tensor(values) - low) / (high - low) * 2 - 1
+
+    def unnormalize(values):
+        return (values + 1) / 2 * (high - low) + low
+
+    tokenizer = train_tokenizer(spec, normalize(train_raw), normalize(valid_raw), TokenizerTrainingSettings(), tmp_path)
+    metrics = reconstruction_metrics(tokenizer, normalize(valid_raw), unnormalize)
+    assert metrics["rmse_percent_range/mean"] <= 2.0
+    assert metrics["usage/all_scales/mean"] > 0.2
