@@ -17,7 +17,6 @@ from stage_support import (
     parse_args,
     select_device,
     setup_logging,
-    tracking_uri,
     write_json,
 )
 
@@ -26,7 +25,7 @@ from carp.evaluation.offline import held_out_action_errors
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
-from carp.tracking.registry import TokenizerReference, fetch_registered_tokenizer
+from carp.tracking.registry import TokenizerReference
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
 
 
@@ -37,12 +36,10 @@ def main() -> None:
     data, config = params.data, params.policy
     reference = TokenizerReference.load(TOKENIZER_REF)
     try:
-        if params.tokenizer.source == "pipeline":
-            artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256)
-        else:
-            artifact, _ = fetch_registered_tokenizer(tracking_uri(params), params.tokenizer.source)
+        # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
+        artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256)
         check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-    except (LookupError, TokenizerMismatchError, FileNotFoundError) as error:
+    except (TokenizerMismatchError, FileNotFoundError) as error:
         fail(str(error))
     tokenizer, action_normalizer = artifact.tokenizer, artifact.action_normalizer
 

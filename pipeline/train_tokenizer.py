@@ -1,30 +1,33 @@
-"""train_tokenizer stage: action windows of tokenizer.tasks -> models/tokenizer/ + metrics, history and figure."""
+"""train_tokenizer stage: action windows of tokenizer.tasks -> models/tokenizer/ + metrics, history and figure.
+
+With ``tokenizer.source: models:/<name>@<alias>`` nothing is trained: the registered tokenizer is fetched (its sha256
+checked) and measured on this pipeline's held-out windows, so a reused tokenizer's fit to the new task is on record.
+"""
 
 import numpy as np
 import pandas as pd
 import torch
-from carp.tokenizer.plots import plot_reconstruction
 from stage_support import (
     CHECKPOINT_DIR,
     PROCESSED_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
+    fail,
     load,
     mlflow_stage,
     parse_args,
     select_device,
     setup_logging,
+    tracking_uri,
     write_json,
 )
 
 from carp.data.dataset import load_task_windows, union_normalizer
-from carp.tokenizer.artifact import save_tokenizer_artifact
-from carp.tokenizer.metrics import reconstruct_trajectory, reconstruction_metrics
+from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, save_tokenizer_artifact
+from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
 from carp.tokenizer.spec import TokenizerSpec
+from carp.tracking.registry import fetch_registered_tokenizer
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
-
-ABSOLUTE_NAMES = ["x", "y", "z", "rot0", "rot1", "rot2", "rot3", "rot4", "rot5", "gripper"]
-DELTA_NAMES = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
 
 
 def main() -> None:
@@ -33,72 +36,74 @@ def main() -> None:
     data, config = params.data, params.tokenizer
     tasks = list(params.tokenizer_tasks)
     windows = [
-        load_task_windows(PROCESSED_DIR / task, data.action_horizon, data.obs_steps, data.action_steps)
-        for task in tasks
+        load_task_windows(PROCESSED_DIR / t, data.action_horizon, data.obs_steps, data.action_steps) for t in tasks
     ]
-    normalizer = union_normalizer([w.action_normalizer for w in windows])
-    train = torch.as_tensor(
-        normalizer.normalize(np.concatenate([w.train_actions for w in windows])), dtype=torch.float32
-    )
-    valid = torch.as_tensor(
-        normalizer.normalize(np.concatenate([w.valid_actions for w in windows])), dtype=torch.float32
-    )
-    spec = TokenizerSpec(
-        action_dim=data.action_dim,
-        action_horizon=data.action_horizon,
-        scales=params.scales,
-        codebook_size=params.codebook_size,
-        latent_channels=config.latent_channels,
-        base_channels=config.base_channels,
-        channel_mult=config.channel_mult,
-        commitment_weight=config.commitment_weight,
-    )
-    settings = TokenizerTrainingSettings(
-        epochs=config.epochs,
-        batch_size=config.batch_size,
-        learning_rate=config.learning_rate,
-        weight_decay=config.weight_decay,
-        seed=config.seed,
-        checkpoint_every=config.checkpoint_every,
-        device=str(select_device(params)),
-    )
-    names = ABSOLUTE_NAMES if data.controller == "absolute" else DELTA_NAMES
     history: list[dict] = []
-    with mlflow_stage(params, "train_tokenizer", "tokenizer", {"carp.tasks": ",".join(tasks)}) as run:
+    with mlflow_stage(params, "train_tokenizer", "tokenizer", {"carp.tokenizer_source": config.source}) as run:
+        if config.source == "pipeline":
+            normalizer = union_normalizer([w.action_normalizer for w in windows])
+            spec = TokenizerSpec(
+                action_dim=data.action_dim,
+                action_horizon=data.action_horizon,
+                scales=params.scales,
+                codebook_size=params.codebook_size,
+                latent_channels=config.latent_channels,
+                base_channels=config.base_channels,
+                channel_mult=config.channel_mult,
+                commitment_weight=config.commitment_weight,
+            )
+            settings = TokenizerTrainingSettings(
+                epochs=config.epochs,
+                batch_size=config.batch_size,
+                learning_rate=config.learning_rate,
+                weight_decay=config.weight_decay,
+                seed=config.seed,
+                checkpoint_every=config.checkpoint_every,
+                device=str(select_device(params)),
+            )
 
-        def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
-            history.append({"epoch": epoch + 1, **metrics})
-            run.log_metrics(metrics, step=epoch + 1)
+            def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
+                history.append({"epoch": epoch + 1, **metrics})
+                run.log_metrics(metrics, step=epoch + 1)
 
-        tokenizer = train_tokenizer(spec, train, valid, settings, CHECKPOINT_DIR / "tokenizer", on_epoch_end=log_epoch)
-        tokenizer = tokenizer.cpu().eval()
+            def normalized(name: str) -> torch.Tensor:
+                values = np.concatenate([getattr(w, name) for w in windows])
+                return torch.as_tensor(normalizer.normalize(values.astype(np.float64)), dtype=torch.float32)
 
-        def unnormalize(values: torch.Tensor) -> torch.Tensor:
-            return normalizer.unnormalize(values.double()).float()
+            tokenizer = train_tokenizer(
+                spec,
+                normalized("train_actions"),
+                normalized("valid_actions"),
+                settings,
+                CHECKPOINT_DIR / "tokenizer",
+                on_epoch_end=log_epoch,
+            ).cpu()
+            trained_on = tasks
+        else:
+            try:
+                artifact, reference = fetch_registered_tokenizer(tracking_uri(params), config.source)
+                check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
+            except (LookupError, TokenizerMismatchError) as error:
+                fail(str(error))
+            tokenizer, normalizer, trained_on = artifact.tokenizer, artifact.action_normalizer, artifact.tasks
+            run.set_tags({"carp.tokenizer_version": reference.version})
 
-        metrics = reconstruction_metrics(tokenizer, valid if len(valid) else train, unnormalize, names)
-        run.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
-
-        TOKENIZER_REPORT_DIR.mkdir(parents=True, exist_ok=True)
-        write_json(TOKENIZER_REPORT_DIR / "metrics.json", metrics)
-        pd.DataFrame(history).to_csv(TOKENIZER_REPORT_DIR / "history.csv", index=False)
-        figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
+        held_out = np.concatenate([w.valid_actions if len(w.valid_actions) else w.train_actions for w in windows])
         buffer = windows[0].buffer
-        held_out = np.flatnonzero(buffer.valid_episodes)
-        episode = int(held_out[0]) if held_out.size else 0
-        raw = buffer.episode(episode)[1].astype(np.float64)
-        normalized = torch.as_tensor(normalizer.normalize(raw), dtype=torch.float32)
-        reconstructed = normalizer.unnormalize(reconstruct_trajectory(tokenizer, normalized).double().numpy())
-        plot_reconstruction(raw, reconstructed, figure, names)
+        episode = int(np.flatnonzero(buffer.valid_episodes)[0]) if buffer.valid_episodes.any() else 0
+        figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
+        metrics = evaluate_tokenizer(tokenizer.eval(), normalizer, held_out, buffer.episode(episode)[1], figure)
+        sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, normalizer, params.action_space, trained_on)
+        run.log_metrics({key.replace("/", "."): value for key, value in metrics.items()})
         run.log_artifact(figure)
-
-        sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, normalizer, params.action_space, tasks)
         run.set_tags({"carp.tokenizer_sha256": sha256})
-    print(
-        f"tokenizer on {tasks}: {len(train)} train / {len(valid)} held-out windows, mean RMSE "
-        f"{metrics['rmse_percent_range/mean']:.2f}% of range (max dim "
-        f"{max(metrics[f'rmse_percent_range/{n}'] for n in names):.2f}%), sha256 {sha256[:12]}"
+    write_json(TOKENIZER_REPORT_DIR / "metrics.json", metrics)
+    pd.DataFrame(history, columns=["epoch"] if not history else None).to_csv(
+        TOKENIZER_REPORT_DIR / "history.csv", index=False
     )
+    action = "trained on" if config.source == "pipeline" else f"fetched {config.source}, trained on"
+    names = dimension_names(tokenizer.spec.action_dim)
+    print(f"tokenizer {action} {trained_on}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,64 @@
+"""Held-out quality of a tokenizer in original action units: metrics plus the raw-vs-reconstructed figure."""
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.tokenizer.metrics import reconstruct_trajectory, reconstruction_metrics
+from carp.tokenizer.plots import plot_reconstruction
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+
+ABSOLUTE_DIMENSION_NAMES = ("x", "y", "z", "rot0", "rot1", "rot2", "rot3", "rot4", "rot5", "gripper")
+DELTA_DIMENSION_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz", "gripper")
+
+
+def dimension_names(action_dim: int) -> tuple[str, ...]:
+    """Names of the A action dimensions (absolute 10-D or delta 7-D; generic names otherwise)."""
+    for names in (ABSOLUTE_DIMENSION_NAMES, DELTA_DIMENSION_NAMES):
+        if len(names) == action_dim:
+            return names
+    return tuple(f"dim{index}" for index in range(action_dim))
+
+
+def evaluate_tokenizer(
+    tokenizer: MultiScaleActionTokenizer,
+    normalizer: MinMaxNormalizer,
+    held_out_windows: np.ndarray,
+    episode_actions: np.ndarray,
+    figure_path: Path,
+) -> dict[str, float]:
+    """Reconstruction metrics on held-out windows and a figure of one whole held-out episode.
+
+    Args:
+        tokenizer: trained tokenizer (CPU, eval mode).
+        normalizer: the action normalization the tokenizer works in.
+        held_out_windows: (N, H, A) raw action windows.
+        episode_actions: (T, A) raw actions of one episode for the figure.
+        figure_path: PNG written here.
+
+    Returns:
+        The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics`.
+    """
+    names = dimension_names(tokenizer.spec.action_dim)
+    windows = torch.as_tensor(normalizer.normalize(held_out_windows.astype(np.float64)), dtype=torch.float32)
+
+    def unnormalize(values: torch.Tensor) -> torch.Tensor:
+        return normalizer.unnormalize(values.double()).float()
+
+    metrics = reconstruction_metrics(tokenizer, windows, unnormalize, names)
+    normalized_episode = torch.as_tensor(normalizer.normalize(episode_actions.astype(np.float64)), dtype=torch.float32)
+    reconstructed = normalizer.unnormalize(reconstruct_trajectory(tokenizer, normalized_episode).double().numpy())
+    plot_reconstruction(episode_actions, reconstructed, figure_path, names)
+    return metrics
+
+
+def summary_line(metrics: dict[str, float], names: Sequence[str]) -> str:
+    """One line summarizing the reconstruction error (mean and worst dimension as % of range)."""
+    worst = max(names, key=lambda name: metrics[f"rmse_percent_range/{name}"])
+    return (
+        f"mean RMSE {metrics['rmse_percent_range/mean']:.2f}% of range, worst {worst} "
+        f"{metrics[f'rmse_percent_range/{worst}']:.2f}%"
+    )
