@@ -8,7 +8,8 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
 - Attention uses the standard `1/sqrt(head_width)` scale and `F.scaled_dot_product_attention`; a fused qkv projection
   with ordinary biases (VAR: `0.25/sqrt(head_width)`, no key bias).
 - The feed-forward activation is exact (erf) GELU; VAR and the official CARP use the tanh approximation, which on
-  CPU measured ~4x slower than exact GELU at training size (25,600 x 256 elements) and no faster at inference size.
+  CPU measured ~4x slower than exact GELU at training size (25,600 x 256 elements) and slower summed over the four
+  inference scales at batch 1.
 - The head scores token `i` against dimension `i % A`'s own vocabulary (weights (A, D, V)); the official CARP shares
   one Linear(D -> V) across dimensions and relies on the position embedding to tell them apart.
 """
@@ -17,7 +18,6 @@ import math
 
 import torch
 import torch.nn.functional as F
-from einops import rearrange
 from torch import nn
 
 NORM_EPS = 1e-6
@@ -26,30 +26,44 @@ MODULATIONS_PER_BLOCK = 6
 
 
 class KeyValueCache:
-    """Keys and values of the scales already processed, one entry per block, for K-step inference.
+    """Keys and values of the scales already processed, one buffer per block, for K-step inference.
 
-    The entries grow by one scale per step; no mask is needed because every cached key belongs to a coarser scale
-    (or to the current one), all of which the current scale may attend to.
+    Each buffer is allocated once per chunk for all L tokens and filled one scale per step, so a step copies only the
+    new scale's keys and values. No mask is needed: every cached key belongs to a coarser scale or to the current
+    one, all of which the current scale may attend to.
+
+    Args:
+        depth: number of blocks.
+        capacity: `L`, tokens of a whole chunk.
     """
 
-    def __init__(self, depth: int) -> None:
-        self.entries: list[torch.Tensor | None] = [None] * depth
+    def __init__(self, depth: int, capacity: int) -> None:
+        self.capacity = capacity
+        self.buffers: list[torch.Tensor | None] = [None] * depth
+        self.lengths = [0] * depth
 
     def extend(self, layer_index: int, key_value: torch.Tensor) -> torch.Tensor:
         """Append the current scale's keys and values and return those of all scales so far.
 
         Args:
             layer_index: block index.
-            key_value: (2, B, Nh, s_k * A, D / Nh), keys then values of the current scale.
+            key_value: (B, s_k * A, 2, Nh, D / Nh), keys then values of the current scale.
 
         Returns:
-            (2, B, Nh, n, D / Nh) with n the number of tokens of scales 1..k.
+            (B, n, 2, Nh, D / Nh), a view of the buffer, with n the number of tokens of scales 1..k.
         """
-        past = self.entries[layer_index]
-        if past is not None:
-            key_value = torch.cat((past, key_value), dim=3)  # (2, B, Nh, n, D / Nh)
-        self.entries[layer_index] = key_value
-        return key_value
+        buffer = self.buffers[layer_index]
+        if buffer is None:
+            batch, _, pair, heads, head_width = key_value.shape
+            buffer = key_value.new_empty(batch, self.capacity, pair, heads, head_width)
+            self.buffers[layer_index] = buffer
+        start = self.lengths[layer_index]
+        end = start + key_value.shape[1]
+        if end > self.capacity:
+            raise RuntimeError(f"kv-cache of capacity {self.capacity} cannot hold {end} tokens")
+        buffer[:, start:end] = key_value
+        self.lengths[layer_index] = end
+        return buffer[:, :end]
 
 
 class SelfAttention(nn.Module):
@@ -81,15 +95,18 @@ class SelfAttention(nn.Module):
             (B, N, D).
         """
         batch, tokens, width = hidden.shape
+        # (B, N, 3, Nh, D / Nh) keeps the projection's memory layout: unbinding and transposing are views, and the
+        # backward pass stacks the three gradients straight back into this layout without extra copies.
         qkv = self.qkv(hidden).view(batch, tokens, 3, self.num_heads, self.head_width)
-        qkv = qkv.permute(2, 0, 3, 1, 4)  # (3, B, Nh, N, D / Nh)
-        query, key_value = qkv[0], qkv[1:]
-        if cache is not None:
-            key_value = cache.extend(self.layer_index, key_value)  # (2, B, Nh, n, D / Nh)
+        if cache is None:
+            query, key, value = qkv.unbind(2)  # (B, N, Nh, D / Nh) each
+        else:
+            query = qkv[:, :, 0]
+            key, value = cache.extend(self.layer_index, qkv[:, :, 1:]).unbind(2)  # (B, n, Nh, D / Nh) each
         attended = F.scaled_dot_product_attention(
-            query,
-            key_value[0],
-            key_value[1],
+            query.transpose(1, 2),
+            key.transpose(1, 2),
+            value.transpose(1, 2),
             attn_mask=attention_mask,
             dropout_p=self.dropout if self.training else 0.0,
         )  # (B, Nh, N, D / Nh)
@@ -194,7 +211,9 @@ class PerDimensionHead(nn.Module):
         Returns:
             (B, N, V) logits.
         """
-        batch = hidden.shape[0]
-        grouped = rearrange(hidden, "b (p a) d -> a (b p) d", a=self.action_dim)  # (A, B * N / A, D)
+        batch, tokens, width = hidden.shape
+        # Plain views instead of einops ("b (p a) d -> a (b p) d" and back): this runs once per scale at inference,
+        # where einops' per-call overhead was measurable.
+        grouped = hidden.reshape(-1, self.action_dim, width).transpose(0, 1)  # (A, B * N / A, D)
         logits = torch.baddbmm(self.bias, grouped, self.weight)  # (A, B * N / A, V)
-        return rearrange(logits, "a (b p) v -> b (p a) v", b=batch)  # (B, N, V)
+        return logits.transpose(0, 1).reshape(batch, tokens, -1)  # (B, N, V)

@@ -187,7 +187,10 @@ class CoarseToFineTransformer(nn.Module):
         """
         condition = self.encode_condition(obs_features, task_ids)  # (B, D)
         return InferenceState(
-            condition, self._modulations(condition), self._position_and_level(), KeyValueCache(self.spec.depth)
+            condition,
+            self._modulations(condition),
+            self._position_and_level(),
+            KeyValueCache(self.spec.depth, self.spec.sequence_length),
         )
 
     def next_scale_logits(self, state: InferenceState, scale_inputs: torch.Tensor | None = None) -> torch.Tensor:

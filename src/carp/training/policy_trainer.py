@@ -152,7 +152,8 @@ def _check_data(spec: PolicySpec, tokenizer: MultiScaleActionTokenizer, data: Po
         raise ValueError("task_ids were given but the policy spec is single-task (num_tasks = 0)")
 
 
-def _make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) -> torch.optim.AdamW:
+def make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) -> torch.optim.AdamW:
+    """AdamW over the transformer's parameters; weight decay applies to weight matrices only."""
     decayed, undecayed = [], []
     for name, parameter in transformer.named_parameters():
         # Weight matrices decay; biases and the learned embeddings (VAR's no-decay list) do not.
@@ -162,7 +163,8 @@ def _make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) ->
         {"params": decayed, "weight_decay": settings.weight_decay},
         {"params": undecayed, "weight_decay": 0.0},
     ]
-    return torch.optim.AdamW(groups, lr=settings.learning_rate, betas=ADAM_BETAS)
+    # The fused kernel updates all parameters in one pass (CPU and CUDA), instead of ~10 small ops per tensor.
+    return torch.optim.AdamW(groups, lr=settings.learning_rate, betas=ADAM_BETAS, fused=True)
 
 
 def _make_scheduler(
@@ -259,7 +261,7 @@ def train_policy(
         ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay), use_buffers=True)
     # One module holding both so a training state saves and restores them together.
     trained = nn.ModuleDict({"transformer": transformer} | ({"ema": ema} if ema is not None else {}))
-    optimizer = _make_optimizer(transformer, settings)
+    optimizer = make_optimizer(transformer, settings)
     num_windows = obs.shape[0]
     steps_per_epoch = math.ceil(num_windows / settings.batch_size)
     scheduler = _make_scheduler(optimizer, settings.epochs * steps_per_epoch, settings.warmup_steps)

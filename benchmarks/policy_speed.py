@@ -1,0 +1,146 @@
+"""Speed of the coarse-to-fine policy for the default configuration (A = 10, L = 100, depth 8, D = 64, 8 heads).
+
+Measures, with randomly initialized weights (speed does not depend on the values):
+- per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
+  decoding (tokenizer decoder + un-normalization), median and p90;
+- the same at batch 64 (latency of one call and per chunk);
+- training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
+  token targets, as `carp.training.policy_trainer` runs it.
+
+Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
+and 2.6 s per training step at batch 256 on 2 threads.
+
+Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 5] [--skip-training]
+"""
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.policy.policy import CarpPolicy
+from carp.policy.spec import PolicySpec
+from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.spec import TokenizerSpec
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer
+
+OBS_DIM = 19  # Lift's low-dim observation width
+OBS_STEPS = 2
+OFFICIAL_CHUNK_MS = (21.8, 17.8, 4.0)
+OFFICIAL_TRAIN_STEP_SECONDS = 2.6
+
+
+def make_policy() -> CarpPolicy:
+    torch.manual_seed(0)
+    tokenizer_spec = TokenizerSpec(action_dim=10)
+    spec = PolicySpec(
+        obs_dim=OBS_DIM,
+        obs_steps=OBS_STEPS,
+        action_dim=tokenizer_spec.action_dim,
+        scales=tokenizer_spec.scales,
+        latent_channels=tokenizer_spec.latent_channels,
+        codebook_size=tokenizer_spec.codebook_size,
+    )
+    return CarpPolicy(
+        MultiScaleActionTokenizer(tokenizer_spec),
+        CoarseToFineTransformer(spec),
+        MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0)),
+        MinMaxNormalizer(np.full(10, -1.0), np.full(10, 1.0)),
+    )
+
+
+def time_chunks(policy: CarpPolicy, batch_size: int, calls: int) -> dict[str, list[float]]:
+    rng = np.random.default_rng(0)
+    obs = rng.uniform(-1, 1, size=(batch_size, OBS_STEPS, OBS_DIM)).astype(np.float32)
+    for _ in range(max(10, calls // 10)):
+        policy.predict_action_timed(obs)
+    timings = {"total": [], "prediction": [], "decoding": []}
+    for _ in range(calls):
+        _, prediction, decoding = policy.predict_action_timed(obs)
+        timings["prediction"].append(prediction * 1e3)
+        timings["decoding"].append(decoding * 1e3)
+        timings["total"].append((prediction + decoding) * 1e3)
+    return timings
+
+
+def percentile(values: list[float], fraction: float) -> float:
+    return float(np.percentile(values, 100 * fraction))
+
+
+def train_samples_per_second(policy: CarpPolicy, batch_size: int, steps: int) -> float:
+    spec = policy.spec
+    transformer = CoarseToFineTransformer(spec).train()
+    optimizer = make_optimizer(transformer, PolicyTrainingSettings())
+    generator = torch.Generator().manual_seed(0)
+    obs = torch.randn(batch_size, OBS_STEPS, OBS_DIM, generator=generator)
+    teacher = torch.randn(batch_size, spec.sequence_length - spec.scales[0] * spec.action_dim, spec.latent_channels)
+    targets = torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator)
+
+    def step() -> None:
+        logits = transformer(obs, teacher)
+        loss = F.cross_entropy(logits.view(-1, spec.codebook_size), targets.view(-1))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    for _ in range(2):
+        step()
+    durations = []
+    for _ in range(steps):
+        started = time.perf_counter()
+        step()
+        durations.append(time.perf_counter() - started)
+    return batch_size / statistics.median(durations)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--chunks", type=int, default=300, help="timed calls at batch 1")
+    parser.add_argument("--batched-calls", type=int, default=30, help="timed calls at batch 64")
+    parser.add_argument("--train-steps", type=int, default=5, help="timed training steps at batch 256")
+    parser.add_argument("--skip-training", action="store_true")
+    args = parser.parse_args()
+
+    policy = make_policy()
+    rows = []
+    torch.set_num_threads(1)
+    single = time_chunks(policy, 1, args.chunks)
+    for part in ("total", "prediction", "decoding"):
+        rows.append((f"batch 1, 1 thread: {part} per chunk (ms)", single[part], 1))
+    batched = time_chunks(policy, 64, args.batched_calls)
+    rows.append(("batch 64, 1 thread: total per call (ms)", batched["total"], 1))
+    rows.append(("batch 64, 1 thread: total per chunk (ms)", batched["total"], 64))
+    rows.append(("batch 64, 1 thread: decoding per call (ms)", batched["decoding"], 1))
+
+    print(
+        f"policy speed, default config (A=10, L={policy.spec.sequence_length}, depth 8, D 64, 8 heads), torch "
+        f"{torch.__version__}"
+    )
+    print(f"| {'measurement':<44} | {'median':>8} | {'p90':>8} |")
+    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|")
+    for name, values, divisor in rows:
+        median, p90 = statistics.median(values) / divisor, percentile(values, 0.9) / divisor
+        print(f"| {name:<44} | {median:8.3f} | {p90:8.3f} |")
+    print(
+        f"official per chunk at batch 1: {OFFICIAL_CHUNK_MS[0]} ms ({OFFICIAL_CHUNK_MS[1]} prediction + "
+        f"{OFFICIAL_CHUNK_MS[2]} decoding)"
+    )
+
+    if not args.skip_training:
+        torch.set_num_threads(2)
+        samples_per_second = train_samples_per_second(policy, 256, args.train_steps)
+        official = 256 / OFFICIAL_TRAIN_STEP_SECONDS
+        print(
+            f"training at batch 256, 2 threads: {samples_per_second:.0f} samples/s "
+            f"({256 / samples_per_second:.3f} s per step; official {OFFICIAL_TRAIN_STEP_SECONDS} s per step = "
+            f"{official:.0f} samples/s, speed-up x{samples_per_second / official:.1f})"
+        )
+
+
+if __name__ == "__main__":
+    main()
