@@ -225,7 +225,12 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """Optuna study over scale schedules and codebook sizes (outside the default DAG)."""
+    """Optuna study over scale schedules and codebook sizes (outside the default DAG).
+
+    Attributes:
+        heartbeat_seconds: how often a running trial marks itself alive in the storage; a killed sweep's trial is
+            retried once its heartbeat is two intervals old.
+    """
 
     study_name: str = "carp-sweep"
     storage: str = "sqlite:///optuna.db"
@@ -233,6 +238,7 @@ class SweepConfig:
     scale_schedules: tuple[tuple[int, ...], ...] = ((4,), (1, 4), (1, 2, 4), (1, 2, 3, 4))
     codebook_sizes: tuple[int, ...] = (64, 256, 512)
     prune_factor: float = 2.0
+    heartbeat_seconds: int = 10
 
     def __post_init__(self) -> None:
         _require(self.num_trials >= 1, "sweep.num_trials", self.num_trials, "must be >= 1")
@@ -240,6 +246,7 @@ class SweepConfig:
         for size in self.codebook_sizes:
             _require(size >= 2, "sweep.codebook_sizes", self.codebook_sizes, "every size must be >= 2")
         _require(self.prune_factor > 1.0, "sweep.prune_factor", self.prune_factor, "must be > 1")
+        _require(self.heartbeat_seconds >= 1, "sweep.heartbeat_seconds", self.heartbeat_seconds, "must be >= 1")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,105 @@
+"""MLflow side of a sweep: one parent run per study, one child run per trial (``mlflow.parentRunId``).
+
+Uses ``MlflowClient`` with explicit run ids instead of the fluent API: the parent run stays open for the whole
+sweep (and is reopened on resume) while child runs come and go, and the stage scripts that each trial's
+``dvc exp run`` starts open their own runs in other processes.
+"""
+
+import logging
+import math
+from collections.abc import Mapping
+
+from mlflow import MlflowClient
+from mlflow.exceptions import MlflowException
+
+from carp.sweep.outcome import TrialRecord
+from carp.sweep.space import TrialSettings, schedule_label
+from carp.tracking.runs import ensure_experiment
+
+logger = logging.getLogger(__name__)
+
+# Optuna trial state -> MLflow run status.
+RUN_STATUS = {"COMPLETE": "FINISHED", "PRUNED": "KILLED", "FAIL": "FAILED"}
+
+
+class SweepTracker:
+    """Writes a study's runs to one MLflow experiment.
+
+    Args:
+        tracking_uri: absolute tracking URI (the project's store).
+        experiment_name: e.g. ``carp-sweep``.
+        tags: added to every run, e.g. ``{"carp.git_commit": ...}``.
+    """
+
+    def __init__(self, tracking_uri: str, experiment_name: str, tags: Mapping[str, str]) -> None:
+        self.client = MlflowClient(tracking_uri=tracking_uri)
+        self.experiment_id = ensure_experiment(tracking_uri, experiment_name)
+        self.tags = dict(tags)
+
+    def open_study(self, study_name: str, existing_run_id: str | None, description: Mapping[str, str]) -> str:
+        """Reopen the study's parent run, or create it (with ``description`` as params) when there is none.
+
+        Returns:
+            The parent run's id, to be kept with the study so a resumed sweep finds it.
+        """
+        if existing_run_id is not None:
+            try:
+                self.client.update_run(existing_run_id, status="RUNNING")
+                return existing_run_id
+            except MlflowException:
+                logger.warning("parent run %s of study %s is gone; starting a new one", existing_run_id, study_name)
+        run = self.client.create_run(
+            self.experiment_id, run_name=study_name, tags={**self.tags, "carp.sweep_study": study_name}
+        )
+        for key, value in description.items():
+            self.client.log_param(run.info.run_id, key, value)
+        return run.info.run_id
+
+    def start_trial(self, parent_run_id: str, study_name: str, number: int, settings: TrialSettings) -> str:
+        """Create the trial's child run with its params; returns its id."""
+        run = self.client.create_run(
+            self.experiment_id,
+            run_name=f"trial-{number}",
+            tags={
+                **self.tags,
+                "mlflow.parentRunId": parent_run_id,
+                "carp.sweep_study": study_name,
+                "carp.trial_number": str(number),
+                "carp.trial_state": "RUNNING",
+            },
+        )
+        run_id = run.info.run_id
+        self.client.log_param(run_id, "scales", schedule_label(settings.scales))
+        self.client.log_param(run_id, "num_scales", settings.num_scales)
+        self.client.log_param(run_id, "codebook_size", settings.codebook_size)
+        return run_id
+
+    def log_trial_metrics(self, run_id: str, metrics: Mapping[str, float | None]) -> None:
+        """Log the finite metrics among ``metrics``."""
+        for key, value in metrics.items():
+            if value is not None and math.isfinite(value):
+                self.client.log_metric(run_id, key, value)
+
+    def end_trial(self, run_id: str, state: str, dvc_experiment: str = "") -> None:
+        """Close a child run with the trial's final state (a tag and the matching run status)."""
+        self.client.set_tag(run_id, "carp.trial_state", state)
+        if dvc_experiment:
+            self.client.set_tag(run_id, "carp.dvc_experiment", dvc_experiment)
+        self.client.set_terminated(run_id, status=RUN_STATUS.get(state, "FAILED"))
+
+    def close_study(self, parent_run_id: str, best: TrialRecord | None, finished_trials: int) -> None:
+        """Record the best trial on the parent run and mark it finished (a resume reopens it)."""
+        self.client.set_tag(parent_run_id, "carp.finished_trials", str(finished_trials))
+        if best is not None and best.settings is not None:
+            self.client.set_tag(parent_run_id, "carp.best_trial", str(best.number))
+            self.client.set_tag(parent_run_id, "carp.best_params", best.settings.command_line())
+            self.client.set_tag(parent_run_id, "carp.best_dvc_experiment", best.dvc_experiment)
+            self.log_trial_metrics(
+                parent_run_id,
+                {
+                    "best_success_rate": best.success_rate,
+                    "best_latency_ms": best.latency_ms,
+                    "best_tokenizer_rmse_percent": best.tokenizer_rmse_percent,
+                },
+            )
+        self.client.set_terminated(parent_run_id, status="FINISHED")

@@ -1,0 +1,78 @@
+import math
+
+import pandas as pd
+import pytest
+
+from carp.sweep.outcome import (
+    TRIALS_COLUMNS,
+    TrialRecord,
+    best_record,
+    best_tokenizer_error,
+    ranking_key,
+    should_prune,
+    write_best_params,
+    write_trials_csv,
+)
+from carp.sweep.space import TrialSettings
+
+SETTINGS = TrialSettings((1, 2, 4), 64)
+
+
+def record(number, state="COMPLETE", success=None, latency=None, error=None, settings=SETTINGS):
+    return TrialRecord(number, state, settings, success, latency, error, f"sweep-s-t{number}" if success else "")
+
+
+def test_prune_decision():
+    assert not should_prune(30.0, None, 2.0)  # the first trial has nothing to compare with
+    assert not should_prune(20.0, 10.0, 2.0)  # exactly at the factor is kept
+    assert should_prune(20.01, 10.0, 2.0)
+    assert not should_prune(5.0, 10.0, 2.0)
+    assert should_prune(math.nan, None, 2.0)  # a diverged tokenizer never trains a policy
+
+
+def test_best_tokenizer_error_ignores_current_missing_and_nan():
+    records = [record(0, error=12.0), record(1, "PRUNED", error=8.0), record(2, "FAIL"), record(3, error=math.nan)]
+    assert best_tokenizer_error(records) == 8.0
+    assert best_tokenizer_error(records, exclude_number=1) == 12.0
+    assert best_tokenizer_error([record(2, "RUNNING")]) is None
+
+
+def test_objective_tie_break_success_then_latency_then_number():
+    records = [
+        record(0, success=0.5, latency=3.0),
+        record(1, success=0.75, latency=9.0),
+        record(2, success=0.75, latency=4.0),
+        record(3, success=0.75, latency=4.0),
+        record(4, "PRUNED", error=99.0),
+        record(5, "FAIL"),
+    ]
+    assert best_record(records).number == 2
+    ordered = sorted((r for r in records if r.success_rate is not None), key=ranking_key)
+    assert [r.number for r in ordered] == [2, 3, 1, 0]
+    assert best_record(records[4:]) is None
+
+
+def test_trials_csv_has_the_report_columns(tmp_path):
+    path = tmp_path / "sweep" / "trials.csv"
+    records = [
+        record(1, "PRUNED", error=40.0, settings=TrialSettings((4,), 8)),
+        record(0, success=0.5, latency=3.25, error=10.0),
+        TrialRecord(2, "RUNNING", None),
+    ]
+    write_trials_csv(records, path)
+    table = pd.read_csv(path)
+    assert tuple(table.columns) == TRIALS_COLUMNS
+    assert table["trial"].tolist() == [0, 1, 2]
+    assert table.loc[0, "scales"] == "[1,2,4]" and table.loc[0, "num_scales"] == 3
+    assert table.loc[0, "success_rate"] == pytest.approx(0.5) and table.loc[0, "latency_ms"] == pytest.approx(3.25)
+    assert table.loc[1, "state"] == "PRUNED" and math.isnan(table.loc[1, "success_rate"])
+    assert table.loc[1, "tokenizer_rmse_percent"] == pytest.approx(40.0)
+    assert table.loc[0, "dvc_experiment"] == "sweep-s-t0"
+
+
+def test_best_params_file_is_dvc_arguments(tmp_path):
+    path = tmp_path / "best_params.txt"
+    write_best_params(record(3, success=1.0, latency=2.0, settings=TrialSettings((1, 4), 256)), path)
+    assert path.read_text() == "-S 'scales=[1,4]' -S codebook_size=256\n"
+    write_best_params(None, path)
+    assert not path.exists()

@@ -1,0 +1,119 @@
+import dataclasses
+import warnings
+
+import optuna
+import pandas as pd
+import pytest
+from optuna.exceptions import ExperimentalWarning
+from optuna.trial import TrialState
+
+from carp.sweep.space import TrialSettings, parse_schedule_label
+from carp.sweep.study import SweepStateError, experiment_name, run_sweep
+from tests.sweep.conftest import FakeRunner, expected_success
+
+
+def load_trials(config):
+    return optuna.load_study(study_name=config.study_name, storage=config.storage).get_trials()
+
+
+def test_budget_pruning_and_reports(sweep_config, tmp_path):
+    runner = FakeRunner(errors={4: 10.0, 8: 25.0})  # V=8 is 2.5x worse than V=4
+    config = dataclasses.replace(sweep_config, num_trials=6)
+    result = run_sweep(config, runner, tmp_path / "reports")
+
+    assert result.finished_trials == 6 and len(result.records) == 6
+    tried = {record.settings for record in result.records}
+    assert len(tried) == 6  # brute force never repeats a grid point
+    for record in result.records:
+        if record.settings.codebook_size == 8 and record.state == "PRUNED":
+            assert record.success_rate is None and record.tokenizer_rmse_percent == 25.0
+    pruned = [r for r in result.records if r.state == "PRUNED"]
+    # V=8 is pruned whenever a V=4 trial ran before it.
+    first_small = min(r.number for r in result.records if r.settings.codebook_size == 4)
+    assert {r.number for r in pruned} == {
+        r.number for r in result.records if r.settings.codebook_size == 8 and r.number > first_small
+    }
+    ran = {settings for _, settings in runner.experiment_calls}
+    assert all(r.settings not in ran for r in pruned)
+    for name, settings in runner.experiment_calls:
+        number = next(r.number for r in result.records if r.settings == settings)
+        assert name == experiment_name("unit", number) == f"sweep-unit-t{number}"
+
+    best = result.best
+    assert best.success_rate == 1.0
+    # [1,4] and [1,2,4] tie on success (fake caps at K=2); the lower latency ([1,4]) wins.
+    assert best.settings.scales == (1, 4)
+    table = pd.read_csv(tmp_path / "reports" / "trials.csv")
+    assert len(table) == 6 and set(table["state"]) <= {"COMPLETE", "PRUNED"}
+    assert (tmp_path / "reports" / "best_params.txt").read_text().strip() == best.settings.command_line()
+
+
+def test_budget_holds_across_resumes_and_grid_exhaustion(sweep_config, tmp_path):
+    runner = FakeRunner()
+    run_sweep(dataclasses.replace(sweep_config, num_trials=2), runner, tmp_path)
+    again = run_sweep(dataclasses.replace(sweep_config, num_trials=2), runner, tmp_path)
+    assert again.finished_trials == 2 and len(runner.tokenizer_calls) == 2
+    more = run_sweep(dataclasses.replace(sweep_config, num_trials=3), runner, tmp_path)
+    assert more.finished_trials == 3 and len(runner.tokenizer_calls) == 3
+    # The grid has 6 points: a larger budget stops when every point was tried.
+    everything = run_sweep(dataclasses.replace(sweep_config, num_trials=50), runner, tmp_path)
+    assert everything.finished_trials == 6 and len(set(runner.tokenizer_calls)) == 6
+
+
+def test_interrupted_trial_is_retried_with_same_params(sweep_config, tmp_path):
+    runner = FakeRunner(errors={4: 10.0, 8: 10.0}, interrupt_on_experiment=2)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(sweep_config, runner, tmp_path)
+    interrupted = [t for t in load_trials(sweep_config) if t.state == TrialState.FAIL]
+    assert len(interrupted) == 1 and interrupted[0].user_attrs["interrupted"] is True
+
+    runner.interrupt_on_experiment = None
+    result = run_sweep(sweep_config, runner, tmp_path)
+    trials = load_trials(sweep_config)
+    retry = next(t for t in trials if t.system_attrs.get("failed_trial") == interrupted[0].number)
+    assert retry.state == TrialState.COMPLETE and retry.params == interrupted[0].params
+    assert retry.user_attrs["interrupted"] is None  # not inherited from the interrupted attempt
+    assert result.finished_trials == 3  # the interrupted attempt does not count
+    assert sum(t.state == TrialState.COMPLETE for t in trials) == 3 and len(trials) == 4
+
+
+def test_failed_experiment_fails_the_trial_and_counts(sweep_config, tmp_path):
+    runner = FakeRunner(errors={4: 10.0, 8: 10.0}, fail_on_experiment=1)
+    result = run_sweep(sweep_config, runner, tmp_path)
+    assert [r.state for r in result.records] == ["FAIL", "COMPLETE", "COMPLETE"]
+    assert result.finished_trials == 3
+    # A real failure is not retried on resume.
+    assert run_sweep(sweep_config, runner, tmp_path).finished_trials == 3 and len(runner.experiment_calls) == 3
+
+
+def test_changed_search_space_is_refused(sweep_config, tmp_path):
+    run_sweep(dataclasses.replace(sweep_config, num_trials=1), FakeRunner(), tmp_path)
+    changed = dataclasses.replace(sweep_config, codebook_sizes=(4, 16))
+    with pytest.raises(SweepStateError, match="use a new sweep.study_name"):
+        run_sweep(changed, FakeRunner(), tmp_path)
+
+
+@pytest.mark.slow
+def test_trial_of_a_killed_sweep_is_retried_after_its_heartbeat_expires(sweep_config, tmp_path):
+    # Leave a RUNNING trial with a heartbeat behind, as a sweep killed with SIGKILL would.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExperimentalWarning)
+        storage = optuna.storages.RDBStorage(sweep_config.storage, heartbeat_interval=1)
+        study = optuna.create_study(study_name="unit", storage=storage, direction="maximize")
+        warnings.simplefilter("ignore", UserWarning)  # asking outside optimize() is the point here
+        orphan = study.ask()
+    orphan.suggest_categorical("scales", ["[4]", "[1,4]", "[1,2,4]"])
+    orphan.suggest_categorical("codebook_size", [4, 8])
+    storage.record_heartbeat(orphan._trial_id)
+
+    runner = FakeRunner(errors={4: 10.0, 8: 10.0})
+    result = run_sweep(sweep_config, runner, tmp_path)
+    trials = load_trials(sweep_config)
+    assert trials[orphan.number].state == TrialState.FAIL
+    retry = next(t for t in trials if t.system_attrs.get("failed_trial") == orphan.number)
+    assert retry.state == TrialState.COMPLETE and retry.params == orphan.params
+    assert result.finished_trials == 3 and len(trials) == 4
+    # The retry runs first, with the orphan's params.
+    first = runner.tokenizer_calls[0]
+    assert first == TrialSettings(parse_schedule_label(orphan.params["scales"]), orphan.params["codebook_size"])
+    assert retry.user_attrs["success_rate"] == expected_success(first)
