@@ -1,4 +1,5 @@
 import torch
+from einops import rearrange
 
 from carp.policy.layout import TokenLayout
 
@@ -32,3 +33,11 @@ def test_scale_reordering_matches_sequence_layout():
     latent = ids.unsqueeze(2).expand(-1, -1, 4, -1).float()  # (B, A, C, s)
     tokens = layout.scale_inputs_to_tokens(latent)
     assert torch.equal(tokens[0, :, 0], sequence[0].float())
+
+
+def test_view_based_reordering_equals_the_einops_patterns():
+    layout = TokenLayout(action_dim=3, scales=(1, 4))
+    tokens = torch.randint(0, 100, (2, 12))
+    assert torch.equal(layout.scale_tokens_to_ids(tokens), rearrange(tokens, "b (s a) -> b a s", a=3))
+    inputs = torch.randn(2, 3, 5, 4)
+    assert torch.equal(layout.scale_inputs_to_tokens(inputs), rearrange(inputs, "b a c s -> b (s a) c"))

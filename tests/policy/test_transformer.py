@@ -4,6 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from carp.policy.blocks import KeyValueCache
 from carp.policy.transformer import CoarseToFineTransformer
 from tests.policy.factories import OBS_DIM, OBS_STEPS, scrambled_transformer, tiny_policy_spec
 
@@ -113,3 +114,10 @@ def test_gradients_reach_every_parameter():
     transformer(obs, teacher, torch.tensor([0, 1])).logsumexp(-1).sum().backward()
     missing = [name for name, parameter in transformer.named_parameters() if parameter.grad is None]
     assert missing == []
+
+
+def test_kv_cache_rejects_more_tokens_than_its_capacity():
+    cache = KeyValueCache(depth=1, capacity=3)
+    cache.extend(0, torch.zeros(1, 2, 2, 1, 4))
+    with pytest.raises(RuntimeError, match="capacity 3 cannot hold 4 tokens"):
+        cache.extend(0, torch.zeros(1, 2, 2, 1, 4))

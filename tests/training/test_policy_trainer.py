@@ -98,10 +98,14 @@ def test_ema_returns_averaged_weights(tmp_path):
     spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(10)
     plain = _weights(train_policy(spec, tokenizer, data, SETTINGS, tmp_path / "plain"))
     settings = PolicyTrainingSettings(**(SETTINGS.__dict__ | {"use_ema": True, "ema_decay": 0.5}))
-    averaged = _weights(train_policy(spec, tokenizer, data, settings, tmp_path / "ema"))
+    transformer = train_policy(spec, tokenizer, data, settings, tmp_path / "ema")
+    averaged = _weights(transformer)
     name = "blocks.0.feed_forward.expand.weight"
     assert not torch.equal(plain[name], averaged[name])
     assert (plain[name] - averaged[name]).abs().max() < 0.05
+    # The constant index buffers are not averaged.
+    assert torch.equal(transformer.level_ids, transformer.layout.level_ids())
+    assert torch.equal(transformer.attention_mask, transformer.layout.attention_mask())
 
 
 def test_checkpoint_of_another_setup_is_ignored(tmp_path, caplog):

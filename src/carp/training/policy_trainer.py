@@ -258,7 +258,8 @@ def train_policy(
     transformer = CoarseToFineTransformer(spec).to(device)
     ema = None
     if settings.use_ema:
-        ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay), use_buffers=True)
+        # Parameters only: the transformer's buffers are constant index tables, which averaging would corrupt.
+        ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay), use_buffers=False)
     # One module holding both so a training state saves and restores them together.
     trained = nn.ModuleDict({"transformer": transformer} | ({"ema": ema} if ema is not None else {}))
     optimizer = make_optimizer(transformer, settings)
@@ -305,7 +306,7 @@ def train_policy(
             if ema is not None:
                 ema.update_parameters(transformer)
             loss_sum += loss_value * batch.numel()
-            correct += (logits.detach().argmax(dim=-1) == batch_targets).sum(dim=0)
+            correct += (logits.detach().max(dim=-1).indices == batch_targets).sum(dim=0)
             progress.set_postfix(loss=f"{loss_value:.4f}")
         metrics = _epoch_metrics(
             loss_sum, correct, num_windows, spec, optimizer.param_groups[0]["lr"], time.perf_counter() - started
