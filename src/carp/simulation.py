@@ -49,6 +49,9 @@ def controller_config(controller: str = "absolute") -> dict:
     from robosuite.controllers import load_composite_controller_config
 
     config = copy.deepcopy(load_composite_controller_config(controller="BASIC", robot=ROBOT))
+    # BASIC also configures parts a Panda lacks (left arm, torso, head, base, legs); robosuite drops them with a
+    # warning per part on every env creation, so keep only the arm.
+    config["body_parts"] = {"right": config["body_parts"]["right"]}
     if controller == "absolute":
         arm = config["body_parts"]["right"]
         arm["input_type"] = "absolute"
