@@ -167,7 +167,6 @@ def test_windows_of_the_wrong_shape_are_rejected(tmp_path):
 @pytest.mark.slow
 def test_default_settings_meet_the_quality_bar_on_synthetic_demos(tmp_path):
     """About 40 pick-and-place-like demos, A = 10: mean RMSE <= 2% of each dimension's range on held-out demos."""
-    torch.set_num_threads(2)
     spec = TokenizerSpec(action_dim=10)
     episodes = synthetic_action_episodes(48, spec.action_dim, seed=0)
     train_raw = sliding_windows(episodes[:40], spec.action_horizon)

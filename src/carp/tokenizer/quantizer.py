@@ -13,7 +13,9 @@ Deviations from VAR/CARP:
 - Relative-depth ties between two phi convs (e.g. the middle scale when K = 3) go to the coarser conv, decided in
   exact arithmetic rather than by floating-point rounding.
 - Code embeddings are up-sampled with bicubic interpolation along time (as in VAR and CARP, through a singleton
-  width axis); a single code (s_k = 1) up-samples to a constant.
+  width axis); a single code (s_k = 1) up-samples to a constant. Both resamplings (area down, bicubic up) are applied
+  as small precomputed matrices built by `F.interpolate` itself, which is the same linear map at a fraction of the
+  CPU cost.
 - No usage EMA buffers: codebook usage is measured from token ids by `carp.tokenizer.metrics` and the trainer.
 - `restart_codes` re-seeds unused codes from encoder residuals (not part of VAR/CARP; see the trainer).
 """
@@ -37,10 +39,10 @@ def phi_index_for_scale(scale_index: int, num_scales: int, num_phi_convs: int = 
     Ticks are evenly spaced in [1 / (3 n), 1 - 1 / (3 n)] for n = 4 convs (VAR's choice), else [1 / (2 n), 1 -
     1 / (2 n)]. With K = 4 scales and 4 convs every scale gets its own conv.
     """
-    depth = Fraction(scale_index, num_scales - 1) if num_scales > 1 else Fraction(0)
-    margin = Fraction(1, 3 * num_phi_convs) if num_phi_convs == 4 else Fraction(1, 2 * num_phi_convs)
     if num_phi_convs == 1:
         return 0
+    depth = Fraction(scale_index, num_scales - 1) if num_scales > 1 else Fraction(0)
+    margin = Fraction(1, 3 * num_phi_convs) if num_phi_convs == 4 else Fraction(1, 2 * num_phi_convs)
     step = (1 - 2 * margin) / (num_phi_convs - 1)
     distances = [abs(margin + index * step - depth) for index in range(num_phi_convs)]
     return distances.index(min(distances))
@@ -73,7 +75,7 @@ def _unflatten_dimensions(tensor: torch.Tensor, num_dimensions: int) -> torch.Te
 
 
 class MultiScaleQuantizer(nn.Module):
-    """A multi-scale residual quantizers (one per action dimension) computed in one pass.
+    """The A multi-scale residual quantizers (one per action dimension), computed in one pass.
 
     Args:
         spec: tokenizer architecture; uses A, V, C, the scales and beta.
@@ -120,7 +122,8 @@ class MultiScaleQuantizer(nn.Module):
         batch_size = residual.shape[0]
         directions = F.normalize(rearrange(residual.detach(), "b a c s -> a (b s) c"), dim=-1)
         codes = F.normalize(self.codebook.detach(), dim=-1)  # (A, V, C)
-        # (A, B * s, V) is contiguous in V; `max` is several times faster than `argmax` on CPU (same indices).
+        # (A, B * s, V) is contiguous in V; `max` is several times faster than `argmax` on CPU and also returns the
+        # first maximum on ties.
         similarity = torch.bmm(directions, codes.transpose(1, 2))
         return rearrange(similarity.max(dim=-1).indices, "a (b s) -> b a s", b=batch_size)
 

@@ -54,7 +54,7 @@ class TokenizerOutput:
 
 
 class MultiScaleActionTokenizer(nn.Module):
-    """A per-dimension multi-scale residual VQ-VAEs over action chunks, vectorized over dimensions.
+    """The A per-dimension multi-scale residual VQ-VAEs over action chunks, computed as one vectorized module.
 
     Args:
         spec: architecture (A, H, scales, V, C, channels, beta).

@@ -2,8 +2,10 @@
 
 Recipe: AdamW (no weight decay on biases, norms and the codebook), linear warm-up then cosine decay per step,
 shuffling and code restarts drawn from generators seeded by (seed, epoch) so a resumed run repeats an uninterrupted
-one exactly. The defaults are sized for a 2-core CPU: about 5,000 windows of H = 16, A = 10 train in roughly a
-minute. (The paper trains 300 epochs at batch 256 on a GPU; the tiny model converges much earlier.)
+one exactly. The defaults are sized for a 2-core CPU: about 5,000 windows of H = 16, A = 10 take 30 epochs of batch
+64 (about 2,300 steps, 1-2 minutes on one core) and reach a held-out RMSE of about 1.8% of each dimension's range on
+synthetic pick-and-place demos. Larger learning rates or batches were not better per second of training; the paper's
+300 epochs at batch 256 assume a GPU.
 
 Dead codes: a VQ codebook trained from random codes leaves most codes unused, which wastes capacity and makes the
 reconstruction coarse. Two remedies, both per action dimension:
@@ -18,7 +20,7 @@ import logging
 import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -55,15 +57,15 @@ class TokenizerTrainingSettings:
         restart_fraction: share of the epochs after which unused codes are re-seeded.
     """
 
-    epochs: int = 60
-    batch_size: int = 128
-    learning_rate: float = 3e-3
+    epochs: int = 30
+    batch_size: int = 64
+    learning_rate: float = 1e-2
     weight_decay: float = 0.0
     seed: int = 0
     checkpoint_every: int = 10
     device: str = "auto"
     warmup_fraction: float = 0.05
-    restart_fraction: float = 0.5
+    restart_fraction: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "checkpoint_every"):
@@ -94,8 +96,8 @@ def _seed_everything(seed: int) -> None:
 
 def _epoch_generator(seed: int, epoch: int, stream: int) -> torch.Generator:
     # Independent, reproducible streams per (epoch, purpose) that do not depend on how much randomness earlier
-    # epochs consumed, which is what makes resuming exact.
-    return torch.Generator().manual_seed(seed * 1_000_003 + epoch * 16 + stream)
+    # epochs consumed, which is what makes resuming exact. Epoch -1 is the initialization before training.
+    return torch.Generator().manual_seed(seed * 1_000_003 + (epoch + 1) * 16 + stream)
 
 
 def _make_optimizer(tokenizer: MultiScaleActionTokenizer, settings: TokenizerTrainingSettings) -> torch.optim.AdamW:
@@ -161,6 +163,32 @@ def _restart_unused_codes(
     return restarted
 
 
+def _train_epoch(
+    tokenizer: MultiScaleActionTokenizer,
+    optimizer: torch.optim.Optimizer,
+    scheduler: torch.optim.lr_scheduler.LRScheduler,
+    train_windows: torch.Tensor,
+    batches: Iterable[torch.Tensor],
+) -> tuple[dict[str, float], torch.Tensor]:
+    """One pass over `batches` of window indices; returns window-weighted mean losses and code counts (A, V)."""
+    spec = tokenizer.spec
+    code_counts = torch.zeros(spec.action_dim, spec.codebook_size, dtype=torch.long, device=train_windows.device)
+    totals = {"train_loss": 0.0, "train_reconstruction_mse": 0.0, "train_vq_loss": 0.0}
+    for batch_indices in batches:
+        output = tokenizer(train_windows[batch_indices])
+        optimizer.zero_grad(set_to_none=True)
+        output.loss.backward()
+        optimizer.step()
+        scheduler.step()
+        for ids in output.token_ids:
+            code_counts += count_codes(ids, spec.codebook_size)
+        share = batch_indices.numel() / train_windows.shape[0]
+        totals["train_loss"] += share * output.loss.item()
+        totals["train_reconstruction_mse"] += share * output.reconstruction_loss.item()
+        totals["train_vq_loss"] += share * output.vq_loss.item()
+    return totals, code_counts
+
+
 @torch.no_grad()
 def evaluate_reconstruction_mse(tokenizer: MultiScaleActionTokenizer, windows: torch.Tensor) -> float:
     """Mean squared error (normalized units) of encode -> ids -> decode over (N, H, A) windows."""
@@ -173,6 +201,28 @@ def evaluate_reconstruction_mse(tokenizer: MultiScaleActionTokenizer, windows: t
         count += batch.numel()
     tokenizer.train(was_training)
     return squared_error / max(count, 1)
+
+
+def _resume_or_initialize(
+    tokenizer: MultiScaleActionTokenizer,
+    optimizer: torch.optim.Optimizer,
+    scheduler: torch.optim.lr_scheduler.LRScheduler,
+    checkpoint_path: Path,
+    metadata: dict,
+    train_windows: torch.Tensor,
+    seed: int,
+) -> int:
+    """Load a matching training state and return its epoch, or seed the whole codebook from data and return 0."""
+    if checkpoint_path.exists():
+        if read_training_metadata(checkpoint_path) == metadata:
+            start_epoch = load_training_state(checkpoint_path, tokenizer, optimizer, scheduler)
+            logger.info("resuming tokenizer training from %s at epoch %d", checkpoint_path, start_epoch)
+            return start_epoch
+        logger.warning("ignoring %s: it was written for another spec, settings or data", checkpoint_path)
+    spec = tokenizer.spec
+    all_codes = torch.ones(spec.action_dim, spec.codebook_size, dtype=torch.bool)
+    _restart_unused_codes(tokenizer, train_windows, all_codes, _epoch_generator(seed, -1, 0))
+    return 0
 
 
 def train_tokenizer(
@@ -216,41 +266,21 @@ def train_tokenizer(
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
     metadata = _run_metadata(spec, settings, train_windows)
-    start_epoch = 0
-    if checkpoint_path.exists():
-        if read_training_metadata(checkpoint_path) == metadata:
-            start_epoch = load_training_state(checkpoint_path, tokenizer, optimizer, scheduler)
-            logger.info("resuming tokenizer training from %s at epoch %d", checkpoint_path, start_epoch)
-        else:
-            logger.warning("ignoring %s: it was written for another spec, settings or data", checkpoint_path)
-    if start_epoch == 0:
-        all_codes = torch.ones(spec.action_dim, spec.codebook_size, dtype=torch.bool)
-        _restart_unused_codes(tokenizer, train_windows, all_codes, _epoch_generator(settings.seed, -1, 0))
+    start_epoch = _resume_or_initialize(
+        tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, settings.seed
+    )
 
     restart_epochs = math.floor(settings.epochs * settings.restart_fraction)
     tokenizer.train()
     for epoch in range(start_epoch, settings.epochs):
         started = time.perf_counter()
         order = torch.randperm(num_windows, generator=_epoch_generator(settings.seed, epoch, 1)).to(device)
-        code_counts = torch.zeros(spec.action_dim, spec.codebook_size, dtype=torch.long, device=device)
-        totals = {"train_loss": 0.0, "train_reconstruction_mse": 0.0, "train_vq_loss": 0.0}
         progress = tqdm(
             torch.split(order, settings.batch_size),
             desc=f"tokenizer epoch {epoch + 1}/{settings.epochs}",
             leave=False,
         )
-        for batch_indices in progress:
-            output = tokenizer(train_windows[batch_indices])
-            optimizer.zero_grad(set_to_none=True)
-            output.loss.backward()
-            optimizer.step()
-            scheduler.step()
-            for ids in output.token_ids:
-                code_counts += count_codes(ids, spec.codebook_size)
-            share = batch_indices.numel() / num_windows
-            totals["train_loss"] += share * output.loss.item()
-            totals["train_reconstruction_mse"] += share * output.reconstruction_loss.item()
-            totals["train_vq_loss"] += share * output.vq_loss.item()
+        totals, code_counts = _train_epoch(tokenizer, optimizer, scheduler, train_windows, progress)
         restarted = 0
         if epoch < restart_epochs:
             restarted = _restart_unused_codes(
