@@ -1,0 +1,64 @@
+"""Walkthrough: a tokenizer registered from Lift and Can demos serves a Square policy without any tokenizer training."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from carp.tracking.runs import find_runs
+from tests.pipeline.workspace import dvc, make_workspace, run
+
+
+def _set_params(workspace, change) -> None:
+    path = workspace / "params.yaml"
+    params = yaml.safe_load(path.read_text())
+    change(params)
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+@pytest.mark.slow
+def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
+    workspace = make_workspace(tmp_path / "carp", {"tasks": ["lift", "can"], "eval": {"episodes": 1, "workers": 1}})
+    first = run(dvc("repro", "register_tokenizer"), workspace)
+    assert first.returncode == 0, first.stderr[-3000:]
+    reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())
+    assert reference["name"] == "carp-tokenizer-panda-abs10"
+    assert json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())["tasks"] == ["lift", "can"]
+    training_state = workspace / "checkpoints/tokenizer"
+    state_before = {p.name: p.stat().st_mtime_ns for p in training_state.iterdir()}
+
+    uri = f"models:/{reference['name']}@{reference['alias']}"
+
+    def reuse(params):
+        params["tasks"] = ["square"]
+        params["tokenizer"]["source"] = uri
+
+    _set_params(workspace, reuse)
+    second = run(dvc("repro"), workspace)
+    assert second.returncode == 0, second.stderr[-3000:]
+
+    # The registered weights were used as they are: same hash, same registry version, trained on lift and can.
+    metadata = json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())
+    assert metadata["sha256"] == reference["sha256"] and metadata["tasks"] == ["lift", "can"]
+    reused = json.loads((workspace / "models/tokenizer_ref.json").read_text())
+    assert (reused["version"], reused["sha256"]) == (reference["version"], reference["sha256"])
+    # No tokenizer training happened: the training state is untouched and the stage's run logged no epochs.
+    assert {p.name: p.stat().st_mtime_ns for p in training_state.iterdir()} == state_before
+    tracking = f"sqlite:///{workspace / 'mlflow.db'}"
+    runs = [r for r in find_runs(tracking, "carp-tokenizer") if r["run_name"] == "train_tokenizer"]
+    latest = runs[0]
+    assert latest["tags"]["carp.tokenizer_source"] == uri
+    assert "train_loss" not in latest["metrics"] and "rmse_percent_range.mean" in latest["metrics"]
+    assert runs[-1]["metrics"].get("train_loss") is not None
+    # The Square policy was trained against it and evaluated.
+    evaluation = json.loads((workspace / "reports/eval/square.json").read_text())
+    assert evaluation["episodes"] == 1
+    checkpoint_metadata = torch.load(workspace / "models/policy/square/policy.pt", weights_only=True)
+    assert checkpoint_metadata["metadata"]["tokenizer"]["sha256"] == reference["sha256"]
+
+    # A registered tokenizer that does not fit the params is refused with the differing field named.
+    _set_params(workspace, lambda params: params.update(codebook_size=32))
+    refused = run(dvc("repro"), workspace)
+    assert refused.returncode != 0
+    assert "tokenizer codebook_size is 16 but the params ask for 32" in refused.stderr
