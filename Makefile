@@ -11,7 +11,7 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 export OMP_NUM_THREADS ?= 1
 export MKL_NUM_THREADS ?= 1
 
-.PHONY: setup repro test test-fast lint benchmark ui sweep
+.PHONY: setup repro test test-fast lint benchmark ui sweep exps
 
 setup: $(STAMP)
 
@@ -41,3 +41,12 @@ benchmark: setup
 
 ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000
+
+# Optuna sweep over scales and codebook size (README "Experiments and sweeps"); `make sweep TRIALS=4` sets the budget.
+sweep: setup
+	$(BIN)/python pipeline/sweep.py $(if $(TRIALS),--trials $(TRIALS))
+
+# Experiments side by side: swept params, success rate, tokenizer reconstruction error, latency per chunk.
+EXP_COLUMNS := ^(Experiment|scales|codebook_size|success_rate|rmse_percent_range/mean|latency_(predict|decode)_ms_median)$$
+exps: setup
+	$(BIN)/dvc exp show --drop '.*' --keep '$(EXP_COLUMNS)'

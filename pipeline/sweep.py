@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -49,10 +50,12 @@ class DvcExperimentRunner:
     def __init__(self, tasks: tuple[str, ...]) -> None:
         self.tasks = tasks
 
-    def train_tokenizer(self, settings: TrialSettings) -> float:
+    def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
         # The same override code as `dvc exp run -S`, so the experiment that follows finds the tokenizer cached.
         apply_overrides(str(PROJECT_DIR / "params.yaml"), settings.set_arguments())
-        self._dvc("repro", "train_tokenizer")
+        # DVC sets DVC_EXP_NAME only under `dvc exp run`; this stage belongs to the trial's experiment, so its
+        # MLflow run gets the same tag.
+        self._dvc("repro", "train_tokenizer", environment={**os.environ, "DVC_EXP_NAME": name})
         return float(_read_json(TOKENIZER_REPORT_DIR / "metrics.json")[TOKENIZER_ERROR_KEY])
 
     def run_experiment(self, name: str, settings: TrialSettings) -> ExperimentResult:
@@ -66,11 +69,11 @@ class DvcExperimentRunner:
             tokenizer_rmse_percent=float(_read_json(TOKENIZER_REPORT_DIR / "metrics.json")[TOKENIZER_ERROR_KEY]),
         )
 
-    def _dvc(self, *arguments: str) -> None:
+    def _dvc(self, *arguments: str, environment: dict[str, str] | None = None) -> None:
         command = [sys.executable, "-m", "dvc", *arguments]
         logger.info("$ dvc %s", " ".join(arguments))
         # DVC's own output goes straight to this process's stdout/stderr; a failed stage fails the trial only.
-        completed = subprocess.run(command, cwd=PROJECT_DIR)
+        completed = subprocess.run(command, cwd=PROJECT_DIR, env=environment)
         if completed.returncode != 0:
             raise ExperimentFailedError(f"`dvc {' '.join(arguments)}` exited with status {completed.returncode}")
 

@@ -26,7 +26,7 @@ class FakeRunner:
     tokenizer_calls: list[TrialSettings] = field(default_factory=list)
     experiment_calls: list[tuple[str, TrialSettings]] = field(default_factory=list)
 
-    def train_tokenizer(self, settings: TrialSettings) -> float:
+    def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
         self.tokenizer_calls.append(settings)
         return self.errors.get(settings.codebook_size, math.nan)
 

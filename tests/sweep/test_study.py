@@ -66,6 +66,7 @@ def test_interrupted_trial_is_retried_with_same_params(sweep_config, tmp_path):
         run_sweep(sweep_config, runner, tmp_path)
     interrupted = [t for t in load_trials(sweep_config) if t.state == TrialState.FAIL]
     assert len(interrupted) == 1 and interrupted[0].user_attrs["interrupted"] is True
+    assert pd.read_csv(tmp_path / "trials.csv")["state"].tolist() == ["COMPLETE", "FAIL"]  # written on the way out
 
     runner.interrupt_on_experiment = None
     result = run_sweep(sweep_config, runner, tmp_path)

@@ -67,8 +67,11 @@ class SweepStateError(RuntimeError):
 class ExperimentRunner(Protocol):
     """Runs the pipeline for one trial's settings (the sweep's only contact with DVC)."""
 
-    def train_tokenizer(self, settings: TrialSettings) -> float:
-        """Bring the pipeline up to the trained tokenizer; return its reconstruction RMSE (% of range)."""
+    def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
+        """Bring the pipeline up to the trained tokenizer; return its reconstruction RMSE (% of range).
+
+        ``name`` is the experiment name the trial will use if it is not pruned.
+        """
         ...
 
     def run_experiment(self, name: str, settings: TrialSettings) -> ExperimentResult:
@@ -143,14 +146,21 @@ def run_sweep(
     remaining = remaining_trials(study.get_trials(deepcopy=False), config)
     logger.info("study %s: %d trial(s) to run (budget %d)", config.study_name, remaining, config.num_trials)
     objective = _Objective(config, runner, tracker, parent_run_id)
-    if remaining > 0:
-        with _experimental_api():
-            study.optimize(
-                objective,
-                n_trials=remaining,
-                catch=(ExperimentFailedError,),
-                callbacks=[lambda study, trial: write_reports()],
-            )
+    try:
+        if remaining > 0:
+            with _experimental_api():
+                study.optimize(
+                    objective,
+                    n_trials=remaining,
+                    catch=(ExperimentFailedError,),
+                    callbacks=[lambda study, trial: write_reports()],
+                )
+    except BaseException:
+        # Ctrl-C or a bug: the reports and the parent run still show where the sweep stopped.
+        write_reports()
+        if tracker is not None and parent_run_id is not None:
+            tracker.interrupt_study(parent_run_id)
+        raise
     result = write_reports()
     if tracker is not None and parent_run_id is not None:
         tracker.close_study(parent_run_id, result.best, result.finished_trials)
@@ -245,7 +255,8 @@ class _Objective:
         return value
 
     def _run(self, trial: optuna.Trial, settings: TrialSettings, run_id: str | None) -> tuple[float, str, str]:
-        error = self.runner.train_tokenizer(settings)
+        name = experiment_name(self.config.study_name, trial.number)
+        error = self.runner.train_tokenizer(name, settings)
         trial.set_user_attr("tokenizer_rmse_percent", error)
         self._log(run_id, {"tokenizer_rmse_percent": error})
         others = [trial_record(other) for other in trial.study.get_trials(deepcopy=False)]
@@ -254,7 +265,6 @@ class _Objective:
             raise optuna.TrialPruned(
                 f"tokenizer RMSE {error:.3g}% > {self.config.prune_factor} x best {best_error}% of the study"
             )
-        name = experiment_name(self.config.study_name, trial.number)
         result = self.runner.run_experiment(name, settings)
         trial.set_user_attr("dvc_experiment", name)
         trial.set_user_attr("success_rate", result.success_rate)

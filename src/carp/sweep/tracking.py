@@ -103,3 +103,7 @@ class SweepTracker:
                 },
             )
         self.client.set_terminated(parent_run_id, status="FINISHED")
+
+    def interrupt_study(self, parent_run_id: str) -> None:
+        """Mark the parent run killed (a resume reopens it)."""
+        self.client.set_terminated(parent_run_id, status="KILLED")

@@ -1,0 +1,74 @@
+"""A temporary copy of the repository with tiny params, for end-to-end `dvc repro` / `dvc exp run` tests."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+
+TINY_PARAMS = {
+    "scales": [1, 2, 4],
+    "codebook_size": 16,
+    "data": {"num_demos": 3},
+    "tokenizer": {"epochs": 2, "batch_size": 64, "checkpoint_every": 1},
+    "policy": {"epochs": 2, "depth": 1, "width": 16, "num_heads": 2, "batch_size": 64, "warmup_steps": 2},
+    "eval": {"episodes": 2, "workers": 2, "max_steps": {"lift": 40, "can": 40, "square": 40}},
+}
+
+
+def merge(base: dict, override: dict) -> dict:
+    """``base`` with ``override``'s keys replaced, recursing into nested mappings."""
+    merged = dict(base)
+    for key, value in override.items():
+        merged[key] = merge(base[key], value) if isinstance(value, dict) and key in base else value
+    return merged
+
+
+def run(command: list[str], cwd: Path, timeout: float = 900, **kwargs) -> subprocess.CompletedProcess:
+    """Run a command with this interpreter's bin directory first on PATH (stage commands call `python`)."""
+    return subprocess.run(command, cwd=cwd, env=tool_env(), capture_output=True, text=True, timeout=timeout, **kwargs)
+
+
+def tool_env() -> dict[str, str]:
+    """Environment whose PATH starts with the running interpreter's bin directory."""
+    return {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+
+
+def dvc(*arguments: str) -> list[str]:
+    """A `dvc` command line run by this interpreter."""
+    return [sys.executable, "-m", "dvc", *arguments]
+
+
+def make_workspace(directory: Path, params: dict | None = None) -> Path:
+    """Copy the repository's source files (not data, models or reports) into ``directory`` as a fresh git repo.
+
+    Args:
+        directory: created; becomes the workspace root.
+        params: overrides merged into ``params.yaml`` on top of :data:`TINY_PARAMS`.
+    """
+    tracked = subprocess.run(
+        ["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True, check=True
+    )
+    for name in tracked.stdout.split():
+        source = REPO / name
+        if source.is_file() and not name.startswith(("data/", "models/", "reports/")):
+            (directory / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, directory / name)
+    original = yaml.safe_load((directory / "params.yaml").read_text())
+    merged = merge(merge(original, TINY_PARAMS), params or {})
+    (directory / "params.yaml").write_text(yaml.safe_dump(merged, sort_keys=False))
+    # `dvc exp run` commits experiments too, so the identity goes into the repository's own config.
+    for command in (
+        ["git", "init", "-q"],
+        ["git", "config", "user.name", "carp-test"],
+        ["git", "config", "user.email", "carp-test@localhost"],
+        ["git", "add", "-A"],
+        ["git", "commit", "-qm", "tiny"],
+    ):
+        completed = run(command, directory)
+        assert completed.returncode == 0, completed.stderr
+    return directory
