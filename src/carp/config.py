@@ -102,9 +102,9 @@ class TokenizerConfig:
     base_channels: int = 2
     channel_mult: tuple[int, ...] = (2, 4)
     commitment_weight: float = 0.25
-    epochs: int = 40
-    batch_size: int = 256
-    learning_rate: float = 2e-3
+    epochs: int = 30
+    batch_size: int = 64
+    learning_rate: float = 1e-2
     weight_decay: float = 0.0
     checkpoint_every: int = 5
     seed: int = 0
