@@ -23,6 +23,10 @@ def main() -> None:
     args = parse_args(__doc__, per_task=True)
     params = load(args.params)
     data, config = params.data, params.eval
+    if config.video:
+        # Headless offscreen rendering through EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; `make render-deps`).
+        # Worker processes are spawned after this point and inherit it.
+        os.environ.setdefault("MUJOCO_GL", "egl")
     checkpoint = POLICY_DIR / args.task / "policy.pt"
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
     seeds = [config.seed + index for index in range(config.episodes)]
