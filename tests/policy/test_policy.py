@@ -105,3 +105,11 @@ def test_tokenizer_stays_frozen_in_train_mode():
     policy = tiny_policy().train()
     assert policy.transformer.training and not policy.tokenizer.training
     assert not any(parameter.requires_grad for parameter in policy.tokenizer.parameters())
+
+
+def test_batch_of_envs_equals_one_by_one():
+    policy = tiny_policy()
+    obs = _raw_obs(policy, 3)
+    batched = policy.predict_action(obs)
+    for index in range(3):
+        np.testing.assert_allclose(policy.predict_action(obs[index : index + 1]), batched[index : index + 1], atol=1e-5)

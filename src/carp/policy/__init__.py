@@ -1,1 +1,9 @@
-"""policy package of carp."""
+"""Coarse-to-fine autoregressive policy (DESIGN.md sections 4 and 5).
+
+- `spec`: `PolicySpec`, the validated transformer hyper-parameters.
+- `layout`: token order of a chunk, level ids and the block-causal mask.
+- `blocks`: attention with a kv-cache, the AdaLN block, the per-dimension head.
+- `transformer`: `CoarseToFineTransformer`, teacher-forced forward and K-step inference.
+- `sampling`: greedy / top-k token choice and the coarse-to-fine generation loop.
+- `policy`: `CarpPolicy`, normalizers + frozen tokenizer + transformer, with `predict_action` and checkpoints.
+"""

@@ -7,10 +7,13 @@ then cosine decay per step, optional EMA of the weights.
 Because the tokenizer is frozen, the ground-truth token ids and the teacher-forcing inputs of every window never change;
 they are computed once before training instead of re-encoding every batch as the official trainer does.
 
-Learning rate: DESIGN.md's rule is 1e-4 x batch / 256 for the paper's 4,000 epochs on a GPU. The CPU budget here is
-tens of epochs, so the default peak is 1e-3 (x10) with 100 warm-up steps; the model is small (D = 64) and the AdaLN
-gates start near zero, which keeps the early steps stable at this rate, and the cosine decay to 1% of the peak
-recovers the fine convergence of the lower rate (see the measurements in the module's report).
+Learning rate: DESIGN.md's rule is 1e-4 x batch / 256 for the paper's 4,000 epochs on a GPU; the CPU budget here is
+tens of epochs, so the default peak is 1e-3 with 100 warm-up steps and cosine decay to 1% of the peak. Measured on a
+synthetic pick-and-place proxy (default model, 1,536 windows, 96 steps at batch 256), the train loss went from 6.23
+to 6.06 in 48 steps at 1e-4, and after 96 steps reached 5.47 at 3e-4, 3.91 at 1e-3 and 2.81 at 3e-3 without
+instability (the AdaLN gates start near zero, which keeps the first steps stable at these rates). The default stays at
+1e-3 rather than 3e-3 as a margin for the real runs, which are several times longer over few demonstrations; the
+rate is a parameter, and 2e-3 to 3e-3 is worth trying when the epoch budget is small.
 """
 
 import hashlib
