@@ -92,6 +92,12 @@ def test_resume_continues_from_the_saved_epoch(tmp_path):
     assert epochs == [2, 3]
     for name, value in _weights(resumed).items():
         assert torch.equal(value, uninterrupted[name]), name
+    # A finished run is not repeated: the final state is loaded as is.
+    epochs.clear()
+    finished = train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: epochs.append(e))
+    assert epochs == []
+    for name, value in _weights(finished).items():
+        assert torch.equal(value, uninterrupted[name]), name
 
 
 def test_ema_returns_averaged_weights(tmp_path):
