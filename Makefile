@@ -7,9 +7,6 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
-# One BLAS/OpenMP thread per process by default: the simulator and the policy share two cores.
-export OMP_NUM_THREADS ?= 1
-export MKL_NUM_THREADS ?= 1
 
 .PHONY: setup repro test test-fast lint benchmark ui sweep exps
 

@@ -54,6 +54,9 @@ def test_normalizer_maps_to_unit_interval_and_back():
     np.testing.assert_allclose(normalized[:, :3].max(axis=0), 1.0, atol=1e-12)
     np.testing.assert_allclose(normalized[:, 3], 0.0)  # constant feature
     np.testing.assert_allclose(normalizer.unnormalize(normalized), values, atol=1e-9)
+    stray = normalized.copy()
+    stray[:, 3] = 0.7  # a model's output on the constant feature
+    np.testing.assert_allclose(normalizer.unnormalize(stray)[:, 3], 3.0)
     restored = MinMaxNormalizer.from_dict(normalizer.to_dict())
     np.testing.assert_allclose(restored.unnormalize(normalized), values, atol=1e-9)
 

@@ -52,9 +52,17 @@ class MinMaxNormalizer:
         return values * self._like(scale, values) + self._like(offset, values)
 
     def unnormalize(self, values: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-        """(..., F) in [-1, 1] -> (..., F) raw; inverse of :meth:`normalize`."""
+        """(..., F) in [-1, 1] -> (..., F) raw; inverse of :meth:`normalize`.
+
+        Constant features come back as their constant whatever the input, so a model's stray output on a dimension
+        the data never moved cannot drift it.
+        """
         scale, offset = self._scale_offset()
-        return (values - self._like(offset, values)) / self._like(scale, values)
+        constant = self.maximum - self.minimum < CONSTANT_RANGE
+        # For constant features: scale 0 and offset = min, so the result is exactly min.
+        scale_back = np.where(constant, 0.0, 1.0 / scale)
+        offset_back = np.where(constant, self.minimum, -offset / scale)
+        return values * self._like(scale_back, values) + self._like(offset_back, values)
 
     @staticmethod
     def _like(array: np.ndarray, reference: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
