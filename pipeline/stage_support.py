@@ -1,6 +1,7 @@
 """What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run."""
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -118,6 +119,19 @@ def mlflow_stage(params: Params, stage: str, experiment: str, extra_tags: dict |
         tags=tags,
     ) as run:
         yield run
+
+
+def copy_fields(target_type: type, *sources: object, **overrides):
+    """Build the library dataclass ``target_type`` from same-named fields of typed param sections.
+
+    Params sections and the library's specs/settings share field names (``epochs``, ``depth``, ...); this keeps the
+    mapping in one place instead of a hand-written keyword list per stage. Later sources and ``overrides`` win.
+    """
+    names = {field.name for field in dataclasses.fields(target_type)}
+    values = {}
+    for source in sources:
+        values.update({name: getattr(source, name) for name in names if hasattr(source, name)})
+    return target_type(**{**values, **overrides})
 
 
 def write_json(path: Path, payload: dict) -> None:

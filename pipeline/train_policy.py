@@ -11,6 +11,7 @@ from stage_support import (
     PROCESSED_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REF,
+    copy_fields,
     fail,
     load,
     mlflow_stage,
@@ -49,31 +50,17 @@ def main() -> None:
         obs=torch.as_tensor(obs_normalizer.normalize(windows.train_obs), dtype=torch.float32),
         actions=torch.as_tensor(action_normalizer.normalize(windows.train_actions), dtype=torch.float32),
     )
-    spec = PolicySpec(
+    spec = copy_fields(
+        PolicySpec,
+        config,
         obs_dim=obs_normalizer.num_features,
         obs_steps=data.obs_steps,
         action_dim=data.action_dim,
         scales=params.scales,
         latent_channels=tokenizer.spec.latent_channels,
         codebook_size=params.codebook_size,
-        depth=config.depth,
-        width=config.width,
-        num_heads=config.num_heads,
-        mlp_ratio=config.mlp_ratio,
-        dropout=config.dropout,
     )
-    settings = PolicyTrainingSettings(
-        epochs=config.epochs,
-        batch_size=config.batch_size,
-        learning_rate=config.learning_rate,
-        weight_decay=config.weight_decay,
-        warmup_steps=config.warmup_steps,
-        use_ema=config.use_ema,
-        ema_decay=config.ema_decay,
-        seed=config.seed,
-        checkpoint_every=config.checkpoint_every,
-        device=str(select_device(params)),
-    )
+    settings = copy_fields(PolicyTrainingSettings, config, device=str(select_device(params)))
     history: list[dict] = []
     with mlflow_stage(params, f"train_policy@{args.task}", args.task, {"carp.tokenizer": reference.uri}) as run:
 

@@ -12,6 +12,7 @@ from stage_support import (
     PROCESSED_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REPORT_DIR,
+    copy_fields,
     fail,
     load,
     mlflow_stage,
@@ -42,25 +43,15 @@ def main() -> None:
     with mlflow_stage(params, "train_tokenizer", "tokenizer", {"carp.tokenizer_source": config.source}) as run:
         if config.source == "pipeline":
             normalizer = union_normalizer([w.action_normalizer for w in windows])
-            spec = TokenizerSpec(
+            spec = copy_fields(
+                TokenizerSpec,
+                config,
                 action_dim=data.action_dim,
                 action_horizon=data.action_horizon,
                 scales=params.scales,
                 codebook_size=params.codebook_size,
-                latent_channels=config.latent_channels,
-                base_channels=config.base_channels,
-                channel_mult=config.channel_mult,
-                commitment_weight=config.commitment_weight,
             )
-            settings = TokenizerTrainingSettings(
-                epochs=config.epochs,
-                batch_size=config.batch_size,
-                learning_rate=config.learning_rate,
-                weight_decay=config.weight_decay,
-                seed=config.seed,
-                checkpoint_every=config.checkpoint_every,
-                device=str(select_device(params)),
-            )
+            settings = copy_fields(TokenizerTrainingSettings, config, device=str(select_device(params)))
 
             def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
                 history.append({"epoch": epoch + 1, **metrics})
