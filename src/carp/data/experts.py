@@ -26,6 +26,7 @@ Panda's workspace), and the grasp aims slightly above and further out along the 
 table and the nut ring; if the gripper closes on nothing it opens, rises and grasps again.
 """
 
+import abc
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -94,7 +95,7 @@ def yaw_of(quaternion_xyzw: np.ndarray) -> float:
     return math.atan2(x_axis[1], x_axis[0])
 
 
-class ScriptedExpert:
+class ScriptedExpert(abc.ABC):
     """Base class: commanded-pose bookkeeping, action encoding and motion primitives.
 
     Usage: build once per env, call :meth:`reset` after every env reset, then :meth:`act` before every step.
@@ -146,8 +147,9 @@ class ScriptedExpert:
         except StopIteration:
             return self._encode_action()
 
+    @abc.abstractmethod
     def _script(self) -> Iterator[np.ndarray]:
-        raise NotImplementedError
+        """The task's phase machine: yields one 7-D action per control step."""
 
     def site_position(self) -> np.ndarray:
         """World position (3,) of the grip site, the point the OSC controller moves."""
