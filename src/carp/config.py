@@ -147,8 +147,8 @@ class PolicyConfig:
     num_heads: int = 8
     mlp_ratio: float = 4.0
     dropout: float = 0.0
-    epochs: int = 60
-    batch_size: int = 256
+    epochs: int = 40
+    batch_size: int = 64
     learning_rate: float = 1e-3
     weight_decay: float = 0.05
     warmup_steps: int = 100
