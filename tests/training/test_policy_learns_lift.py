@@ -67,4 +67,3 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
     }
     # Executed actions of the trained policy are at least twice as close to the held-out demonstrations.
     assert errors["trained"] < 0.5 * errors["untrained"], errors
-    print(f"held-out executed-action RMSE: trained {errors['trained']:.4f}, untrained {errors['untrained']:.4f}")
