@@ -102,7 +102,7 @@ class TokenizerConfig:
     base_channels: int = 2
     channel_mult: tuple[int, ...] = (2, 4)
     commitment_weight: float = 0.25
-    epochs: int = 30
+    epochs: int = 60
     batch_size: int = 64
     learning_rate: float = 1e-2
     weight_decay: float = 0.0
