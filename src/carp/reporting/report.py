@@ -124,6 +124,17 @@ def tokenizer_table(metrics: Mapping[str, float]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _finish(figure, axis, path: Path) -> Path:
+    """Legend, grid, tight layout; save as PNG and release the figure."""
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
 def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path: Path, log_scale: bool = True) -> Path:
     """Plot per-epoch columns of a history table to a PNG."""
     figure, axis = plt.subplots(figsize=(6, 3.2))
@@ -134,13 +145,7 @@ def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path:
     axis.set_title(title)
     if log_scale and (history[[c for c in columns if c in history]] > 0).all().all():
         axis.set_yscale("log")
-    axis.legend(fontsize=7)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return _finish(figure, axis, path)
 
 
 def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
@@ -152,13 +157,7 @@ def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
     axis.set_xlabel("number of scales K")
     axis.set_ylabel("success rate (%)")
     axis.set_ylim(0, 105)
-    axis.legend(fontsize=7)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return _finish(figure, axis, path)
 
 
 def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
