@@ -35,8 +35,14 @@ def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
         params["tokenizer"]["source"] = uri
 
     _set_params(workspace, reuse)
-    second = run(dvc("repro"), workspace)
+    # The README's walkthrough: Square's data, then everything downstream of the registry stage; train_tokenizer
+    # is not even visited.
+    data = run(dvc("repro", "collect@square", "ingest@square"), workspace)
+    assert data.returncode == 0, data.stderr[-3000:]
+    second = run(dvc("repro", "--downstream", "register_tokenizer"), workspace)
     assert second.returncode == 0, second.stderr[-3000:]
+    assert "Running stage 'train_tokenizer'" not in second.stdout + data.stdout
+    assert "Running stage 'train_policy@square'" in second.stdout
 
     # The registered weights were used as they are: same hash, same registry version, trained on lift and can.
     metadata = json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())
@@ -47,10 +53,16 @@ def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in training_state.iterdir()} == state_before
     tracking = f"sqlite:///{workspace / 'mlflow.db'}"
     runs = [r for r in find_runs(tracking, "carp-tokenizer") if r["run_name"] == "train_tokenizer"]
-    latest = runs[0]
-    assert latest["tags"]["carp.tokenizer_source"] == uri
-    assert "train_loss" not in latest["metrics"] and "rmse_percent_range.mean" in latest["metrics"]
-    assert runs[-1]["metrics"].get("train_loss") is not None
+    assert len(runs) == 1 and runs[0]["metrics"].get("train_loss") is not None  # only the Lift+Can training
+
+    # A plain `dvc repro` also trains nothing: train_tokenizer then only fetches and measures the registered version.
+    third = run(dvc("repro"), workspace)
+    assert third.returncode == 0, third.stderr[-3000:]
+    runs = [r for r in find_runs(tracking, "carp-tokenizer") if r["run_name"] == "train_tokenizer"]
+    assert runs[0]["tags"]["carp.tokenizer_source"] == uri
+    assert "train_loss" not in runs[0]["metrics"] and "rmse_percent_range.mean" in runs[0]["metrics"]
+    assert json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())["sha256"] == reference["sha256"]
+    assert {p.name: p.stat().st_mtime_ns for p in training_state.iterdir()} == state_before
     # The Square policy was trained against it and evaluated.
     evaluation = json.loads((workspace / "reports/eval/square.json").read_text())
     assert evaluation["episodes"] == 1
