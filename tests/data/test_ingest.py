@@ -27,7 +27,9 @@ def test_ingest_builds_buffer_with_episode_boundaries_and_exact_actions(tmp_path
     assert buffer.obs.shape == (115, sum(OBS_WIDTHS.values()))
     assert buffer.attrs["obs_widths"] == [OBS_WIDTHS[key] for key in OBS_KEYS]
     _, third_actions = buffer.episode(2)
-    np.testing.assert_allclose(rot6d_to_absolute_actions(third_actions.astype(np.float64)), episodes[2].actions, atol=1e-5)
+    np.testing.assert_allclose(
+        rot6d_to_absolute_actions(third_actions.astype(np.float64)), episodes[2].actions, atol=1e-5
+    )
     np.testing.assert_allclose(buffer.obs[55:95, :10], episodes[2].obs["object"], atol=1e-6)
 
 
@@ -75,7 +77,10 @@ BAD_INPUTS = {
         lambda h: _replace(h, "data/demo_2/obs/robot0_eef_pos", np.zeros((39, 3))),
         "demo 'demo_2': obs key 'robot0_eef_pos' has 39 steps but 'actions' has 40",
     ),
-    "empty demo": (lambda h: _replace(h, "data/demo_0/actions", np.zeros((0, 7))), "demo 'demo_0': key 'actions' is empty"),
+    "empty demo": (
+        lambda h: _replace(h, "data/demo_0/actions", np.zeros((0, 7))),
+        "demo 'demo_0': key 'actions' is empty",
+    ),
     "nan action": (
         lambda h: h["data/demo_3/actions"].__setitem__((4, 2), np.nan),
         "demo 'demo_3': key 'actions' holds NaN or inf (first at step 4)",

@@ -7,14 +7,14 @@ import pytest
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.tokenizer.spec import TokenizerSpec
-from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.tokenizer.artifact import (
     TokenizerMismatchError,
     check_compatible,
     load_tokenizer_artifact,
     save_tokenizer_artifact,
 )
+from carp.tokenizer.spec import TokenizerSpec
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.tracking.registry import TokenizerReference, fetch_registered_tokenizer, register_tokenizer
 from carp.tracking.runs import find_runs, stage_run
 
@@ -84,7 +84,9 @@ def test_sha_mismatch_and_incompatible_params_are_refused(tmp_path):
         check_compatible(artifact, "panda-test2", (2,), 8)
     with pytest.raises(TokenizerMismatchError, match="codebook_size is 8 but the params ask for 256"):
         check_compatible(artifact, "panda-test2", (1, 2), 256)
-    with pytest.raises(TokenizerMismatchError, match="action space is 'panda-test2' but the params ask for 'panda-abs10'"):
+    with pytest.raises(
+        TokenizerMismatchError, match="action space is 'panda-test2' but the params ask for 'panda-abs10'"
+    ):
         check_compatible(artifact, "panda-abs10", (1, 2), 8)
 
 
