@@ -19,13 +19,11 @@ rate is a parameter, and 2e-3 to 3e-3 is worth trying when the epoch budget is s
 import hashlib
 import logging
 import math
-import random
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -38,7 +36,7 @@ from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
-from carp.training.tokenizer_trainer import resolve_device
+from carp.training.runtime import resolve_device, seed_everything
 
 logger = logging.getLogger(__name__)
 
@@ -185,12 +183,6 @@ def _make_scheduler(
     return torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[warmup_steps])
 
 
-def _seed_everything(seed: int) -> None:
-    torch.manual_seed(seed)
-    np.random.seed(seed % 2**32)
-    random.seed(seed)
-
-
 def _epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
     # A generator per epoch makes the shuffle independent of earlier epochs' randomness, so resuming is exact.
     return torch.randperm(count, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
@@ -257,7 +249,7 @@ def train_policy(
     task_ids = data.task_ids.to(device=device, dtype=torch.long) if data.task_ids is not None else None
     targets = compute_token_targets(tokenizer, data.actions.to(device=device, dtype=torch.float32))
 
-    _seed_everything(settings.seed)
+    seed_everything(settings.seed)
     transformer = CoarseToFineTransformer(spec).to(device)
     ema = None
     if settings.use_ema:

@@ -20,13 +20,11 @@ perplexity from 87 to 113 (cosine search keeps even a random codebook partly ali
 import hashlib
 import logging
 import math
-import random
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -34,6 +32,7 @@ from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
+from carp.training.runtime import resolve_device, seed_everything
 
 logger = logging.getLogger(__name__)
 
@@ -81,19 +80,6 @@ class TokenizerTrainingSettings:
         for name in ("warmup_fraction", "restart_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-
-
-def resolve_device(device: str) -> torch.device:
-    """Map "auto" to cuda when available, else cpu; pass any other torch device string through."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
-
-
-def _seed_everything(seed: int) -> None:
-    torch.manual_seed(seed)
-    np.random.seed(seed % 2**32)
-    random.seed(seed)
 
 
 def _epoch_generator(seed: int, epoch: int, stream: int) -> torch.Generator:
@@ -260,7 +246,7 @@ def train_tokenizer(
     train_windows = train_windows.to(device=device, dtype=torch.float32)
     valid_windows = valid_windows.to(device=device, dtype=torch.float32)
 
-    _seed_everything(settings.seed)
+    seed_everything(settings.seed)
     tokenizer = MultiScaleActionTokenizer(spec).to(device)
     optimizer = _make_optimizer(tokenizer, settings)
     num_windows = train_windows.shape[0]
