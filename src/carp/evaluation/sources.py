@@ -10,6 +10,24 @@ from carp.data.rotation import rot6d_to_absolute_actions
 from carp.evaluation.rollout import ChunkTiming
 
 
+def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, controller: str) -> np.ndarray:
+    """The part of a predicted chunk the env executes, in the controller's action format.
+
+    Args:
+        chunk: (H, A) raw actions predicted from observations at steps ``t - To + 1 .. t``; row ``To - 1`` is step t.
+        obs_steps: ``To``.
+        action_steps: ``Ta``.
+        controller: ``absolute`` converts 10-D (position, 6-D rotation, gripper) rows to the controller's 7-D form.
+
+    Returns:
+        (Ta, 7 or A) float64.
+    """
+    executed = np.asarray(chunk[obs_steps - 1 : obs_steps - 1 + action_steps], dtype=np.float64)
+    if controller == "absolute":
+        executed = rot6d_to_absolute_actions(executed)
+    return executed
+
+
 class ExpertSource:
     """A scripted expert (privileged state) behind the same interface as the policy; one action per decision."""
 
@@ -73,8 +91,6 @@ class PolicySource:
             observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
         )
         started = time.perf_counter()
-        executed = np.asarray(actions[0, self.obs_steps - 1 : self.obs_steps - 1 + self.action_steps], dtype=np.float64)
-        if self.controller == "absolute":
-            executed = rot6d_to_absolute_actions(executed)
+        executed = executed_actions(actions[0], self.obs_steps, self.action_steps, self.controller)
         decoding_seconds += time.perf_counter() - started
         return executed, ChunkTiming(prediction=prediction_seconds, decoding=decoding_seconds)
