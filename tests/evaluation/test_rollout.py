@@ -18,7 +18,7 @@ class CrashingSource:
         self.crash_seed = crash_seed
         self.decisions = 0
 
-    def reset(self, env) -> None:
+    def reset(self, env, seed: int) -> None:
         self.decisions = 0
 
     def act(self, history, env):

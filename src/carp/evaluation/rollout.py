@@ -35,8 +35,8 @@ class ChunkTiming:
 class ActionSource(Protocol):
     """Something that decides actions: a trained policy or a scripted expert."""
 
-    def reset(self, env) -> None:
-        """Called after every env reset."""
+    def reset(self, env, seed: int) -> None:
+        """Called after every env reset with the episode's seed (sources that sample derive their draws from it)."""
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming | None]:
         """Decide the next actions.
@@ -94,7 +94,7 @@ def run_episode(
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
     try:
         obs = simulation.reset_env(env, seed)
-        source.reset(env)
+        source.reset(env, seed)
         history = deque([flatten_observation(obs, obs_keys)] * obs_steps, maxlen=obs_steps)
         while result.steps < max_steps and not result.success:
             actions, timing = source.act(np.stack(history), env)

@@ -35,7 +35,7 @@ class ExpertSource:
         self.task = task
         self._expert = None
 
-    def reset(self, env) -> None:
+    def reset(self, env, seed: int) -> None:
         """Bind a fresh expert to the just-reset env."""
         from carp.data.experts import make_expert
 
@@ -78,12 +78,13 @@ class PolicySource:
         self.task_index = task_index
         self.device = torch.device(device)
         self._generator = torch.Generator(device=self.device)
-        self._episodes = 0
 
-    def reset(self, env) -> None:
-        """New episode: re-seed sampling so that results do not depend on episode order."""
-        self._generator.manual_seed(self._episodes)
-        self._episodes += 1
+    def reset(self, env, seed: int) -> None:
+        """New episode: seed sampling with the episode's seed.
+
+        An episode's draws then do not depend on which worker runs it or on what that worker ran before.
+        """
+        self._generator.manual_seed(seed)
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming]:
         """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time."""
