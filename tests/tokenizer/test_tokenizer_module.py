@@ -142,7 +142,8 @@ def test_phi_is_half_identity_half_convolution(tiny_tokenizer):
     hidden = torch.randn(3, 2, 4, 2)
     quantizer = tiny_tokenizer.quantizer
     conv = quantizer.phi_convs[quantizer.phi_of_scale[1]]
-    expected = 0.5 * hidden.reshape(3, 8, 2) + 0.5 * conv(hidden.reshape(3, 8, 2))
+    image = hidden.reshape(3, 8, 1, 2)  # (B, A * C, 1, l)
+    expected = 0.5 * image + 0.5 * conv(image)
     assert torch.allclose(quantizer.phi(1, hidden), expected.reshape(3, 2, 4, 2))
 
 
@@ -155,6 +156,20 @@ def test_nearest_codes_use_cosine_similarity(tiny_tokenizer):
     residual = torch.zeros(1, 2, 4, 1)
     residual[:, :, 0] = 0.5  # nearer to code 3 in angle, and L2 would pick the zero codes first
     assert quantizer.nearest_codes(residual).flatten().tolist() == [3, 3]
+
+
+def test_nearest_codes_match_cosine_argmax_for_any_residual_length(tiny_tokenizer):
+    quantizer = tiny_tokenizer.quantizer
+    generator = torch.Generator().manual_seed(4)
+    residual = torch.randn(6, 2, 4, 2, generator=generator)  # (B, A, C, s)
+    cosine = F.cosine_similarity(
+        residual.permute(0, 1, 3, 2)[:, :, :, None, :],  # (B, A, s, 1, C)
+        quantizer.codebook.detach()[None, :, None, :, :],  # (1, A, 1, V, C)
+        dim=-1,
+    )  # (B, A, s, V)
+    expected = cosine.argmax(dim=-1)
+    assert torch.equal(quantizer.nearest_codes(residual), expected)
+    assert torch.equal(quantizer.nearest_codes(residual * 1e3, quantizer.unit_codebook()), expected)
 
 
 def test_restart_codes_only_touches_unused_codes(tiny_tokenizer):
@@ -190,7 +205,7 @@ def test_checkpoint_round_trip_and_version_check(tiny_tokenizer, tiny_actions):
         restored.decode_ids(restored.encode_to_ids(tiny_actions)),
         tiny_tokenizer.decode_ids(tiny_tokenizer.encode_to_ids(tiny_actions)),
     )
-    with pytest.raises(ValueError, match=r"format_version 99, this code reads version 1"):
+    with pytest.raises(ValueError, match=r"format_version 99, this code reads version 2"):
         MultiScaleActionTokenizer.from_checkpoint({**checkpoint, "format_version": 99})
 
 

@@ -1,7 +1,7 @@
 """Convert between one vectorized tokenizer and A single-dimension tokenizers (action_dim = 1).
 
 Every parameter of `MultiScaleActionTokenizer` is laid out dimension-major along axis 0: grouped conv weights
-(A * out, in, k), transposed-conv weights (A * in, out, k), biases and GroupNorm affines (A * channels) and the
+(A * out, in, 1, k), transposed-conv weights (A * in, out, 1, k), biases and GroupNorm affines (A * channels) and the
 codebook (A, V, C). A single-dimension tokenizer has the same parameter names with A = 1, so merging is a
 concatenation along axis 0 and splitting is the inverse. This is how the equivalence tests and the throughput
 benchmark build matching "loop over A modules" baselines.

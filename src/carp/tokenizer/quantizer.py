@@ -6,7 +6,9 @@ codes nearest (cosine similarity) to area-downsample(r, s_k), up-sample their em
 phi_k, and add the result h_k to f_hat while subtracting it from r.
 
 Vectorization: one codebook parameter (A, V, C) and one grouped convolution per phi, so the A quantizers run in one
-pass; tensors at this module's boundary are (B, A, C, T).
+pass; tensors at this module's boundary are (B, A, C, T). Latents coming from the encoder are time-major in memory
+((B, T, A, C), see `carp.tokenizer.autoencoder`) and every operation here keeps that layout, so the reshapes between
+(B, A, C, T), the phi convs' (B, A * C, 1, T) images and the search's (A, B * T, C) rows are views, not copies.
 
 Deviations from VAR/CARP:
 - Phi convolutions are 1-D over time and grouped per dimension; the number of phi convs is fixed at 4.
@@ -16,6 +18,8 @@ Deviations from VAR/CARP:
   width axis); a single code (s_k = 1) up-samples to a constant. Both resamplings (area down, bicubic up) are applied
   as small precomputed matrices built by `F.interpolate` itself, which is the same linear map at a fraction of the
   CPU cost.
+- The nearest-code search ranks codes by r . c / |c|, which orders them exactly as the cosine similarity does for a
+  non-zero residual r, and normalizes the codebook once per pass instead of once per scale.
 - No usage EMA buffers: codebook usage is measured from token ids by `carp.tokenizer.metrics` and the trainer.
 - `restart_codes` re-seeds unused codes from encoder residuals (not part of VAR/CARP; see the trainer).
 """
@@ -27,6 +31,7 @@ import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
 
+from carp.tokenizer.autoencoder import grouped_conv
 from carp.tokenizer.spec import TokenizerSpec
 
 NUM_PHI_CONVS = 4
@@ -66,12 +71,14 @@ def resampling_matrix(source_length: int, target_length: int, mode: str) -> torc
     return columns[0].T.float().contiguous()  # (target, source)
 
 
-def _flatten_dimensions(tensor: torch.Tensor) -> torch.Tensor:
-    return rearrange(tensor, "b a c t -> b (a c) t")
+def _to_image(latent: torch.Tensor) -> torch.Tensor:
+    """(B, A, C, T) -> (B, A * C, 1, T), the layout of `carp.tokenizer.autoencoder` (a view if time-major)."""
+    return rearrange(latent, "b a c t -> b (a c) 1 t")
 
 
-def _unflatten_dimensions(tensor: torch.Tensor, num_dimensions: int) -> torch.Tensor:
-    return rearrange(tensor, "b (a c) t -> b a c t", a=num_dimensions)
+def _from_image(image: torch.Tensor, num_dimensions: int) -> torch.Tensor:
+    """Inverse of `_to_image`: (B, A * C, 1, T) -> (B, A, C, T)."""
+    return rearrange(image, "b (a c) 1 t -> b a c t", a=num_dimensions)
 
 
 class MultiScaleQuantizer(nn.Module):
@@ -93,21 +100,14 @@ class MultiScaleQuantizer(nn.Module):
             )
         )  # (A, V, C)
         self.phi_convs = nn.ModuleList(
-            nn.Conv1d(
-                num_dimensions * spec.latent_channels,
-                num_dimensions * spec.latent_channels,
-                kernel_size=3,
-                padding=1,
-                groups=num_dimensions,
-            )
-            for _ in range(NUM_PHI_CONVS)
+            grouped_conv(num_dimensions, spec.latent_channels, spec.latent_channels) for _ in range(NUM_PHI_CONVS)
         )
         self.phi_of_scale = tuple(phi_index_for_scale(index, spec.num_scales) for index in range(spec.num_scales))
         # Interpolation matrices keyed by (source length, target length, mode, device, dtype), built on first use.
         self._resampling_matrices: dict[tuple, torch.Tensor] = {}
 
     def resample(self, latent: torch.Tensor, size: int, mode: str) -> torch.Tensor:
-        """Resample (B, A, C, T) along time to (B, A, C, size); `mode` is "area" (down) or "bicubic" (up)."""
+        """Resample (B, A, C, T) along time to time-major (B, A, C, size); `mode` is "area" (down) or "bicubic" (up)."""
         if latent.shape[-1] == size:
             return latent
         key = (latent.shape[-1], size, mode, latent.device, latent.dtype)
@@ -115,32 +115,43 @@ class MultiScaleQuantizer(nn.Module):
         if matrix is None:
             matrix = resampling_matrix(latent.shape[-1], size, mode).to(device=latent.device, dtype=latent.dtype)
             self._resampling_matrices[key] = matrix
-        return torch.einsum("bact,st->bacs", latent, matrix)
+        resampled = torch.matmul(matrix, rearrange(latent, "b a c t -> b t (a c)"))  # (B, size, A * C)
+        return rearrange(resampled, "b s (a c) -> b a c s", a=latent.shape[1])
 
-    def nearest_codes(self, residual: torch.Tensor) -> torch.Tensor:
-        """Return ids (B, A, s) of each dimension's code with the highest cosine similarity to residual (B, A, C, s)."""
+    def unit_codebook(self) -> torch.Tensor:
+        """The codes scaled to unit length (A, V, C), detached: what the nearest-code search compares against."""
+        return F.normalize(self.codebook.detach(), dim=-1)
+
+    def nearest_codes(self, residual: torch.Tensor, unit_codes: torch.Tensor | None = None) -> torch.Tensor:
+        """Return ids (B, A, s) of each dimension's code with the highest cosine similarity to residual (B, A, C, s).
+
+        Args:
+            residual: (B, A, C, s) vectors to quantize.
+            unit_codes: `unit_codebook()`, passed in by callers that search several scales with one codebook.
+        """
+        if unit_codes is None:
+            unit_codes = self.unit_codebook()
         batch_size = residual.shape[0]
-        directions = F.normalize(rearrange(residual.detach(), "b a c s -> a (b s) c"), dim=-1)
-        codes = F.normalize(self.codebook.detach(), dim=-1)  # (A, V, C)
+        # Dividing r . c_v by |r| would not change which code wins, so the residual is not normalized.
+        queries = rearrange(residual.detach(), "b a c s -> a (b s) c")
         # (A, B * s, V) is contiguous in V; `max` is several times faster than `argmax` on CPU and also returns the
         # first maximum on ties.
-        similarity = torch.bmm(directions, codes.transpose(1, 2))
+        similarity = torch.bmm(queries, unit_codes.transpose(1, 2))
         return rearrange(similarity.max(dim=-1).indices, "a (b s) -> b a s", b=batch_size)
 
     def code_vectors(self, token_ids: torch.Tensor) -> torch.Tensor:
-        """Look up ids (B, A, s) in each dimension's own codebook, giving embeddings (B, A, C, s)."""
+        """Look up ids (B, A, s) in each dimension's own codebook, giving embeddings (B, A, C, s) (time-major)."""
         num_dimensions, codebook_size, _ = self.codebook.shape
         offsets = torch.arange(num_dimensions, device=token_ids.device) * codebook_size
-        flat_ids = token_ids + offsets[None, :, None]  # index into the (A * V, C) stacked codebooks
-        vectors = F.embedding(flat_ids, self.codebook.reshape(num_dimensions * codebook_size, -1))  # (B, A, s, C)
-        return rearrange(vectors, "b a s c -> b a c s")
+        flat_ids = rearrange(token_ids, "b a s -> b s a") + offsets  # index into the (A * V, C) stacked codebooks
+        vectors = F.embedding(flat_ids, self.codebook.reshape(num_dimensions * codebook_size, -1))  # (B, s, A, C)
+        return rearrange(vectors, "b s a c -> b a c s")
 
     def phi(self, scale_index: int, hidden: torch.Tensor) -> torch.Tensor:
         """phi_k(h) = (1 - 0.5) h + 0.5 conv_k3(h) on (B, A, C, l), with the conv shared by relative depth."""
         conv = self.phi_convs[self.phi_of_scale[scale_index]]
-        flat = _flatten_dimensions(hidden)  # (B, A * C, l)
-        refined = (1 - PHI_RESIDUAL_RATIO) * flat + PHI_RESIDUAL_RATIO * conv(flat)
-        return _unflatten_dimensions(refined, self.spec.action_dim)
+        image = _to_image(hidden)  # (B, A * C, 1, l)
+        return _from_image(torch.lerp(image, conv(image), PHI_RESIDUAL_RATIO), self.spec.action_dim)
 
     def scale_contribution(self, token_ids: torch.Tensor, scale_index: int) -> torch.Tensor:
         """h_k = phi_k(upsample(E[z_k], l)): the latent (B, A, C, l) that scale k's ids (B, A, s_k) add to f_hat."""
@@ -164,8 +175,9 @@ class MultiScaleQuantizer(nn.Module):
         quantized = torch.zeros_like(target)
         token_ids = []
         vq_loss = latent.new_zeros(())
+        unit_codes = self.unit_codebook()
         for scale_index, scale in enumerate(self.spec.scales):
-            ids = self.nearest_codes(self.resample(residual, scale, mode="area"))  # (B, A, s_k)
+            ids = self.nearest_codes(self.resample(residual, scale, mode="area"), unit_codes)  # (B, A, s_k)
             contribution = self.scale_contribution(ids, scale_index)  # (B, A, C, l)
             quantized = quantized + contribution
             residual = residual - contribution.detach()
@@ -181,8 +193,9 @@ class MultiScaleQuantizer(nn.Module):
         """Token ids per scale, K tensors (B, A, s_k) long, of latents (B, A, C, l)."""
         residual = latent.clone()
         token_ids = []
+        unit_codes = self.unit_codebook()
         for scale_index, scale in enumerate(self.spec.scales):
-            ids = self.nearest_codes(self.resample(residual, scale, mode="area"))
+            ids = self.nearest_codes(self.resample(residual, scale, mode="area"), unit_codes)
             residual = residual - self.scale_contribution(ids, scale_index)
             token_ids.append(ids)
         return token_ids
@@ -195,9 +208,10 @@ class MultiScaleQuantizer(nn.Module):
         """
         residual = latent.clone()
         collected = []
+        unit_codes = self.unit_codebook()
         for scale_index, scale in enumerate(self.spec.scales):
             downsampled = self.resample(residual, scale, mode="area")  # (B, A, C, s_k)
-            ids = self.nearest_codes(downsampled)
+            ids = self.nearest_codes(downsampled, unit_codes)
             residual = residual - self.scale_contribution(ids, scale_index)
             collected.append(rearrange(downsampled, "b a c s -> a (b s) c"))
         return torch.cat(collected, dim=1)

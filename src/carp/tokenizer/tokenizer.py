@@ -31,7 +31,8 @@ from carp.tokenizer.autoencoder import ActionDecoder, ActionEncoder
 from carp.tokenizer.quantizer import MultiScaleQuantizer
 from carp.tokenizer.spec import TokenizerSpec
 
-TOKENIZER_FORMAT_VERSION = 1
+# 2: convolution weights are 4-D (out, in, 1, k) (were 3-D Conv1d weights in version 1).
+TOKENIZER_FORMAT_VERSION = 2
 
 
 @dataclass
@@ -66,6 +67,9 @@ class MultiScaleActionTokenizer(nn.Module):
         self.encoder = ActionEncoder(spec)
         self.quantizer = MultiScaleQuantizer(spec)
         self.decoder = ActionDecoder(spec)
+        # The convolutions run on channels-last images (see `carp.tokenizer.autoencoder`); kernels stored in the same
+        # layout spare oneDNN a reorder of every weight on every call.
+        self.to(memory_format=torch.channels_last)
 
     def _check_actions(self, actions: torch.Tensor) -> None:
         expected = (self.spec.action_horizon, self.spec.action_dim)
@@ -108,8 +112,8 @@ class MultiScaleActionTokenizer(nn.Module):
     def encode_to_latent(self, actions: torch.Tensor) -> torch.Tensor:
         """Encode normalized actions (B, H, A) into continuous latents f (B, A, C, l), before quantization."""
         self._check_actions(actions)
-        latent = self.encoder(rearrange(actions, "b h a -> b a h"))  # (B, A * C, l)
-        return rearrange(latent, "b (a c) t -> b a c t", a=self.spec.action_dim)
+        latent = self.encoder(rearrange(actions, "b h a -> b a 1 h"))  # (B, A * C, 1, l)
+        return rearrange(latent, "b (a c) 1 t -> b a c t", a=self.spec.action_dim)
 
     def encode_to_ids(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Tokenize normalized actions (B, H, A) into K token-id tensors (B, A, s_k) long."""
@@ -126,16 +130,17 @@ class MultiScaleActionTokenizer(nn.Module):
         return quantized
 
     def empty_latent(self, batch_size: int, device: torch.device | str | None = None) -> torch.Tensor:
-        """The f_hat before any scale is embedded: zeros (B, A, C, l)."""
+        """The f_hat before any scale is embedded: zeros (B, A, C, l), time-major in memory like encoder latents."""
         spec = self.spec
-        return torch.zeros(
+        zeros = torch.zeros(
             batch_size,
+            spec.latent_length,
             spec.action_dim,
             spec.latent_channels,
-            spec.latent_length,
             device=device,
             dtype=self.quantizer.codebook.dtype,
         )
+        return rearrange(zeros, "b t a c -> b a c t")
 
     def embed_scale(self, quantized: torch.Tensor, token_ids: torch.Tensor, scale_index: int) -> torch.Tensor:
         """Add scale k's contribution h_k to f_hat (one inference step).
@@ -174,8 +179,8 @@ class MultiScaleActionTokenizer(nn.Module):
 
     def decode_latent(self, quantized: torch.Tensor) -> torch.Tensor:
         """Decode f_hat (B, A, C, l) into normalized actions (B, H, A)."""
-        flat = rearrange(quantized, "b a c t -> b (a c) t")
-        return rearrange(self.decoder(flat), "b a h -> b h a")
+        image = rearrange(quantized, "b a c t -> b (a c) 1 t")
+        return rearrange(self.decoder(image), "b a 1 h -> b h a")
 
     def decode_ids(self, token_ids: list[torch.Tensor]) -> torch.Tensor:
         """Decode K token-id tensors (B, A, s_k) into normalized actions (B, H, A)."""
