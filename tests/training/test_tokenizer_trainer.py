@@ -10,6 +10,7 @@ from carp.training.checkpoint import read_training_metadata
 from carp.training.tokenizer_trainer import (
     CHECKPOINT_NAME,
     TokenizerTrainingSettings,
+    augment_windows,
     train_tokenizer,
 )
 
@@ -145,6 +146,40 @@ def test_codebook_starts_from_data_and_restarts_dead_codes(tmp_path, windows):
     assert no_restart == [0.0] * 4
 
 
+def augmentation_input() -> torch.Tensor:
+    generator = torch.Generator().manual_seed(5)
+    windows = torch.rand(2000, 8, 3, generator=generator) * 1.2 - 0.8  # (N, H, A) spans up to 1.2
+    windows[:, :, 2] = 0.3  # a constant dimension can only move
+    return windows
+
+
+def test_augmentation_keeps_windows_in_range_and_transforms_the_requested_share():
+    windows = augmentation_input()
+    augmented = augment_windows(windows, 0.5, 2.0, torch.Generator().manual_seed(0))
+    assert augmented.shape == windows.shape
+    assert float(augmented.min()) >= -1.0 - 1e-6 and float(augmented.max()) <= 1.0 + 1e-6
+    transformed = (augmented != windows).any(dim=1)  # (N, A)
+    assert torch.allclose(transformed.double().mean(dim=0), torch.full((3,), 0.5, dtype=torch.double), atol=0.05)
+    untouched = ~transformed[:, None, :].expand_as(windows)
+    assert torch.equal(augmented[untouched], windows[untouched])
+    span = windows.amax(dim=1) - windows.amin(dim=1)
+    factor = (augmented.amax(dim=1) - augmented.amin(dim=1))[:, :2] / span[:, :2]  # amplitude factors, (N, 2)
+    assert 0.5 - 1e-4 <= float(factor.min()) and float(factor.max()) <= 2.0 + 1e-4
+    assert float(factor.max()) > 1.5 and float(factor.min()) < 0.6, "the factors should fill [1/2, 2]"
+    # The constant dimension's level moves anywhere in [-1, 1] but it stays constant.
+    assert torch.allclose(augmented[:, :, 2].amax(dim=1), augmented[:, :, 2].amin(dim=1))
+    assert float(augmented[:, 0, 2].min()) < -0.9 and float(augmented[:, 0, 2].max()) > 0.9
+
+
+def test_augmentation_is_reproducible_and_can_be_switched_off():
+    windows = augmentation_input()
+    first = augment_windows(windows, 0.5, 2.0, torch.Generator().manual_seed(1))
+    assert torch.equal(first, augment_windows(windows, 0.5, 2.0, torch.Generator().manual_seed(1)))
+    assert torch.equal(augment_windows(windows, 0.0, 2.0, torch.Generator().manual_seed(1)), windows)
+    moved = augment_windows(windows, 1.0, 1.0, torch.Generator().manual_seed(1))  # max_scale 1: moves only
+    assert torch.allclose(moved - moved[:, :1], windows - windows[:, :1], atol=1e-6)
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -152,6 +187,8 @@ def test_codebook_starts_from_data_and_restarts_dead_codes(tmp_path, windows):
         ({"batch_size": 2.0}, "batch_size must be a positive"),
         ({"learning_rate": 0.0}, "learning_rate must be > 0"),
         ({"restart_fraction": 1.5}, "restart_fraction must be"),
+        ({"augment_probability": -0.1}, "augment_probability must be in"),
+        ({"augment_max_scale": 0.5}, "augment_max_scale must be >= 1"),
     ],
 )
 def test_invalid_settings_are_rejected(overrides, message):
