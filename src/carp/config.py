@@ -50,7 +50,7 @@ class DataConfig:
         raw_files: optional task -> path of a user's robomimic file, used instead of scripted collection.
     """
 
-    num_demos: int = 50
+    num_demos: int = 100
     collection_seed: int = 0
     collection_max_steps: int = 500
     controller: str = "absolute"
@@ -147,7 +147,7 @@ class PolicyConfig:
     num_heads: int = 8
     mlp_ratio: float = 4.0
     dropout: float = 0.0
-    epochs: int = 40
+    epochs: int = 20
     batch_size: int = 64
     learning_rate: float = 1e-3
     weight_decay: float = 0.05
