@@ -2,6 +2,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import carp.tokenizer.quantizer as quantizer_module
 from carp.tokenizer.quantizer import phi_index_for_scale, resampling_matrix
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -158,7 +159,9 @@ def test_nearest_codes_use_cosine_similarity(tiny_tokenizer):
     assert quantizer.nearest_codes(residual).flatten().tolist() == [3, 3]
 
 
-def test_nearest_codes_match_cosine_argmax_for_any_residual_length(tiny_tokenizer):
+@pytest.mark.parametrize("block_elements", [1, 1 << 18])  # one dimension per block, all dimensions at once
+def test_nearest_codes_match_cosine_argmax_for_any_residual_length(tiny_tokenizer, monkeypatch, block_elements):
+    monkeypatch.setattr(quantizer_module, "SEARCH_BLOCK_ELEMENTS", block_elements)
     quantizer = tiny_tokenizer.quantizer
     generator = torch.Generator().manual_seed(4)
     residual = torch.randn(6, 2, 4, 2, generator=generator)  # (B, A, C, s)
