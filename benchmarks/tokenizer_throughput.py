@@ -1,13 +1,17 @@
 """Training throughput of the vectorized tokenizer vs a Python loop over A single-dimension tokenizers.
 
-Both variants compute the same math from the same initial weights (the loop's modules are split off the vectorized
-one with `carp.tokenizer.per_dimension`): per batch, forward + backward of the summed per-dimension losses and one
-AdamW step. Throughput is measured over one epoch of synthetic pick-and-place windows after a short warm-up.
+Both variants are the same class (`MultiScaleActionTokenizer`, the loop's with action_dim = 1) and compute the same
+math from the same initial weights (the loop's modules are split off the vectorized one with
+`carp.tokenizer.per_dimension`): per batch, forward + backward of the summed per-dimension losses and one fused AdamW
+step. Throughput is measured over whole epochs of synthetic pick-and-place windows after a short warm-up; the two
+variants alternate epoch by epoch (`--rounds`) so that a change in machine load hits both, and the median epoch of
+each is reported.
 
-    .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 128] [--episodes 40]
+    .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 3]
 """
 
 import argparse
+import statistics
 import time
 
 import torch
@@ -40,15 +44,14 @@ def loop_step(tokenizers, optimizer, batch):
     optimizer.step()
 
 
-def epoch_throughput(step, windows: torch.Tensor, batch_size: int) -> tuple[float, float]:
+def epoch_seconds(step, windows: torch.Tensor, batch_size: int) -> float:
     batches = torch.split(windows[torch.randperm(windows.shape[0])], batch_size)
     for batch in batches[:WARMUP_STEPS]:
         step(batch)
     started = time.perf_counter()
     for batch in batches:
         step(batch)
-    seconds = time.perf_counter() - started
-    return seconds, windows.shape[0] / seconds
+    return time.perf_counter() - started
 
 
 def main() -> None:
@@ -56,6 +59,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--batch-size", type=int, default=TokenizerTrainingSettings().batch_size)
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
+    parser.add_argument("--rounds", type=int, default=3, help="epochs per variant, alternating")
     arguments = parser.parse_args()
     torch.set_num_threads(arguments.threads)
     torch.manual_seed(0)
@@ -68,23 +72,25 @@ def main() -> None:
     vectorized_optimizer = torch.optim.AdamW(vectorized.parameters(), lr=1e-3, fused=True)
     loop_optimizer = torch.optim.AdamW([p for single in singles for p in single.parameters()], lr=1e-3, fused=True)
 
-    results = {
-        "vectorized (groups=A)": epoch_throughput(
-            lambda batch: vectorized_step(vectorized, vectorized_optimizer, batch), windows, arguments.batch_size
-        ),
-        f"loop over {spec.action_dim} modules": epoch_throughput(
-            lambda batch: loop_step(singles, loop_optimizer, batch), windows, arguments.batch_size
-        ),
+    loop_name = f"loop over {spec.action_dim} modules"
+    steps = {
+        "vectorized (one module)": lambda batch: vectorized_step(vectorized, vectorized_optimizer, batch),
+        loop_name: lambda batch: loop_step(singles, loop_optimizer, batch),
     }
-    loop_rate = results[f"loop over {spec.action_dim} modules"][1]
+    seconds: dict[str, list[float]] = {name: [] for name in steps}
+    for _ in range(arguments.rounds):
+        for name, step in steps.items():
+            seconds[name].append(epoch_seconds(step, windows, arguments.batch_size))
+    rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
         f"batch {arguments.batch_size}, {windows.shape[0]} windows, {arguments.threads} thread(s), "
-        f"torch {torch.__version__}"
+        f"median of {arguments.rounds} alternating epochs each, torch {torch.__version__}"
     )
     print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'speed-up':>10}")
-    for name, (seconds, rate) in results.items():
-        print(f"{name:<26}{seconds:>10.2f}{rate:>12.0f}{rate / loop_rate:>9.1f}x")
+    for name, values in seconds.items():
+        speed_up = rates[name] / rates[loop_name]
+        print(f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}{speed_up:>9.1f}x")
 
 
 if __name__ == "__main__":
