@@ -33,6 +33,11 @@ from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tok
 
 def main() -> None:
     setup_logging()
+    # One thread: the tokenizer's steps are hundreds of small ops, where a second thread gains ~20% on a quiet
+    # machine but passive OpenMP waiting (dvc.yaml) makes two threads 2.6x slower than one, and spinning threads
+    # stall next to any other job (Lift, 100 demos, 10 epochs: 15 s on one thread, quiet or not; two threads
+    # 12 s quiet with spinning, 31 s passive, > 300 s spinning next to a busy process).
+    torch.set_num_threads(1)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer
     tasks = list(params.tokenizer_tasks)
