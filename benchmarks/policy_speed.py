@@ -2,7 +2,8 @@
 
 Measures, with randomly initialized weights (speed does not depend on the values):
 - per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
-  decoding (tokenizer decoder + un-normalization), median and p90;
+  decoding (tokenizer decoder + un-normalization), median and p90, for the PyTorch policy and for the ONNX Runtime
+  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~15 s);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
   token targets, as `carp.training.policy_trainer` runs it.
@@ -10,18 +11,21 @@ Measures, with randomly initialized weights (speed does not depend on the values
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
 
-Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 5] [--skip-training]
+Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 5] [--skip-training] [--skip-onnx]
 """
 
 import argparse
 import statistics
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.evaluation.onnx_policy import OnnxGreedyPolicy, export_greedy_policy
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
@@ -54,7 +58,7 @@ def make_policy() -> CarpPolicy:
     )
 
 
-def time_chunks(policy: CarpPolicy, batch_size: int, calls: int) -> dict[str, list[float]]:
+def time_chunks(policy: CarpPolicy | OnnxGreedyPolicy, batch_size: int, calls: int) -> dict[str, list[float]]:
     rng = np.random.default_rng(0)
     obs = rng.uniform(-1, 1, size=(batch_size, OBS_STEPS, OBS_DIM)).astype(np.float32)
     for _ in range(max(10, calls // 10)):
@@ -108,6 +112,7 @@ def main() -> None:
     parser.add_argument("--batched-calls", type=int, default=30, help="timed calls at batch 64")
     parser.add_argument("--train-steps", type=int, default=5, help="timed training steps at batch 256")
     parser.add_argument("--skip-training", action="store_true")
+    parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~15 s)")
     args = parser.parse_args()
 
     policy = make_policy()
@@ -118,6 +123,12 @@ def main() -> None:
         rows.append((f"batch 1, 1 thread: {part} per chunk (ms)", single[part], 1))
     # Thread CPU time excludes time spent descheduled, a better estimate when other work shares the cores.
     rows.append(("batch 1, 1 thread: CPU time per chunk (ms)", single["cpu"], 1))
+    if not args.skip_onnx:
+        with tempfile.TemporaryDirectory(prefix="carp-onnx-") as directory:
+            onnx_policy = OnnxGreedyPolicy(export_greedy_policy(policy, Path(directory)))
+            onnx = time_chunks(onnx_policy, 1, args.chunks)
+        for part in ("total", "prediction", "decoding"):
+            rows.append((f"batch 1, 1 thread, onnxruntime: {part} per chunk", onnx[part], 1))
     batched = time_chunks(policy, 64, args.batched_calls)
     rows.append(("batch 64, 1 thread: total per call (ms)", batched["total"], 1))
     rows.append(("batch 64, 1 thread: total per chunk (ms)", batched["total"], 64))
@@ -127,11 +138,11 @@ def main() -> None:
         f"policy speed, default config (A=10, L={policy.spec.sequence_length}, depth 8, D 64, 8 heads), torch "
         f"{torch.__version__}"
     )
-    print(f"| {'measurement':<44} | {'median':>8} | {'p90':>8} |")
-    print(f"|{'-' * 46}|{'-' * 10}|{'-' * 10}|")
+    print(f"| {'measurement':<48} | {'median':>8} | {'p90':>8} |")
+    print(f"|{'-' * 50}|{'-' * 10}|{'-' * 10}|")
     for name, values, divisor in rows:
         median, p90 = statistics.median(values) / divisor, percentile(values, 0.9) / divisor
-        print(f"| {name:<44} | {median:8.3f} | {p90:8.3f} |")
+        print(f"| {name:<48} | {median:8.3f} | {p90:8.3f} |")
     print(
         f"official per chunk at batch 1: {OFFICIAL_CHUNK_MS[0]} ms ({OFFICIAL_CHUNK_MS[1]} prediction + "
         f"{OFFICIAL_CHUNK_MS[2]} decoding)"

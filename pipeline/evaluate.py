@@ -47,6 +47,7 @@ def main() -> None:
             workers=min(workers, len(seeds)),
             top_k=params.policy.top_k,
             video_episodes=config.video_episodes if config.video else 0,
+            backend=config.backend,
         )
         summary.update(batched_latency(policy, windows.valid_obs if len(windows.valid_obs) else windows.train_obs))
         write_json(EVAL_REPORT_DIR / f"{args.task}.json", summary)

@@ -1,6 +1,8 @@
 """Evaluate a policy checkpoint in simulation: parallel seeded episodes, summary metrics, batched latency, videos."""
 
 import functools
+import logging
+import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -10,8 +12,12 @@ import pandas as pd
 import torch
 
 from carp.evaluation.metrics import latency_summary, summarize_episodes
+from carp.evaluation.onnx_policy import export_greedy_policy
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.sources import PolicySource
+from carp.policy.policy import CarpPolicy
+
+logger = logging.getLogger(__name__)
 
 
 def evaluate_policy(
@@ -27,6 +33,7 @@ def evaluate_policy(
     top_k: int = 1,
     video_episodes: int = 0,
     task_index: int | None = None,
+    backend: str = "onnxruntime",
 ) -> tuple[dict[str, float], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy; returns the summary metrics and the episodes.
 
@@ -35,27 +42,41 @@ def evaluate_policy(
     each): 25.4 and 25.4 simulator steps/s per worker against 24.2 and 23.6 batched, with identical episodes. Per
     chunk the policy needs a few ms against ~8 simulator steps, so batching saves little and adds a round trip
     between processes on every decision.
+
+    With `backend` "onnxruntime" and greedy decoding the checkpoint is exported once to ONNX graphs in a temporary
+    directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise, and for top-k
+    sampling, the workers run the PyTorch policy.
     """
-    factory = functools.partial(
-        PolicySource,
-        checkpoint_path=Path(checkpoint_path),
-        controller=controller,
-        obs_steps=obs_steps,
-        action_steps=action_steps,
-        top_k=top_k,
-        task_index=task_index,
-    )
-    results = evaluate_episodes(
-        env_args,
-        factory,
-        seeds,
-        obs_keys,
-        obs_steps,
-        max_steps,
-        workers=workers,
-        video_episodes=video_episodes,
-        description="evaluate",
-    )
+    if backend not in ("onnxruntime", "torch"):
+        raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
+    use_onnx = backend == "onnxruntime" and top_k == 1
+    if backend == "onnxruntime" and not use_onnx:
+        logger.info("top_k = %d samples tokens: evaluating with the PyTorch policy", top_k)
+    with tempfile.TemporaryDirectory(prefix="carp-onnx-") as scratch:
+        onnx_directory = None
+        if use_onnx:
+            onnx_directory = export_greedy_policy(CarpPolicy.load(Path(checkpoint_path)), Path(scratch))
+        factory = functools.partial(
+            PolicySource,
+            checkpoint_path=Path(checkpoint_path),
+            controller=controller,
+            obs_steps=obs_steps,
+            action_steps=action_steps,
+            top_k=top_k,
+            task_index=task_index,
+            onnx_directory=onnx_directory,
+        )
+        results = evaluate_episodes(
+            env_args,
+            factory,
+            seeds,
+            obs_keys,
+            obs_steps,
+            max_steps,
+            workers=workers,
+            video_episodes=video_episodes,
+            description="evaluate",
+        )
     summary = summarize_episodes(
         successes=[r.success for r in results],
         steps=[r.steps for r in results],

@@ -7,7 +7,9 @@ import numpy as np
 import torch
 
 from carp.data.rotation import rot6d_to_absolute_actions
+from carp.evaluation.onnx_policy import OnnxGreedyPolicy
 from carp.evaluation.rollout import ChunkTiming
+from carp.policy.policy import CarpPolicy
 
 
 def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, controller: str) -> np.ndarray:
@@ -56,6 +58,8 @@ class PolicySource:
         top_k: 1 = greedy; >1 samples from the top-k tokens with a generator seeded per episode.
         task_index: task id for multi-task policies.
         device: torch device for inference.
+        onnx_directory: graphs written by `carp.evaluation.onnx_policy.export_greedy_policy` for this checkpoint;
+            when given (greedy only), chunks are predicted by ONNX Runtime instead of PyTorch.
     """
 
     def __init__(
@@ -67,10 +71,15 @@ class PolicySource:
         top_k: int = 1,
         task_index: int | None = None,
         device: str = "cpu",
+        onnx_directory: Path | None = None,
     ) -> None:
-        from carp.policy.policy import CarpPolicy
-
-        self.policy = CarpPolicy.load(Path(checkpoint_path), map_location=device)
+        if onnx_directory is not None and top_k != 1:
+            raise ValueError(f"the ONNX graphs are greedy (top_k = 1), got top_k = {top_k}")
+        self.policy = (
+            OnnxGreedyPolicy(onnx_directory)
+            if onnx_directory is not None
+            else CarpPolicy.load(Path(checkpoint_path), map_location=device)
+        )
         self.controller = controller
         self.obs_steps = obs_steps
         self.action_steps = action_steps
@@ -88,9 +97,13 @@ class PolicySource:
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming]:
         """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time."""
-        actions, prediction_seconds, decoding_seconds = self.policy.predict_action_timed(
-            observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
-        )
+        if isinstance(self.policy, CarpPolicy):
+            timed = self.policy.predict_action_timed(
+                observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
+            )
+        else:
+            timed = self.policy.predict_action_timed(observation_history[None], task_index=self.task_index)
+        actions, prediction_seconds, decoding_seconds = timed
         started = time.perf_counter()
         executed = executed_actions(actions[0], self.obs_steps, self.action_steps, self.controller)
         decoding_seconds += time.perf_counter() - started

@@ -132,14 +132,16 @@ class CoarseToFineTransformer(nn.Module):
             raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
         return self.condition_projection(features)  # (B, D)
 
-    def _modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
         modulation = self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
         return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.width).unbind(1)
 
     def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
         return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
 
-    def _position_and_level(self) -> torch.Tensor:
+    def position_and_level(self) -> torch.Tensor:
+        """Position plus level embedding of every token, (1, L, D)."""
         return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
 
     def _logits(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -165,11 +167,11 @@ class CoarseToFineTransformer(nn.Module):
             (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary.
         """
         condition = self.encode_condition(obs_features, task_ids)  # (B, D)
-        modulations = self._modulations(condition)
+        modulations = self.modulations(condition)
         tokens = torch.cat(
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
         )  # (B, L, D)
-        hidden = tokens + self._position_and_level()
+        hidden = tokens + self.position_and_level()
         for index, block in enumerate(self.blocks):
             start = index * MODULATIONS_PER_BLOCK
             hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
@@ -188,8 +190,8 @@ class CoarseToFineTransformer(nn.Module):
         condition = self.encode_condition(obs_features, task_ids)  # (B, D)
         return InferenceState(
             condition,
-            self._modulations(condition),
-            self._position_and_level(),
+            self.modulations(condition),
+            self.position_and_level(),
             KeyValueCache(self.spec.depth, self.spec.sequence_length),
         )
 

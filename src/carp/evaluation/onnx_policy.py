@@ -1,0 +1,235 @@
+"""Greedy batch-1 inference exported to ONNX and run by ONNX Runtime: the fast path of simulated evaluation.
+
+Why a second execution path: at batch 1 the eager transformer spends most of its ~9 ms per chunk dispatching ~700
+tiny PyTorch operators (a (40 x 64) @ (64 x 192) matmul is a few microseconds of arithmetic and about as much
+dispatch). ONNX Runtime runs the same computation as one static graph with a few microseconds per node
+(`benchmarks/policy_speed.py` prints both).
+
+Two graphs are exported, so that prediction and decoding stay separately timed:
+
+- prediction: raw observations (1, To, Do) [and the task index (1,)] -> f_hat (1, A, C, l) and the chosen token
+  sequence (1, L). Normalization, the condition, then K greedy next-scale steps with a key/value cache that grows
+  by concatenation (every scale's shapes are static), each step's tokens embedded by the tokenizer's quantizer.
+- decoding: f_hat (1, A, C, l) -> raw actions (1, H, A): the tokenizer decoder and un-normalization.
+
+The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` and the blocks' forward for batch
+1, where the AdaLN shift and scale of a chunk are plain (D,) vectors and become the LayerNorm's own bias and weight
+(one node instead of three), and attention is written out so that the exported graph has no shape arithmetic.
+Folding the gates into the output projections as well measured slower (2.83 vs 2.70 ms of prediction): ONNX
+Runtime pre-packs constant weights only. Every learned piece (condition encoder, projections, head, tokenizer) is
+the policy's own module. `tests/evaluation/test_onnx_policy.py` checks that both paths choose the same tokens and
+return the same actions.
+
+Only greedy decoding (`top_k = 1`) is exported; top-k sampling and batches run through `CarpPolicy`.
+"""
+
+import copy
+import math
+import os
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
+from carp.policy.policy import CarpPolicy, TimedPrediction
+
+PREDICTION_FILE = "prediction.onnx"
+DECODING_FILE = "decoding.onnx"
+
+
+def _normalizer_buffers(normalizer, unnormalize: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scale and offset (F,) float32 with `values * scale + offset` = the normalizer's (un)normalization."""
+    features = normalizer.num_features
+    zeros = np.zeros((1, features))
+    offset = np.asarray(normalizer.unnormalize(zeros) if unnormalize else normalizer.normalize(zeros))
+    scale = np.asarray(normalizer.unnormalize(zeros + 1) if unnormalize else normalizer.normalize(zeros + 1)) - offset
+    return torch.as_tensor(scale[0], dtype=torch.float32), torch.as_tensor(offset[0], dtype=torch.float32)
+
+
+class GreedyPredictionGraph(nn.Module):
+    """Raw observations of one environment -> f_hat of the greedy chunk, in a form that exports to a static graph.
+
+    Args:
+        policy: trained policy; its transformer and a contiguous-memory copy of its tokenizer are used.
+    """
+
+    def __init__(self, policy: CarpPolicy) -> None:
+        super().__init__()
+        self.transformer = policy.transformer
+        # Channels-last kernels only matter to oneDNN; the exported graph is plain NCHW.
+        self.tokenizer = copy.deepcopy(policy.tokenizer).to(memory_format=torch.contiguous_format)
+        obs_scale, obs_offset = _normalizer_buffers(policy.obs_normalizer, unnormalize=False)
+        self.register_buffer("obs_scale", obs_scale)
+        self.register_buffer("obs_offset", obs_offset)
+
+    def forward(self, obs: torch.Tensor, task_ids: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predict the chunk's f_hat.
+
+        Args:
+            obs: (1, To, Do) raw observations.
+            task_ids: (1,) long, for multi-task policies.
+
+        Returns:
+            f_hat (1, A, C, l) accumulated over the K greedily chosen scales, and the chosen tokens (1, L) long in
+            sequence order (DESIGN.md section 4).
+        """
+        transformer, quantizer = self.transformer, self.tokenizer.quantizer
+        spec, layout = transformer.spec, transformer.layout
+        width, heads = spec.width, spec.num_heads
+        head_width = width // heads
+        condition = transformer.encode_condition(obs * self.obs_scale + self.obs_offset, task_ids)  # (1, D)
+        modulations = transformer.modulations(condition)  # M tensors (1, 1, D)
+        modulations = [vector.reshape(width) for vector in modulations]  # M x (D,)
+        positions = transformer.position_and_level()[0]  # (L, D)
+
+        keys: list[torch.Tensor | None] = [None] * spec.depth  # (1, Nh, n, D / Nh) of the scales so far
+        values: list[torch.Tensor | None] = [None] * spec.depth
+        latent = self.tokenizer.empty_latent(1)  # (1, A, C, l)
+        chosen = []
+        attention_scale = 1.0 / math.sqrt(head_width)
+        for scale_index, (start, end) in enumerate(layout.scale_bounds):
+            tokens = end - start
+            if scale_index == 0:
+                hidden = condition + transformer.start_embedding[0]  # (s_1 * A, D)
+            else:
+                next_input = self.tokenizer.next_scale_input(latent, scale_index - 1)  # (1, A, C, s_k)
+                hidden = transformer.token_projection(layout.scale_inputs_to_tokens(next_input)[0])  # (s_k * A, D)
+            hidden = hidden + positions[start:end]
+            for index, block in enumerate(transformer.blocks):
+                offset = index * MODULATIONS_PER_BLOCK
+                normed = F.layer_norm(hidden, (width,), modulations[offset + 1], modulations[offset], eps=NORM_EPS)
+                qkv = block.attention.qkv(normed).view(tokens, 3, heads, head_width).permute(1, 2, 0, 3)
+                query, key, value = qkv.split(1, dim=0)  # (1, Nh, s_k * A, D / Nh) each
+                if keys[index] is not None:
+                    key = torch.cat((keys[index], key), dim=2)  # (1, Nh, n, D / Nh)
+                    value = torch.cat((values[index], value), dim=2)
+                keys[index], values[index] = key, value
+                weights = torch.softmax(torch.matmul(query, key.transpose(2, 3)) * attention_scale, dim=-1)
+                attended = torch.matmul(weights, value).permute(2, 0, 1, 3).reshape(tokens, width)  # (s_k * A, D)
+                hidden = block.attention.output(attended) * modulations[offset + 2] + hidden
+                normed = F.layer_norm(hidden, (width,), modulations[offset + 4], modulations[offset + 3], eps=NORM_EPS)
+                expanded = F.gelu(block.feed_forward.expand(normed))  # (s_k * A, hidden)
+                hidden = block.feed_forward.contract(expanded) * modulations[offset + 5] + hidden
+            normed = F.layer_norm(hidden, (width,), modulations[-1], modulations[-2], eps=NORM_EPS)
+            logits = transformer.head(normed.unsqueeze(0))  # (1, s_k * A, V)
+            scale_tokens = logits.argmax(dim=-1)  # (1, s_k * A)
+            chosen.append(scale_tokens)
+            latent = latent + quantizer.scale_contribution(layout.scale_tokens_to_ids(scale_tokens), scale_index)
+        return latent, torch.cat(chosen, dim=1)
+
+
+class DecodingGraph(nn.Module):
+    """f_hat (B, A, C, l) -> raw actions (B, H, A): the tokenizer decoder, then un-normalization."""
+
+    def __init__(self, policy: CarpPolicy) -> None:
+        super().__init__()
+        self.tokenizer = copy.deepcopy(policy.tokenizer).to(memory_format=torch.contiguous_format)
+        action_scale, action_offset = _normalizer_buffers(policy.action_normalizer, unnormalize=True)
+        self.register_buffer("action_scale", action_scale)
+        self.register_buffer("action_offset", action_offset)
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        """Decode (B, A, C, l) into (B, H, A) raw actions."""
+        return self.tokenizer.decode_latent(latent) * self.action_scale + self.action_offset
+
+
+def _export(
+    module: nn.Module, inputs: tuple[torch.Tensor, ...], names: list[str], outputs: list[str], path: Path
+) -> None:
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            # One eager call first fills the tokenizer's cached resampling matrices, which the export then sees as
+            # constants; the exporter's own deprecation notices are not actionable here.
+            module.eval()(*inputs)
+            warnings.simplefilter("ignore", FutureWarning)
+            torch.onnx.export(
+                module,
+                inputs,
+                str(temporary),
+                dynamo=True,
+                input_names=names,
+                output_names=outputs,
+                external_data=False,
+                verbose=False,
+            )
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def export_greedy_policy(policy: CarpPolicy, directory: Path) -> Path:
+    """Write the prediction and decoding graphs of a CPU policy into `directory` (created); returns `directory`.
+
+    Takes ~10-20 s for the default model (tracing and graph optimization), once per evaluation.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    policy = policy.to("cpu").eval()
+    spec = policy.spec
+    obs = torch.zeros(1, spec.obs_steps, spec.obs_dim)
+    prediction = GreedyPredictionGraph(policy)
+    if spec.num_tasks > 0:
+        inputs, names = (obs, torch.zeros(1, dtype=torch.long)), ["obs", "task_ids"]
+    else:
+        inputs, names = (obs,), ["obs"]
+    _export(prediction, inputs, names, ["latent", "tokens"], directory / PREDICTION_FILE)
+    latent = policy.tokenizer.empty_latent(1)
+    _export(DecodingGraph(policy), (latent,), ["latent"], ["actions"], directory / DECODING_FILE)
+    return directory
+
+
+class OnnxGreedyPolicy:
+    """Runs the graphs of :func:`export_greedy_policy` on one CPU thread, one environment at a time.
+
+    Args:
+        directory: where :func:`export_greedy_policy` wrote the graphs.
+        threads: ONNX Runtime intra-op threads (1: the simulator uses the other core).
+    """
+
+    def __init__(self, directory: Path, threads: int = 1) -> None:
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3  # errors only
+        directory = Path(directory)
+        self._prediction = onnxruntime.InferenceSession(
+            str(directory / PREDICTION_FILE), options, providers=["CPUExecutionProvider"]
+        )
+        self._decoding = onnxruntime.InferenceSession(
+            str(directory / DECODING_FILE), options, providers=["CPUExecutionProvider"]
+        )
+        self._takes_task = any(item.name == "task_ids" for item in self._prediction.get_inputs())
+
+    def predict_action_timed(self, obs: np.ndarray, task_index: int | None = None) -> TimedPrediction:
+        """Raw observations (1, To, Do) -> raw actions (1, H, A) float32 and the two durations in seconds."""
+        return self._predict(obs, task_index)[0]
+
+    def predict_tokens(self, obs: np.ndarray, task_index: int | None = None) -> np.ndarray:
+        """The greedy token sequence (1, L) int64 chosen for raw observations (1, To, Do)."""
+        return self._predict(obs, task_index)[1]
+
+    def _predict(self, obs: np.ndarray, task_index: int | None) -> tuple[TimedPrediction, np.ndarray]:
+        obs = np.asarray(obs, dtype=np.float32)
+        expected = tuple(self._prediction.get_inputs()[0].shape)
+        if obs.shape != expected:
+            raise ValueError(f"obs must have shape {expected} (one environment), got {obs.shape}")
+        if self._takes_task != (task_index is not None):
+            needed = "needs a task index" if self._takes_task else "is single-task but a task index was given"
+            raise ValueError(f"this policy {needed}")
+        feeds = {"obs": obs}
+        if self._takes_task:
+            feeds["task_ids"] = np.asarray([task_index], dtype=np.int64)
+        started = time.perf_counter()
+        latent, tokens = self._prediction.run(None, feeds)
+        predicted = time.perf_counter()
+        (actions,) = self._decoding.run(None, {"latent": latent})
+        decoded = time.perf_counter()
+        return TimedPrediction(actions, predicted - started, decoded - predicted), tokens
