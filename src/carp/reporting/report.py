@@ -172,7 +172,11 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         ),
         Section(
             "Inference latency per chunk (ms)",
-            paragraphs=["Prediction is the coarse-to-fine token prediction; decoding turns tokens into actions."],
+            paragraphs=[
+                "Prediction is the coarse-to-fine token prediction; decoding turns tokens into actions. Rollouts run "
+                "one environment per worker with the backend of `eval.backend` (default: the exported ONNX graphs on "
+                "ONNX Runtime; PyTorch for top-k sampling); the batched row is the PyTorch policy."
+            ],
             tables=[latency_table(inputs.evaluation)],
         ),
     ]
