@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import torch
 
+from carp.evaluation import runner
 from carp.evaluation.onnx_policy import OnnxGreedyPolicy, export_greedy_policy
+from carp.evaluation.runner import onnx_graphs_for
 from carp.evaluation.sources import PolicySource
 from carp.policy.sampling import generate_chunk
 from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy
@@ -78,3 +80,23 @@ def test_policy_source_acts_the_same_on_both_backends(exported, tmp_path):
     assert timing.prediction > 0
     with pytest.raises(ValueError, match="greedy"):
         PolicySource(checkpoint, **settings, top_k=4, onnx_directory=directory)
+
+
+def test_evaluation_exports_only_for_greedy_onnx_runs_and_falls_back_to_torch(exported, tmp_path, monkeypatch, caplog):
+    policy, _ = exported
+    checkpoint = tmp_path / "policy.pt"
+    policy.save(checkpoint)
+    directory = onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "graphs")
+    assert directory == tmp_path / "graphs" and (directory / "prediction.onnx").is_file()
+    assert onnx_graphs_for(checkpoint, "torch", 1, tmp_path / "unused") is None
+    assert onnx_graphs_for(checkpoint, "onnxruntime", 4, tmp_path / "unused") is None
+    with pytest.raises(ValueError, match="backend must be 'onnxruntime' or 'torch', got 'tvm'"):
+        onnx_graphs_for(checkpoint, "tvm", 1, tmp_path / "unused")
+
+    def broken_export(*args, **kwargs):
+        raise RuntimeError("unsupported operator")
+
+    monkeypatch.setattr(runner, "export_greedy_policy", broken_export)
+    assert onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "unused") is None
+    assert "ONNX export of" in caplog.text and "RuntimeError: unsupported operator" in caplog.text
+    assert not (tmp_path / "unused").exists()

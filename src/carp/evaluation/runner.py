@@ -47,15 +47,8 @@ def evaluate_policy(
     directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise, and for top-k
     sampling, the workers run the PyTorch policy.
     """
-    if backend not in ("onnxruntime", "torch"):
-        raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
-    use_onnx = backend == "onnxruntime" and top_k == 1
-    if backend == "onnxruntime" and not use_onnx:
-        logger.info("top_k = %d samples tokens: evaluating with the PyTorch policy", top_k)
     with tempfile.TemporaryDirectory(prefix="carp-onnx-") as scratch:
-        onnx_directory = None
-        if use_onnx:
-            onnx_directory = export_greedy_policy(CarpPolicy.load(Path(checkpoint_path)), Path(scratch))
+        onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, Path(scratch))
         factory = functools.partial(
             PolicySource,
             checkpoint_path=Path(checkpoint_path),
@@ -85,6 +78,29 @@ def evaluate_policy(
         decoding_seconds=[s for r in results for s in r.decoding_seconds],
     )
     return summary, results
+
+
+def onnx_graphs_for(checkpoint_path: Path, backend: str, top_k: int, directory: Path) -> Path | None:
+    """Export the checkpoint's greedy graphs into `directory` when the ONNX Runtime backend applies.
+
+    Returns:
+        `directory` with the graphs, or None when the workers should run the PyTorch policy: `backend` is "torch",
+        `top_k` > 1 (sampling is not exported), or the export failed (logged as a warning, evaluation goes on).
+    """
+    if backend not in ("onnxruntime", "torch"):
+        raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
+    if backend == "torch":
+        return None
+    if top_k != 1:
+        logger.info("top_k = %d samples tokens: evaluating with the PyTorch policy", top_k)
+        return None
+    try:
+        return export_greedy_policy(CarpPolicy.load(checkpoint_path), directory)
+    except Exception as error:  # an export problem must not cost the evaluation; PyTorch computes the same actions
+        logger.warning(
+            "ONNX export of %s failed (%s: %s); evaluating with PyTorch", checkpoint_path, type(error).__name__, error
+        )
+        return None
 
 
 def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
