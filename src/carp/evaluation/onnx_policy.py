@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from carp.data.normalizer import MinMaxNormalizer
 from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
 from carp.policy.policy import CarpPolicy, TimedPrediction
 
@@ -42,7 +43,7 @@ PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
 
 
-def _normalizer_buffers(normalizer, unnormalize: bool) -> tuple[torch.Tensor, torch.Tensor]:
+def _normalizer_buffers(normalizer: MinMaxNormalizer, unnormalize: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Scale and offset (F,) float32 with `values * scale + offset` = the normalizer's (un)normalization."""
     features = normalizer.num_features
     zeros = np.zeros((1, features))
