@@ -42,7 +42,6 @@ def main() -> None:
                 seed=params.data.collection_seed,
                 controller=params.data.controller,
                 max_steps=params.data.collection_max_steps,
-                noise_m=params.data.collection_noise_m,
             )
         except CollectionError as error:
             fail(str(error))

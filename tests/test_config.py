@@ -35,7 +35,6 @@ def test_defaults_follow_the_design():
         ({"tasks": []}, "tasks=(): must list at least one task"),
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
-        ({"data": {"collection_noise_m": 0.5}}, "data.collection_noise_m=0.5: must be in [0, 0.05] (metres)"),
         ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
         ({"policy": {"width": 64, "num_heads": 5}}, "policy.num_heads=5: must divide policy.width=64"),
         ({"policy": {"depth": "deep"}}, "policy.depth='deep': expected an integer"),

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from carp import simulation
-from carp.data.collect import CollectionError, collect_demonstrations, run_expert_episode
-from carp.data.experts import make_expert
+from carp.data.collect import CollectionError, collect_demonstrations
 from carp.data.robomimic_io import read_demonstrations
 from carp.data.rotation import absolute_to_rot6d_actions, rot6d_to_absolute_actions
 
@@ -73,32 +72,3 @@ def test_impossible_budget_raises_and_writes_nothing(tmp_path):
     with pytest.raises(CollectionError, match=r"succeeded on 0 of 1 episodes \(0%\).*max_attempts=2"):
         collect_demonstrations("lift", num_demos=2, output_path=output, seed=0, max_steps=5, max_attempts=2)
     assert not output.exists()
-
-
-def test_collection_noise_moves_the_arm_but_records_the_experts_commands(lift_demo_collection):
-    path, summary = lift_demo_collection
-    clean = read_demonstrations(path, DEFAULT_OBS_KEYS, action_dim=7).episodes[0]
-    env = simulation.make_env(simulation.make_env_args("lift"))
-    try:
-        expert = make_expert("lift", env)
-        noisy, success = run_expert_episode(
-            env, expert, summary.seeds[0], max_steps=300, noise_m=0.01, rng=np.random.default_rng(0)
-        )
-    finally:
-        env.close()
-    assert success
-    # Same start; the first command is the expert's (its commanded pose starts at the measured pose).
-    np.testing.assert_allclose(noisy.obs["robot0_eef_pos"][0], clean.obs["robot0_eef_pos"][0], atol=1e-9)
-    np.testing.assert_allclose(noisy.actions[0], clean.actions[0], atol=1e-9)
-    # Over the first second, before the two runs drift apart in time, the arm is off the clean path by about the
-    # noise level (std 1 cm per axis), not by a lost grasp.
-    deviation = np.linalg.norm(noisy.obs["robot0_eef_pos"][:20] - clean.obs["robot0_eef_pos"][:20], axis=1)
-    assert 0.002 < deviation.max() < 0.05, deviation.max()
-    # Recorded commands move smoothly (no 1 cm jumps): the noise is executed, not stored.
-    command_steps = np.linalg.norm(np.diff(noisy.actions[:, :3], axis=0), axis=1)
-    assert command_steps.max() < 0.02, command_steps.max()
-
-
-def test_collection_noise_needs_a_generator():
-    with pytest.raises(ValueError, match="noise_m > 0 needs a random generator"):
-        run_expert_episode(env=None, expert=None, seed=0, max_steps=1, noise_m=0.01)

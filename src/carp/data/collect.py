@@ -45,47 +45,24 @@ class CollectionSummary:
     seconds: float
 
 
-# Correlation of the collection noise from one control step to the next (20 Hz): offsets persist for ~0.5 s, long
-# enough to move the arm off the expert's path, so that the following steps show the expert steering back.
-NOISE_CORRELATION = 0.9
-
-
-def run_expert_episode(
-    env, expert, seed: int, max_steps: int, noise_m: float = 0.0, rng: np.random.Generator | None = None
-) -> tuple[Episode, bool]:
+def run_expert_episode(env, expert, seed: int, max_steps: int) -> tuple[Episode, bool]:
     """Run one seeded expert episode, stopping at the first success.
-
-    Args:
-        env: robosuite env.
-        expert: the task's scripted expert bound to `env`.
-        seed: reset seed.
-        max_steps: step limit.
-        noise_m: standard deviation (m) of the position offset executed on top of the expert's command (an AR(1)
-            process with correlation `NOISE_CORRELATION`); the stored action is always the expert's command.
-        rng: noise source (required when `noise_m` > 0).
 
     Returns:
         The episode (obs key -> (T, Do_key), actions (T, 7), states (T, S), rewards (T,), dones (T,);
         attrs hold the seed) and whether it succeeded.
     """
-    if noise_m > 0 and rng is None:
-        raise ValueError("noise_m > 0 needs a random generator")
     obs = reset_env(env, seed)
     expert.reset()
     observations: dict[str, list[np.ndarray]] = {}
     actions, states, rewards = [], [], []
     success = False
-    offset = np.zeros(3)
-    innovation_m = noise_m * np.sqrt(1.0 - NOISE_CORRELATION**2)  # keeps the offset's stationary std at noise_m
     for _ in range(max_steps):
         for key, value in low_dim_observations(obs).items():
             observations.setdefault(key, []).append(value)
         states.append(np.array(env.sim.get_state().flatten()))
         action = expert.act()
         actions.append(action)
-        if noise_m > 0:
-            offset = NOISE_CORRELATION * offset + rng.normal(0.0, innovation_m, size=3)
-            action = expert.offset_action(action, offset)
         obs, reward, _, _ = env.step(action)
         rewards.append(float(reward))
         if is_success(env):
@@ -112,7 +89,6 @@ def collect_demonstrations(
     controller: str = "absolute",
     max_steps: int = 400,
     max_attempts: int | None = None,
-    noise_m: float = 0.0,
 ) -> CollectionSummary:
     """Run the task's scripted expert until ``num_demos`` episodes succeed and write them to ``output_path``.
 
@@ -124,7 +100,6 @@ def collect_demonstrations(
         controller: ``"absolute"`` or ``"delta"`` arm input.
         max_steps: step limit per episode.
         max_attempts: episode budget; defaults to ``3 * num_demos``.
-        noise_m: collection noise, see :func:`run_expert_episode`; episode i's noise is seeded with its reset seed.
 
     Raises:
         ValueError: unknown task or controller, or non-positive counts.
@@ -155,8 +130,7 @@ def collect_demonstrations(
                         f"max_attempts={max_attempts} (failed seeds: {failed_seeds})"
                     )
                 episode_seed = seed + attempted
-                rng = np.random.default_rng(episode_seed)
-                episode, success = run_expert_episode(env, expert, episode_seed, max_steps, noise_m, rng)
+                episode, success = run_expert_episode(env, expert, episode_seed, max_steps)
                 attempted += 1
                 if success:
                     episodes.append(episode)
@@ -180,7 +154,6 @@ def collect_demonstrations(
         "failed_seeds": failed_seeds,
         "first_seed": seed,
         "max_steps": max_steps,
-        "noise_m": noise_m,
         "robosuite_version": robosuite.__version__,
         "mujoco_version": mujoco.__version__,
     }

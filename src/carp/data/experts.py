@@ -188,19 +188,6 @@ class ScriptedExpert(abc.ABC):
         scaled = np.concatenate([position_error, rotation_error]) / output_max * input_max
         return np.concatenate([np.clip(scaled, -input_max, input_max), [self.gripper]])
 
-    def offset_action(self, action: np.ndarray, offset_m: np.ndarray) -> np.ndarray:
-        """The action (7,) moved by a world-frame position offset (3,) in metres, in the controller's own units."""
-        moved = np.array(action, dtype=np.float64)
-        if self.controller == "absolute":
-            moved[:3] += offset_m
-            return moved
-        controller = self._arm_controller
-        origin = np.asarray(controller.origin_ori)
-        output_max = (np.asarray(controller.output_max, dtype=np.float64) * np.ones(6))[:3]
-        input_max = (np.asarray(controller.input_max, dtype=np.float64) * np.ones(6))[:3]
-        moved[:3] = np.clip(moved[:3] + origin.T @ offset_m / output_max * input_max, -input_max, input_max)
-        return moved
-
     def _step_command(self, position: np.ndarray, rotation: Rotation, step_m: float) -> bool:
         """Move the commanded pose towards a target by at most one step; True once it equals the target."""
         offset = position - self.command_position
