@@ -23,7 +23,9 @@ return the same actions.
 Only greedy decoding (`top_k = 1`) is exported; top-k sampling and batches run through `CarpPolicy`.
 """
 
+import contextlib
 import copy
+import logging
 import math
 import os
 import time
@@ -41,6 +43,20 @@ from carp.policy.policy import CarpPolicy, TimedPrediction
 
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
+# The exporter's passes log every rewrite at INFO and warn about torchvision operators this model never uses.
+EXPORTER_LOGGERS = ("onnxscript", "onnx_ir", "torch.onnx")
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    saved = {name: logging.getLogger(name).level for name in EXPORTER_LOGGERS}
+    try:
+        for name in EXPORTER_LOGGERS:
+            logging.getLogger(name).setLevel(logging.ERROR)
+        yield
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def _normalizer_buffers(normalizer: MinMaxNormalizer, unnormalize: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -144,7 +160,7 @@ def _export(
 ) -> None:
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with torch.no_grad(), warnings.catch_warnings():
+        with torch.no_grad(), warnings.catch_warnings(), _quiet_exporter():
             # One eager call first fills the tokenizer's cached resampling matrices, which the export then sees as
             # constants; the exporter's own deprecation notices are not actionable here.
             module.eval()(*inputs)
