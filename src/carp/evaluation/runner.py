@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from carp.config import EVAL_BACKENDS
 from carp.evaluation.metrics import latency_summary, summarize_episodes
 from carp.evaluation.onnx_policy import export_greedy_policy
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
@@ -87,7 +88,7 @@ def onnx_graphs_for(checkpoint_path: Path, backend: str, top_k: int, directory: 
         `directory` with the graphs, or None when the workers should run the PyTorch policy: `backend` is "torch",
         `top_k` > 1 (sampling is not exported), or the export failed (logged as a warning, evaluation goes on).
     """
-    if backend not in ("onnxruntime", "torch"):
+    if backend not in EVAL_BACKENDS:
         raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
     if backend == "torch":
         return None
