@@ -6,12 +6,13 @@ Measures, with randomly initialized weights (speed does not depend on the values
   graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~15 s);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
-  token targets, as `carp.training.policy_trainer` runs it.
+  token targets, as `carp.training.policy_trainer` runs it, in float32 and in the precision `policy.precision: auto`
+  picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
 
-Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 5] [--skip-training] [--skip-onnx]
+Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--skip-training] [--skip-onnx]
 """
 
 import argparse
@@ -22,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.evaluation.onnx_policy import OnnxGreedyPolicy, export_greedy_policy
@@ -31,7 +31,8 @@ from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer
+from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer, teacher_forced_loss
+from carp.training.runtime import resolve_precision
 
 OBS_DIM = 19  # Lift's low-dim observation width
 OBS_STEPS = 2
@@ -78,39 +79,48 @@ def percentile(values: list[float], fraction: float) -> float:
     return float(np.percentile(values, 100 * fraction))
 
 
-def train_samples_per_second(policy: CarpPolicy, batch_size: int, steps: int) -> tuple[float, float]:
-    """Samples per second (wall clock) and CPU seconds per step (all threads), medians over `steps`."""
+def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisions: list[torch.dtype]) -> dict:
+    """Median wall and CPU seconds per training step (all threads) per precision, steps alternating between them."""
     spec = policy.spec
-    transformer = CoarseToFineTransformer(spec).train()
-    optimizer = make_optimizer(transformer, PolicyTrainingSettings())
     generator = torch.Generator().manual_seed(0)
     obs = torch.randn(batch_size, OBS_STEPS, OBS_DIM, generator=generator)
     teacher = torch.randn(batch_size, spec.sequence_length - spec.scales[0] * spec.action_dim, spec.latent_channels)
     targets = torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator)
 
-    def step() -> None:
-        logits = transformer(obs, teacher)
-        loss = F.cross_entropy(logits.view(-1, spec.codebook_size), targets.view(-1))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+    def make_step(precision: torch.dtype):
+        torch.manual_seed(0)
+        transformer = CoarseToFineTransformer(spec).train()
+        optimizer = make_optimizer(transformer, PolicyTrainingSettings())
 
-    for _ in range(2):
-        step()
-    durations, cpu_seconds = [], []
+        def step() -> None:
+            loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+
+        return step
+
+    runs = {precision: make_step(precision) for precision in precisions}
+    for step in runs.values():
+        for _ in range(2):
+            step()
+    durations = {precision: ([], []) for precision in precisions}
     for _ in range(steps):
-        started, cpu_started = time.perf_counter(), time.process_time()
-        step()
-        durations.append(time.perf_counter() - started)
-        cpu_seconds.append(time.process_time() - cpu_started)
-    return batch_size / statistics.median(durations), statistics.median(cpu_seconds)
+        for precision, step in runs.items():
+            started, cpu_started = time.perf_counter(), time.process_time()
+            step()
+            durations[precision][0].append(time.perf_counter() - started)
+            durations[precision][1].append(time.process_time() - cpu_started)
+    return {
+        precision: (statistics.median(wall), statistics.median(cpu)) for precision, (wall, cpu) in durations.items()
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--chunks", type=int, default=300, help="timed calls at batch 1")
     parser.add_argument("--batched-calls", type=int, default=30, help="timed calls at batch 64")
-    parser.add_argument("--train-steps", type=int, default=5, help="timed training steps at batch 256")
+    parser.add_argument("--train-steps", type=int, default=8, help="timed training steps at batch 256 per precision")
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~15 s)")
     args = parser.parse_args()
@@ -150,14 +160,18 @@ def main() -> None:
 
     if not args.skip_training:
         torch.set_num_threads(2)
-        samples_per_second, cpu_seconds = train_samples_per_second(policy, 256, args.train_steps)
-        official = 256 / OFFICIAL_TRAIN_STEP_SECONDS
+        precisions = list(dict.fromkeys([torch.float32, resolve_precision("auto", torch.device("cpu"))]))
+        timings = train_steps_seconds(policy, 256, args.train_steps, precisions)
         print(
-            f"training at batch 256, 2 threads: {samples_per_second:.0f} samples/s ({256 / samples_per_second:.3f} s "
-            f"per step, {cpu_seconds:.3f} CPU s per step over both threads); official "
-            f"{OFFICIAL_TRAIN_STEP_SECONDS} s per step = {official:.0f} samples/s, speed-up "
-            f"x{samples_per_second / official:.1f}"
+            f"training at batch 256, 2 threads (official: {OFFICIAL_TRAIN_STEP_SECONDS} s per step = "
+            f"{256 / OFFICIAL_TRAIN_STEP_SECONDS:.0f} samples/s):"
         )
+        for precision, (seconds, cpu_seconds) in timings.items():
+            name = str(precision).removeprefix("torch.") + (" (auto)" if precision == precisions[-1] else "")
+            print(
+                f"  {name:<16} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over both threads), "
+                f"{256 / seconds:.0f} samples/s, speed-up x{OFFICIAL_TRAIN_STEP_SECONDS / seconds:.2f}"
+            )
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from carp.policy.spec import PolicySpec
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
+from carp.training.runtime import resolve_precision
 
 
 def main() -> None:
@@ -60,9 +61,12 @@ def main() -> None:
         latent_channels=tokenizer.spec.latent_channels,
         codebook_size=params.codebook_size,
     )
-    settings = copy_fields(PolicyTrainingSettings, config, device=str(select_device(params)))
+    device = select_device(params)
+    settings = copy_fields(PolicyTrainingSettings, config, device=str(device))
+    precision = str(resolve_precision(settings.precision, device)).removeprefix("torch.")
     history: list[dict] = []
-    with mlflow_stage(params, f"train_policy@{args.task}", args.task, {"carp.tokenizer": reference.uri}) as run:
+    tags = {"carp.tokenizer": reference.uri, "carp.training_precision": precision}
+    with mlflow_stage(params, f"train_policy@{args.task}", args.task, tags) as run:
 
         def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
             history.append({"epoch": epoch + 1, **metrics})

@@ -44,6 +44,7 @@ def test_defaults_follow_the_design():
         ({"tokenizer": {"registry_alias": "latest"}}, "tokenizer.registry_alias='latest'"),
         ({"eval": {"episodes": 0}}, "eval.episodes=0: must be >= 1"),
         ({"eval": {"backend": "tensorrt"}}, "eval.backend='tensorrt': must be one of"),
+        ({"policy": {"precision": "half"}}, "policy.precision='half': must be one of"),
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"policy": {"depht": 3}}, "policy.depht: unknown key"),

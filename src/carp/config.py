@@ -21,6 +21,7 @@ TASK_NAMES = ("lift", "can", "square")
 CONTROLLERS = ("absolute", "delta")
 ACTION_DIMS = {"absolute": 10, "delta": 7}
 EVAL_BACKENDS = ("onnxruntime", "torch")
+TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 REGISTRY_URI_PREFIX = "models:/"
 
 
@@ -141,7 +142,14 @@ class TokenizerConfig:
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    """The coarse-to-fine transformer (DESIGN.md section 5) and its training."""
+    """The coarse-to-fine transformer (DESIGN.md section 5) and its training.
+
+    Attributes:
+        precision: matmul precision of training steps: `auto` trains with bfloat16 autocast where the hardware
+            multiplies bfloat16 natively (CPUs with AMX or AVX512-BF16, CUDA GPUs that support it) and in float32
+            elsewhere; `float32` or `bfloat16` force one. Weights, optimizer state, attention on CPU, the loss and
+            inference stay float32 (see `carp.training.runtime.resolve_precision`).
+    """
 
     depth: int = 8
     width: int = 64
@@ -158,6 +166,7 @@ class PolicyConfig:
     top_k: int = 1
     checkpoint_every: int = 10
     seed: int = 0
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
         _require(self.depth >= 1, "policy.depth", self.depth, "must be >= 1")
@@ -175,6 +184,12 @@ class PolicyConfig:
         _require(self.warmup_steps >= 0, "policy.warmup_steps", self.warmup_steps, "must be >= 0")
         _require(0.0 < self.ema_decay < 1.0, "policy.ema_decay", self.ema_decay, "must be in (0, 1)")
         _require(self.top_k >= 1, "policy.top_k", self.top_k, "must be >= 1 (1 = greedy)")
+        _require(
+            self.precision in TRAINING_PRECISIONS,
+            "policy.precision",
+            self.precision,
+            f"must be one of {TRAINING_PRECISIONS}",
+        )
 
 
 def _positive_training_fields(section: Any, name: str) -> None:

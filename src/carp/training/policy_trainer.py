@@ -30,13 +30,14 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm.auto import tqdm
 
+from carp.config import TRAINING_PRECISIONS
 from carp.policy.layout import TokenLayout
 from carp.policy.policy import check_specs_match
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
-from carp.training.runtime import resolve_device, seed_everything
+from carp.training.runtime import autocast_to, resolve_device, resolve_precision, seed_everything
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +62,8 @@ class PolicyTrainingSettings:
         seed: seeds initialization and shuffling.
         checkpoint_every: epochs between training-state checkpoints (the last epoch is always saved).
         device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
+        precision: "auto", "float32" or "bfloat16": autocast dtype of the forward pass, see
+            `carp.training.runtime.resolve_precision`. The loss, weights and optimizer state stay float32.
     """
 
     epochs: int = 60
@@ -73,6 +76,7 @@ class PolicyTrainingSettings:
     seed: int = 0
     checkpoint_every: int = 10
     device: str = "auto"
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "checkpoint_every"):
@@ -87,6 +91,10 @@ class PolicyTrainingSettings:
             raise ValueError(f"PolicyTrainingSettings.weight_decay must be >= 0, got {self.weight_decay!r}")
         if not 0.0 < self.ema_decay < 1.0:
             raise ValueError(f"PolicyTrainingSettings.ema_decay must be in (0, 1), got {self.ema_decay!r}")
+        if self.precision not in TRAINING_PRECISIONS:
+            raise ValueError(
+                f"PolicyTrainingSettings.precision must be one of {TRAINING_PRECISIONS}, got {self.precision!r}"
+            )
 
 
 @dataclass
@@ -183,16 +191,48 @@ def _make_scheduler(
     return torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[warmup_steps])
 
 
+def teacher_forced_loss(
+    transformer: CoarseToFineTransformer,
+    obs: torch.Tensor,
+    teacher_inputs: torch.Tensor,
+    token_sequence: torch.Tensor,
+    task_ids: torch.Tensor | None,
+    precision: torch.dtype,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean cross entropy over all tokens of a teacher-forced forward pass, and its logits.
+
+    Args:
+        transformer: the model being trained.
+        obs: (b, To, Do) normalized observations.
+        teacher_inputs: (b, L - s_1 * A, C) teacher-forcing inputs.
+        token_sequence: (b, L) long ground-truth ids.
+        task_ids: (b,) long for multi-task policies, else None.
+        precision: autocast dtype of the forward pass (`resolve_precision`).
+
+    Returns:
+        The scalar loss and the (b, L, V) logits, both float32.
+    """
+    with autocast_to(precision, obs.device):
+        logits = transformer(obs, teacher_inputs, task_ids)  # (b, L, V)
+    logits = logits.float()  # loss and accuracy in float32 (a no-op without autocast)
+    return F.cross_entropy(logits.view(-1, logits.shape[-1]), token_sequence.view(-1)), logits
+
+
 def _epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
     # A generator per epoch makes the shuffle independent of earlier epochs' randomness, so resuming is exact.
     return torch.randperm(count, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
 
 
 def _run_metadata(
-    spec: PolicySpec, settings: PolicyTrainingSettings, tokenizer: MultiScaleActionTokenizer, data: PolicyTrainingData
+    spec: PolicySpec,
+    settings: PolicyTrainingSettings,
+    tokenizer: MultiScaleActionTokenizer,
+    data: PolicyTrainingData,
+    precision: torch.dtype,
 ) -> dict:
-    # Everything that changes the result; device and checkpoint cadence do not.
+    # Everything that changes the result; device and checkpoint cadence do not. The precision is the resolved one.
     relevant = {key: value for key, value in asdict(settings).items() if key not in ("device", "checkpoint_every")}
+    relevant["precision"] = str(precision).removeprefix("torch.")
     digest = hashlib.sha256()
     tensors = [data.obs, data.actions] + ([data.task_ids] if data.task_ids is not None else [])
     tensors += [value for _, value in sorted(tokenizer.state_dict().items())]
@@ -263,7 +303,9 @@ def train_policy(
     scheduler = _make_scheduler(optimizer, settings.epochs * steps_per_epoch, settings.warmup_steps)
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
-    metadata = _run_metadata(spec, settings, tokenizer, data)
+    precision = resolve_precision(settings.precision, device)
+    logger.info("policy training on %s in %s", device, str(precision).removeprefix("torch."))
+    metadata = _run_metadata(spec, settings, tokenizer, data, precision)
     start_epoch = 0
     if checkpoint_path.exists():
         if read_training_metadata(checkpoint_path) == metadata:
@@ -272,7 +314,6 @@ def train_policy(
         else:
             logger.warning("ignoring %s: it was written for another spec, settings, tokenizer or data", checkpoint_path)
 
-    vocabulary = spec.codebook_size
     for epoch in range(start_epoch, settings.epochs):
         transformer.train()
         started = time.perf_counter()
@@ -284,10 +325,14 @@ def train_policy(
         )
         for step, batch in enumerate(progress):
             batch_targets = targets.token_sequence[batch]  # (b, L)
-            logits = transformer(
-                obs[batch], targets.teacher_inputs[batch], task_ids[batch] if task_ids is not None else None
-            )  # (b, L, V)
-            loss = F.cross_entropy(logits.view(-1, vocabulary), batch_targets.view(-1))
+            loss, logits = teacher_forced_loss(
+                transformer,
+                obs[batch],
+                targets.teacher_inputs[batch],
+                batch_targets,
+                task_ids[batch] if task_ids is not None else None,
+                precision,
+            )
             loss_value = float(loss.detach())
             if not math.isfinite(loss_value):
                 raise NonFiniteLossError(
