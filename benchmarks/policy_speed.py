@@ -138,7 +138,7 @@ def main() -> None:
             onnx_policy = OnnxGreedyPolicy(export_greedy_policy(policy, Path(directory)))
             onnx = time_chunks(onnx_policy, 1, args.chunks)
         for part in ("total", "prediction", "decoding"):
-            rows.append((f"batch 1, 1 thread, onnxruntime: {part} per chunk", onnx[part], 1))
+            rows.append((f"batch 1, 1 thread, onnxruntime: {part} per chunk (ms)", onnx[part], 1))
     batched = time_chunks(policy, 64, args.batched_calls)
     rows.append(("batch 64, 1 thread: total per call (ms)", batched["total"], 1))
     rows.append(("batch 64, 1 thread: total per chunk (ms)", batched["total"], 64))
@@ -148,11 +148,11 @@ def main() -> None:
         f"policy speed, default config (A=10, L={policy.spec.sequence_length}, depth 8, D 64, 8 heads), torch "
         f"{torch.__version__}"
     )
-    print(f"| {'measurement':<48} | {'median':>8} | {'p90':>8} |")
-    print(f"|{'-' * 50}|{'-' * 10}|{'-' * 10}|")
+    print(f"| {'measurement':<57} | {'median':>8} | {'p90':>8} |")
+    print(f"|{'-' * 59}|{'-' * 10}|{'-' * 10}|")
     for name, values, divisor in rows:
         median, p90 = statistics.median(values) / divisor, percentile(values, 0.9) / divisor
-        print(f"| {name:<48} | {median:8.3f} | {p90:8.3f} |")
+        print(f"| {name:<57} | {median:8.3f} | {p90:8.3f} |")
     print(
         f"official per chunk at batch 1: {OFFICIAL_CHUNK_MS[0]} ms ({OFFICIAL_CHUNK_MS[1]} prediction + "
         f"{OFFICIAL_CHUNK_MS[2]} decoding)"
