@@ -62,7 +62,7 @@ def main() -> None:
         codebook_size=params.codebook_size,
     )
     device = select_device(params)
-    settings = copy_fields(PolicyTrainingSettings, config, device=str(device))
+    settings = copy_fields(PolicyTrainingSettings, config, device=str(device), epochs=config.epochs_for(args.task))
     precision = str(resolve_precision(settings.precision, device)).removeprefix("torch.")
     history: list[dict] = []
     tags = {"carp.tokenizer": reference.uri, "carp.training_precision": precision}

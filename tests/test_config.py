@@ -45,6 +45,8 @@ def test_defaults_follow_the_design():
         ({"eval": {"episodes": 0}}, "eval.episodes=0: must be >= 1"),
         ({"eval": {"backend": "tensorrt"}}, "eval.backend='tensorrt': must be one of"),
         ({"policy": {"precision": "half"}}, "policy.precision='half': must be one of"),
+        ({"policy": {"epochs_per_task": {"kitchen": 5}}}, "policy.epochs_per_task.kitchen='kitchen': task must be"),
+        ({"policy": {"epochs_per_task": {"square": 0}}}, "policy.epochs_per_task.square=0: must be >= 1"),
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
@@ -81,3 +83,12 @@ def test_params_are_frozen_and_flatten():
     assert flat["codebook_size"] == "256"
     assert flat["policy.depth"] == "8"
     assert flat["scales"] == "[1, 2, 4]"
+
+
+def test_policy_epochs_per_task_override_the_common_value():
+    params = params_from_dict(
+        {"tasks": ["lift", "square"], "policy": {"epochs": 20, "epochs_per_task": {"square": 35}}}
+    )
+    assert params.policy.epochs_for("square") == 35
+    assert params.policy.epochs_for("lift") == 20
+    assert flatten_params(params)["policy.epochs_per_task.square"] == "35"
