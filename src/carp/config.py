@@ -150,7 +150,7 @@ class PolicyConfig:
             elsewhere; `float32` or `bfloat16` force one. Weights, optimizer state, attention on CPU, the loss and
             inference stay float32 (see `carp.training.runtime.resolve_precision`).
         epochs_per_task: task -> policy epochs of that task's policy, overriding `epochs` (Square measured 34% at
-            20 epochs and 68% at 35, while Can fell from 82% to 66%; see the README).
+            20 epochs and 68% at 35; Can 82% at 20 alone, 66% at 35 in a three-task run; see the README).
     """
 
     depth: int = 8
