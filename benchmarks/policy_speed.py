@@ -32,7 +32,7 @@ from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer, teacher_forced_loss
-from carp.training.runtime import resolve_precision
+from carp.training.runtime import precision_name, resolve_precision
 
 OBS_DIM = 19  # Lift's low-dim observation width
 OBS_STEPS = 2
@@ -167,7 +167,7 @@ def main() -> None:
             f"{256 / OFFICIAL_TRAIN_STEP_SECONDS:.0f} samples/s):"
         )
         for precision, (seconds, cpu_seconds) in timings.items():
-            name = str(precision).removeprefix("torch.") + (" (auto)" if precision == precisions[-1] else "")
+            name = precision_name(precision) + (" (auto)" if precision == precisions[-1] else "")
             print(
                 f"  {name:<16} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over both threads), "
                 f"{256 / seconds:.0f} samples/s, speed-up x{OFFICIAL_TRAIN_STEP_SECONDS / seconds:.2f}"

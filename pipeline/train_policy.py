@@ -28,7 +28,7 @@ from carp.policy.spec import PolicySpec
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
-from carp.training.runtime import resolve_precision
+from carp.training.runtime import precision_name, resolve_precision
 
 
 def main() -> None:
@@ -63,7 +63,7 @@ def main() -> None:
     )
     device = select_device(params)
     settings = copy_fields(PolicyTrainingSettings, config, device=str(device), epochs=config.epochs_for(args.task))
-    precision = str(resolve_precision(settings.precision, device)).removeprefix("torch.")
+    precision = precision_name(resolve_precision(settings.precision, device))
     history: list[dict] = []
     tags = {"carp.tokenizer": reference.uri, "carp.training_precision": precision}
     with mlflow_stage(params, f"train_policy@{args.task}", args.task, tags) as run:

@@ -37,7 +37,13 @@ from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
-from carp.training.runtime import autocast_to, resolve_device, resolve_precision, seed_everything
+from carp.training.runtime import (
+    autocast_to,
+    precision_name,
+    resolve_device,
+    resolve_precision,
+    seed_everything,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -232,7 +238,7 @@ def _run_metadata(
 ) -> dict:
     # Everything that changes the result; device and checkpoint cadence do not. The precision is the resolved one.
     relevant = {key: value for key, value in asdict(settings).items() if key not in ("device", "checkpoint_every")}
-    relevant["precision"] = str(precision).removeprefix("torch.")
+    relevant["precision"] = precision_name(precision)
     digest = hashlib.sha256()
     tensors = [data.obs, data.actions] + ([data.task_ids] if data.task_ids is not None else [])
     tensors += [value for _, value in sorted(tokenizer.state_dict().items())]
@@ -304,7 +310,7 @@ def train_policy(
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
     precision = resolve_precision(settings.precision, device)
-    logger.info("policy training on %s in %s", device, str(precision).removeprefix("torch."))
+    logger.info("policy training on %s in %s", device, precision_name(precision))
     metadata = _run_metadata(spec, settings, tokenizer, data, precision)
     start_epoch = 0
     if checkpoint_path.exists():

@@ -41,6 +41,11 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
     return torch.bfloat16 if precision == "bfloat16" else torch.float32
 
 
+def precision_name(dtype: torch.dtype) -> str:
+    """Name of a resolved precision as params, logs and MLflow tags write it: "float32" or "bfloat16"."""
+    return str(dtype).removeprefix("torch.")
+
+
 def autocast_to(dtype: torch.dtype, device: torch.device) -> contextlib.AbstractContextManager:
     """Autocast to `dtype` on `device` for a training forward pass; a no-op context for float32."""
     if dtype == torch.float32:
