@@ -66,6 +66,22 @@ def test_head_scores_token_i_with_dimension_i_mod_a():
     assert (logits[:, 0::2] - 7.0).abs().min() > 0
 
 
+def test_grouped_logits_are_the_same_logits_in_the_heads_layout():
+    transformer = scrambled_transformer(tiny_policy_spec(SCALES))
+    inputs = _inputs(3)
+    logits = transformer(*inputs)  # (B, L, V)
+    grouped = transformer(*inputs, grouped_by_dimension=True)  # (A, B * L / A, V)
+    assert grouped.shape == (A, 3 * A * sum(SCALES) // A, V)
+    torch.testing.assert_close(transformer.head.ungroup(grouped, 3), logits, rtol=0, atol=0)
+    # Group `a` holds dimension a's tokens (sequence positions a, a + A, ...) of sample 0, then sample 1, ...
+    tokens_per_sample = sum(SCALES)
+    torch.testing.assert_close(grouped[1, :tokens_per_sample], logits[0, 1::A], rtol=0, atol=0)
+    torch.testing.assert_close(grouped[0, tokens_per_sample : 2 * tokens_per_sample], logits[1, 0::A], rtol=0, atol=0)
+    ids = torch.arange(3 * A * tokens_per_sample).view(3, -1)  # (B, L)
+    assert torch.equal(transformer.head.ungroup(transformer.head.group(ids), 3), ids)
+    assert torch.equal(transformer.head.group(ids)[1, :tokens_per_sample], ids[0, 1::A])
+
+
 def test_kv_cache_logits_equal_full_forward():
     transformer = scrambled_transformer(tiny_policy_spec(SCALES))
     obs, teacher = _inputs(3)

@@ -227,9 +227,25 @@ class PerDimensionHead(nn.Module):
         Returns:
             (B, N, V) logits.
         """
-        batch, tokens, width = hidden.shape
+        batch, tokens, _ = hidden.shape
+        return self.ungroup(self.grouped_logits(hidden), batch)  # (B, N, V)
+
+    def grouped_logits(self, hidden: torch.Tensor) -> torch.Tensor:
+        """Logits in the head's own layout, grouped by dimension: (B, N, D) -> (A, B * N / A, V).
+
+        Row `b * N / A + p` of group `a` is token `p * A + a` of sample `b`; :meth:`group` puts token-aligned tensors
+        (such as target ids) in the same order. Training takes the loss in this layout, which saves two copies of the
+        largest tensor of a step (forward and backward of the transpose back).
+        """
         # Plain views instead of einops ("b (p a) d -> a (b p) d" and back): this runs once per scale at inference,
         # where einops' per-call overhead was measurable.
-        grouped = hidden.reshape(-1, self.action_dim, width).transpose(0, 1)  # (A, B * N / A, D)
-        logits = torch.baddbmm(self.bias, grouped, self.weight)  # (A, B * N / A, V)
-        return logits.transpose(0, 1).reshape(batch, tokens, -1)  # (B, N, V)
+        grouped = self.group(hidden)  # (A, B * N / A, D)
+        return torch.baddbmm(self.bias, grouped, self.weight)  # (A, B * N / A, V)
+
+    def group(self, per_token: torch.Tensor) -> torch.Tensor:
+        """(B, N, ...) laid out position-then-dimension -> (A, B * N / A, ...) grouped by dimension."""
+        return per_token.reshape(-1, self.action_dim, *per_token.shape[2:]).transpose(0, 1)
+
+    def ungroup(self, grouped: torch.Tensor, batch: int) -> torch.Tensor:
+        """Inverse of :meth:`group`: (A, B * N / A, ...) -> (B, N, ...)."""
+        return grouped.transpose(0, 1).reshape(batch, -1, *grouped.shape[2:])

@@ -144,16 +144,19 @@ class CoarseToFineTransformer(nn.Module):
         """Position plus level embedding of every token, (1, L, D)."""
         return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
 
-    def _logits(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    def _final_norm(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
         shift, scale = modulations[-2:]
-        normed = F.layer_norm(hidden, hidden.shape[-1:], eps=NORM_EPS)
-        return self.head(torch.addcmul(shift, normed, scale))  # (B, N, V)
+        return torch.addcmul(shift, F.layer_norm(hidden, hidden.shape[-1:], eps=NORM_EPS), scale)  # (B, N, D)
+
+    def _logits(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        return self.head(self._final_norm(hidden, modulations))  # (B, N, V)
 
     def forward(
         self,
         obs_features: torch.Tensor,
         teacher_inputs: torch.Tensor,
         task_ids: torch.Tensor | None = None,
+        grouped_by_dimension: bool = False,
     ) -> torch.Tensor:
         """Teacher-forced logits of all L tokens.
 
@@ -162,9 +165,12 @@ class CoarseToFineTransformer(nn.Module):
             teacher_inputs: (B, L - s_1 * A, C) float, the tokenizer's teacher-forcing inputs of scales 2..K in
                 sequence order (area-downsampled accumulated latent of the ground-truth tokens of coarser scales).
             task_ids: (B,) long, for multi-task policies.
+            grouped_by_dimension: return the logits in the head's layout (see
+                :meth:`~carp.policy.blocks.PerDimensionHead.grouped_logits`), as training uses them.
 
         Returns:
-            (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary.
+            (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary. With
+            `grouped_by_dimension`: (A, B * L / A, V).
         """
         condition = self.encode_condition(obs_features, task_ids)  # (B, D)
         modulations = self.modulations(condition)
@@ -175,6 +181,8 @@ class CoarseToFineTransformer(nn.Module):
         for index, block in enumerate(self.blocks):
             start = index * MODULATIONS_PER_BLOCK
             hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
+        if grouped_by_dimension:
+            return self.head.grouped_logits(self._final_norm(hidden, modulations))  # (A, B * L / A, V)
         return self._logits(hidden, modulations)  # (B, L, V)
 
     def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:

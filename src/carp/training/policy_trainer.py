@@ -25,7 +25,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm.auto import tqdm
@@ -37,6 +36,7 @@ from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
+from carp.training.cross_entropy import blockwise_cross_entropy
 from carp.training.runtime import (
     autocast_to,
     precision_name,
@@ -205,7 +205,7 @@ def teacher_forced_loss(
     task_ids: torch.Tensor | None,
     precision: torch.dtype,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean cross entropy over all tokens of a teacher-forced forward pass, and its logits.
+    """Mean cross entropy over all tokens of a teacher-forced forward pass, and the predicted (argmax) ids.
 
     Args:
         transformer: the model being trained.
@@ -216,12 +216,16 @@ def teacher_forced_loss(
         precision: autocast dtype of the forward pass (`resolve_precision`).
 
     Returns:
-        The scalar loss and the (b, L, V) logits, both float32.
+        The scalar float32 loss and the (b, L) long ids of the highest logits.
     """
     with autocast_to(precision, obs.device):
-        logits = transformer(obs, teacher_inputs, task_ids)  # (b, L, V)
-    logits = logits.float()  # loss and accuracy in float32 (a no-op without autocast)
-    return F.cross_entropy(logits.view(-1, logits.shape[-1]), token_sequence.view(-1)), logits
+        grouped_logits = transformer(obs, teacher_inputs, task_ids, grouped_by_dimension=True)  # (A, b * L / A, V)
+    head = transformer.head
+    grouped_targets = head.group(token_sequence)  # (A, b * L / A)
+    # Loss in float32 whatever the forward precision; the logits stay in the head's layout and dtype.
+    loss = blockwise_cross_entropy(grouped_logits.flatten(0, 1), grouped_targets.flatten())
+    predicted = head.ungroup(grouped_logits.detach().argmax(dim=-1), token_sequence.shape[0])  # (b, L)
+    return loss, predicted
 
 
 def _epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
@@ -331,7 +335,7 @@ def train_policy(
         )
         for step, batch in enumerate(progress):
             batch_targets = targets.token_sequence[batch]  # (b, L)
-            loss, logits = teacher_forced_loss(
+            loss, predicted = teacher_forced_loss(
                 transformer,
                 obs[batch],
                 targets.teacher_inputs[batch],
@@ -352,7 +356,7 @@ def train_policy(
             if ema is not None:
                 ema.update_parameters(transformer)
             loss_sum += loss_value * batch.numel()
-            correct += (logits.detach().max(dim=-1).indices == batch_targets).sum(dim=0)
+            correct += (predicted == batch_targets).sum(dim=0)
             progress.set_postfix(loss=f"{loss_value:.4f}")
         metrics = _epoch_metrics(
             loss_sum, correct, num_windows, spec, optimizer.param_groups[0]["lr"], time.perf_counter() - started
