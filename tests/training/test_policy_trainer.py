@@ -78,7 +78,12 @@ def test_metrics_and_learning_rate_schedule(tmp_path):
 def test_resume_continues_from_the_saved_epoch(tmp_path):
     spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(10)
     settings = PolicyTrainingSettings(**(SETTINGS.__dict__ | {"use_ema": True, "ema_decay": 0.9}))
-    uninterrupted = _weights(train_policy(spec, tokenizer, data, settings, tmp_path / "full"))
+    uninterrupted_losses = []
+    uninterrupted = _weights(
+        train_policy(
+            spec, tokenizer, data, settings, tmp_path / "full", lambda e, m: uninterrupted_losses.append(m["loss"])
+        )
+    )
 
     def interrupt(epoch: int, metrics: dict) -> None:
         if epoch == 1:
@@ -87,15 +92,18 @@ def test_resume_continues_from_the_saved_epoch(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", interrupt)
     assert (tmp_path / "resumed" / CHECKPOINT_NAME).exists()
-    epochs = []
-    resumed = train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: epochs.append(e))
-    assert epochs == [2, 3]
+    reported = []
+    resumed = train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: reported.append((e, m)))
+    # The two epochs of the saved state are reported again (so a resumed run's history is whole), then two trained.
+    assert [epoch for epoch, _ in reported] == [0, 1, 2, 3]
+    assert [metrics["loss"] for _, metrics in reported] == uninterrupted_losses
     for name, value in _weights(resumed).items():
         assert torch.equal(value, uninterrupted[name]), name
-    # A finished run is not repeated: the final state is loaded as is.
-    epochs.clear()
-    finished = train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: epochs.append(e))
-    assert epochs == []
+    # A finished run is not repeated: the final state is loaded as is and its stored epochs are reported unchanged
+    # (timings included, which a second training could not reproduce).
+    replayed = []
+    finished = train_policy(spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: replayed.append((e, m)))
+    assert replayed == reported
     for name, value in _weights(finished).items():
         assert torch.equal(value, uninterrupted[name]), name
 

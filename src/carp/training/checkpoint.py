@@ -9,6 +9,7 @@ file.
 
 import os
 import random
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,7 @@ def save_training_state(
     scheduler: torch.optim.lr_scheduler.LRScheduler | None,
     epoch: int,
     metadata: dict[str, Any] | None = None,
+    history: list[dict[str, float]] | None = None,
 ) -> None:
     """Atomically write a training state.
 
@@ -71,6 +73,7 @@ def save_training_state(
         scheduler: its LR scheduler, or None.
         epoch: number of completed epochs (training resumes at this epoch index).
         metadata: plain values describing the run (architecture, settings) for `read_training_metadata`.
+        history: metrics of the completed epochs, one dict per epoch, for `replay_history`.
     """
     payload = {
         "format_version": TRAINING_STATE_FORMAT_VERSION,
@@ -80,6 +83,7 @@ def save_training_state(
         "scheduler": scheduler.state_dict() if scheduler is not None else None,
         "rng": _rng_states(),
         "metadata": metadata or {},
+        "history": list(history or []),
     }
     atomic_torch_save(payload, path)
 
@@ -100,6 +104,19 @@ def _read(path: Path) -> dict[str, Any]:
 def read_training_metadata(path: Path) -> dict[str, Any]:
     """Metadata stored with a training state (after checking its format version)."""
     return _read(path)["metadata"]
+
+
+def replay_history(path: Path, on_epoch_end: Callable[[int, dict[str, float]], None] | None) -> list[dict[str, float]]:
+    """Metrics of the epochs stored with the training state at `path`, each passed to `on_epoch_end` again.
+
+    A resumed run thereby reports every epoch, not only those after the interruption; a run whose state already
+    holds all its epochs reports them and trains no further. States written without a history give none.
+    """
+    history = list(_read(path).get("history", []))
+    if on_epoch_end is not None:
+        for epoch, metrics in enumerate(history):
+            on_epoch_end(epoch, metrics)
+    return history
 
 
 def load_training_state(

@@ -35,7 +35,12 @@ from carp.policy.policy import check_specs_match
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
+from carp.training.checkpoint import (
+    load_training_state,
+    read_training_metadata,
+    replay_history,
+    save_training_state,
+)
 from carp.training.cross_entropy import blockwise_cross_entropy
 from carp.training.runtime import (
     autocast_to,
@@ -283,7 +288,8 @@ def train_policy(
             from another spec, settings, tokenizer or data is ignored (with a warning) and overwritten.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based index) with loss (mean
             cross entropy per token), token_accuracy, token_accuracy_scale_<k> (k = 1..K), learning_rate,
-            epoch_seconds and samples_per_second.
+            epoch_seconds and samples_per_second. Epochs restored from a training state are
+            reported again first, so the callback sees every epoch of a resumed run.
 
     Returns:
         The trained transformer in eval mode on the training device; with `use_ema` it holds the EMA weights.
@@ -317,10 +323,12 @@ def train_policy(
     logger.info("policy training on %s in %s", device, precision_name(precision))
     metadata = _run_metadata(spec, settings, tokenizer, data, precision)
     start_epoch = 0
+    history: list[dict[str, float]] = []
     if checkpoint_path.exists():
         if read_training_metadata(checkpoint_path) == metadata:
             start_epoch = load_training_state(checkpoint_path, trained, optimizer, scheduler)
             logger.info("resuming policy training from %s at epoch %d", checkpoint_path, start_epoch)
+            history = replay_history(checkpoint_path, on_epoch_end)
         else:
             logger.warning("ignoring %s: it was written for another spec, settings, tokenizer or data", checkpoint_path)
 
@@ -361,8 +369,9 @@ def train_policy(
         metrics = _epoch_metrics(
             loss_sum, correct, num_windows, spec, optimizer.param_groups[0]["lr"], time.perf_counter() - started
         )
+        history.append(metrics)
         if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
-            save_training_state(checkpoint_path, trained, optimizer, scheduler, epoch + 1, metadata)
+            save_training_state(checkpoint_path, trained, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "policy epoch %d/%d: %s",
             epoch + 1,

@@ -38,7 +38,12 @@ from tqdm.auto import tqdm
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import load_training_state, read_training_metadata, save_training_state
+from carp.training.checkpoint import (
+    load_training_state,
+    read_training_metadata,
+    replay_history,
+    save_training_state,
+)
 from carp.training.runtime import resolve_device, seed_everything
 
 logger = logging.getLogger(__name__)
@@ -282,7 +287,8 @@ def train_tokenizer(
             from a different spec, settings or training data is ignored (with a warning) and overwritten.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based epoch index) with
             train_loss, train_reconstruction_mse, train_vq_loss, valid_reconstruction_mse (if M > 0),
-            learning_rate, restarted_codes and epoch_seconds.
+            learning_rate, restarted_codes and epoch_seconds. Epochs restored from a training state are
+            reported again first, so the callback sees every epoch of a resumed run.
 
     Returns:
         The trained tokenizer in eval mode, on the training device.
@@ -307,6 +313,7 @@ def train_tokenizer(
     start_epoch = _resume_or_initialize(
         tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, settings.seed
     )
+    history = replay_history(checkpoint_path, on_epoch_end) if start_epoch > 0 else []
 
     restart_epochs = math.floor(settings.epochs * settings.restart_fraction)
     tokenizer.train()
@@ -336,8 +343,9 @@ def train_tokenizer(
         metrics["learning_rate"] = optimizer.param_groups[0]["lr"]
         metrics["restarted_codes"] = float(restarted)
         metrics["epoch_seconds"] = time.perf_counter() - started
+        history.append(metrics)
         if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
-            save_training_state(checkpoint_path, tokenizer, optimizer, scheduler, epoch + 1, metadata)
+            save_training_state(checkpoint_path, tokenizer, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "tokenizer epoch %d/%d: %s",
             epoch + 1,
