@@ -201,6 +201,8 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             plot_curves(inputs.tokenizer_history, columns, "tokenizer", figures_dir / "tokenizer_curves.png")
         )
     for task, history in inputs.policy_histories.items():
+        if history.empty:
+            continue
         columns = [c for c in history.columns if c.endswith("loss")]
         curves.figures.append(
             plot_curves(history, columns, f"policy ({task})", figures_dir / f"policy_{task}_loss.png")
