@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import pandas as pd
 import torch
 
 from carp.config import ConfigError, Params, flatten_params, load_params
@@ -139,6 +140,14 @@ def write_json(path: Path, payload: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_text(json.dumps(payload, indent=2, sort_keys=True))
+    os.replace(temporary, path)
+
+
+def write_history(path: Path, history: list[dict]) -> None:
+    """Write per-epoch metrics as CSV atomically; no epochs (a state resumed from older code) gives just a header."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    pd.DataFrame(history, columns=None if history else ["epoch"]).to_csv(temporary, index=False)
     os.replace(temporary, path)
 
 

@@ -2,7 +2,6 @@
 
 from dataclasses import asdict
 
-import pandas as pd
 import torch
 from stage_support import (
     CHECKPOINT_DIR,
@@ -18,6 +17,7 @@ from stage_support import (
     parse_args,
     select_device,
     setup_logging,
+    write_history,
     write_json,
 )
 
@@ -86,9 +86,7 @@ def main() -> None:
         policy.save(checkpoint)
         report_dir = POLICY_REPORT_DIR / args.task
         report_dir.mkdir(parents=True, exist_ok=True)
-        pd.DataFrame(history, columns=["epoch"] if not history else None).to_csv(
-            report_dir / "history.csv", index=False
-        )
+        write_history(report_dir / "history.csv", history)
         # A training state written before states kept their history resumes with none.
         final = (
             {"final_loss": history[-1]["loss"], "final_token_accuracy": history[-1]["token_accuracy"]}

@@ -5,7 +5,6 @@ checked) and measured on this pipeline's held-out windows, so a reused tokenizer
 """
 
 import numpy as np
-import pandas as pd
 import torch
 from stage_support import (
     CHECKPOINT_DIR,
@@ -20,6 +19,7 @@ from stage_support import (
     select_device,
     setup_logging,
     tracking_uri,
+    write_history,
     write_json,
 )
 
@@ -94,9 +94,7 @@ def main() -> None:
         run.log_artifact(figure)
         run.set_tags({"carp.tokenizer_sha256": sha256})
     write_json(TOKENIZER_REPORT_DIR / "metrics.json", metrics)
-    pd.DataFrame(history, columns=["epoch"] if not history else None).to_csv(
-        TOKENIZER_REPORT_DIR / "history.csv", index=False
-    )
+    write_history(TOKENIZER_REPORT_DIR / "history.csv", history)
     action = "trained on" if config.source == "pipeline" else f"fetched {config.source}, trained on"
     names = dimension_names(tokenizer.spec.action_dim)
     print(f"tokenizer {action} {trained_on}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
