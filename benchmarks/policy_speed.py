@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.evaluation.onnx_policy import OnnxGreedyPolicy, export_greedy_policy
+from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
@@ -59,7 +59,7 @@ def make_policy() -> CarpPolicy:
     )
 
 
-def time_chunks(policy: CarpPolicy | OnnxGreedyPolicy, batch_size: int, calls: int) -> dict[str, list[float]]:
+def time_chunks(policy: CarpPolicy | OnnxPolicy, batch_size: int, calls: int) -> dict[str, list[float]]:
     rng = np.random.default_rng(0)
     obs = rng.uniform(-1, 1, size=(batch_size, OBS_STEPS, OBS_DIM)).astype(np.float32)
     for _ in range(max(10, calls // 10)):
@@ -135,7 +135,7 @@ def main() -> None:
     rows.append(("batch 1, 1 thread: CPU time per chunk (ms)", single["cpu"], 1))
     if not args.skip_onnx:
         with tempfile.TemporaryDirectory(prefix="carp-onnx-") as directory:
-            onnx_policy = OnnxGreedyPolicy(export_greedy_policy(policy, Path(directory)))
+            onnx_policy = OnnxPolicy(export_policy_graphs(policy, Path(directory)))
             onnx = time_chunks(onnx_policy, 1, args.chunks)
         for part in ("total", "prediction", "decoding"):
             rows.append((f"batch 1, 1 thread, onnxruntime: {part} per chunk (ms)", onnx[part], 1))

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from carp.evaluation import runner
-from carp.evaluation.onnx_policy import OnnxGreedyPolicy, export_greedy_policy
+from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.evaluation.runner import onnx_graphs_for
 from carp.evaluation.sources import PolicySource
 from carp.policy.sampling import generate_chunk
@@ -14,20 +14,23 @@ from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy
 SCALES = (1, 2, 4)
 
 
-def torch_tokens(policy, obs: np.ndarray, task_index: int | None = None) -> np.ndarray:
-    """The greedy token sequence (1, L) of the PyTorch path."""
+def torch_tokens(
+    policy, obs: np.ndarray, task_index: int | None = None, top_k: int = 1, seed: int | None = None
+) -> np.ndarray:
+    """The token sequence (1, L) of the PyTorch path (greedy, or top-k with a generator seeded with `seed`)."""
+    generator = None if seed is None else torch.Generator().manual_seed(seed)
     with torch.inference_mode():
         observations = policy.obs_normalizer.normalize(torch.as_tensor(obs, dtype=torch.float32))
         task_ids = None if task_index is None else torch.tensor([task_index])
-        chunk = generate_chunk(policy.transformer, policy.tokenizer, observations, task_ids)
+        chunk = generate_chunk(policy.transformer, policy.tokenizer, observations, task_ids, top_k, generator)
         return policy.tokenizer.ids_to_sequence(chunk.token_ids).numpy()
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     policy = tiny_policy(SCALES, depth=2)
-    directory = export_greedy_policy(policy, tmp_path_factory.mktemp("onnx"))
-    return policy, OnnxGreedyPolicy(directory)
+    directory = export_policy_graphs(policy, tmp_path_factory.mktemp("onnx"))
+    return policy, OnnxPolicy(directory)
 
 
 def test_greedy_tokens_and_actions_match_the_torch_policy(exported):
@@ -46,15 +49,38 @@ def test_greedy_tokens_and_actions_match_the_torch_policy(exported):
     assert len(distinct) > 1, "observations should change the chosen tokens"
 
 
+def test_top_k_graph_draws_the_tokens_the_torch_policy_draws_with_the_same_generator(exported, tmp_path):
+    policy, greedy_onnx = exported
+    sampling = OnnxPolicy(export_policy_graphs(policy, tmp_path, top_k=3))
+    assert (sampling.top_k, greedy_onnx.top_k) == (3, 1)
+    obs = np.random.default_rng(4).normal(size=(1, OBS_STEPS, OBS_DIM)) * 3
+    greedy = greedy_onnx.predict_tokens(obs)
+    draws = []
+    for seed in range(6):
+        tokens = sampling.predict_tokens(obs, generator=torch.Generator().manual_seed(seed))
+        np.testing.assert_array_equal(tokens, torch_tokens(policy, obs, top_k=3, seed=seed))
+        timed = sampling.predict_action_timed(obs, generator=torch.Generator().manual_seed(seed))
+        expected = policy.predict_action(obs, top_k=3, generator=torch.Generator().manual_seed(seed))
+        np.testing.assert_allclose(timed.actions, expected, rtol=1e-5, atol=1e-5)
+        draws.append(tokens)
+    # Seeds change the draws, and the draws leave the greedy choice at some positions.
+    assert len({tokens.tobytes() for tokens in draws}) > 1
+    assert all((tokens != greedy).any() for tokens in draws)
+
+
 def test_multi_task_graph_takes_the_task_index(tmp_path):
     policy = tiny_policy(SCALES, num_tasks=3)
-    onnx_policy = OnnxGreedyPolicy(export_greedy_policy(policy, tmp_path))
+    onnx_policy = OnnxPolicy(export_policy_graphs(policy, tmp_path))
     obs = np.random.default_rng(2).normal(size=(1, OBS_STEPS, OBS_DIM))
     for task_index in (0, 2):
         expected = torch_tokens(policy, obs, task_index)
         np.testing.assert_array_equal(onnx_policy.predict_tokens(obs, task_index), expected)
     with pytest.raises(ValueError, match="needs a task index"):
         onnx_policy.predict_action_timed(obs)
+    sampling = OnnxPolicy(export_policy_graphs(policy, tmp_path / "top2", top_k=2))
+    for task_index in (0, 2):
+        drawn = sampling.predict_tokens(obs, task_index, generator=torch.Generator().manual_seed(task_index))
+        np.testing.assert_array_equal(drawn, torch_tokens(policy, obs, task_index, top_k=2, seed=task_index))
 
 
 def test_bad_inputs_are_refused(exported):
@@ -69,7 +95,7 @@ def test_policy_source_acts_the_same_on_both_backends(exported, tmp_path):
     policy, _ = exported
     checkpoint = tmp_path / "policy.pt"
     policy.save(checkpoint)
-    directory = export_greedy_policy(policy, tmp_path / "onnx")
+    directory = export_policy_graphs(policy, tmp_path / "onnx")
     settings = dict(controller="delta", obs_steps=OBS_STEPS, action_steps=4)
     on_torch = PolicySource(checkpoint, **settings)
     on_onnx = PolicySource(checkpoint, **settings, onnx_directory=directory)
@@ -78,25 +104,26 @@ def test_policy_source_acts_the_same_on_both_backends(exported, tmp_path):
     actions_onnx, timing = on_onnx.act(history, env=None)
     np.testing.assert_allclose(actions_onnx, actions_torch, rtol=1e-5, atol=1e-5)
     assert timing.prediction > 0
-    with pytest.raises(ValueError, match="greedy"):
+    with pytest.raises(ValueError, match=r"use top_k = 1, got top_k = 4"):
         PolicySource(checkpoint, **settings, top_k=4, onnx_directory=directory)
 
 
-def test_evaluation_exports_only_for_greedy_onnx_runs_and_falls_back_to_torch(exported, tmp_path, monkeypatch, caplog):
+def test_evaluation_exports_for_onnx_runs_and_falls_back_to_torch(exported, tmp_path, monkeypatch, caplog):
     policy, _ = exported
     checkpoint = tmp_path / "policy.pt"
     policy.save(checkpoint)
     directory = onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "graphs")
     assert directory == tmp_path / "graphs" and (directory / "prediction.onnx").is_file()
     assert onnx_graphs_for(checkpoint, "torch", 1, tmp_path / "unused") is None
-    assert onnx_graphs_for(checkpoint, "onnxruntime", 4, tmp_path / "unused") is None
+    sampling = onnx_graphs_for(checkpoint, "onnxruntime", 4, tmp_path / "sampling")
+    assert OnnxPolicy(sampling).top_k == 4
     with pytest.raises(ValueError, match="backend must be 'onnxruntime' or 'torch', got 'tvm'"):
         onnx_graphs_for(checkpoint, "tvm", 1, tmp_path / "unused")
 
     def broken_export(*args, **kwargs):
         raise RuntimeError("unsupported operator")
 
-    monkeypatch.setattr(runner, "export_greedy_policy", broken_export)
+    monkeypatch.setattr(runner, "export_policy_graphs", broken_export)
     assert onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "unused") is None
     assert "ONNX export of" in caplog.text and "RuntimeError: unsupported operator" in caplog.text
     assert not (tmp_path / "unused").exists()

@@ -68,6 +68,15 @@ def test_select_tokens_draws_only_from_the_top_k():
     assert torch.equal(select_tokens(logits, top_k=1), torch.ones(1, 2000, dtype=torch.long))
 
 
+def test_given_uniforms_decide_the_draw_and_must_fit_the_logits():
+    logits = torch.tensor([[[0.0, 5.0, 4.0, -1.0, 3.0]]])  # top-2: ids 1 (5.0), 2 (4.0)
+    # Gumbel offsets -log(-log(u)): u = 0.5 -> 0.37, u = 0.99 -> 4.6, so the second candidate wins only with 0.99.
+    assert select_tokens(logits, top_k=2, uniforms=torch.tensor([[[0.5, 0.5]]])).item() == 1
+    assert select_tokens(logits, top_k=2, uniforms=torch.tensor([[[0.5, 0.99]]])).item() == 2
+    with pytest.raises(ValueError, match=r"uniforms must have shape \(1, 1, 2\), got \(1, 1, 3\)"):
+        select_tokens(logits, top_k=2, uniforms=torch.rand(1, 1, 3))
+
+
 @pytest.mark.parametrize("top_k", [0, 6, 2.0, True])
 def test_select_tokens_rejects_bad_top_k(top_k):
     with pytest.raises(ValueError, match="top_k must be an integer in \\[1, V = 5\\]"):

@@ -1,4 +1,4 @@
-"""Greedy batch-1 inference exported to ONNX and run by ONNX Runtime: the fast path of simulated evaluation.
+"""Batch-1 inference exported to ONNX and run by ONNX Runtime: the fast path of simulated evaluation.
 
 Why a second execution path: at batch 1 the eager transformer spends most of its ~9 ms per chunk dispatching ~700
 tiny PyTorch operators (a (40 x 64) @ (64 x 192) matmul is a few microseconds of arithmetic and about as much
@@ -7,9 +7,11 @@ dispatch). ONNX Runtime runs the same computation as one static graph with a few
 
 Two graphs are exported, so that prediction and decoding stay separately timed:
 
-- prediction: raw observations (1, To, Do) [and the task index (1,)] -> f_hat (1, A, C, l) and the chosen token
-  sequence (1, L). Normalization, the condition, then K greedy next-scale steps with a key/value cache that grows
-  by concatenation (every scale's shapes are static), each step's tokens embedded by the tokenizer's quantizer.
+- prediction: raw observations (1, To, Do) [and the task index (1,)] [and, for top-k sampling, the chunk's
+  uniforms (1, L, k)] -> f_hat (1, A, C, l) and the chosen token sequence (1, L). Normalization, the condition, then
+  K next-scale steps with a key/value cache that grows by concatenation (every scale's shapes are static), each
+  step's tokens chosen (argmax, or the Gumbel-max draw of `carp.policy.sampling.gumbel_top_k` from the uniforms the
+  caller drew) and embedded by the tokenizer's quantizer.
 - decoding: f_hat (1, A, C, l) -> raw actions (1, H, A): the tokenizer decoder and un-normalization.
 
 The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` and the blocks' forward for batch
@@ -18,9 +20,9 @@ The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` 
 Folding the gates into the output projections as well measured slower (2.83 vs 2.70 ms of prediction): ONNX
 Runtime pre-packs constant weights only. Every learned piece (condition encoder, projections, head, tokenizer) is
 the policy's own module. `tests/evaluation/test_onnx_policy.py` checks that both paths choose the same tokens and
-return the same actions.
+return the same actions, greedy and sampled (the same generator gives the same uniforms, hence the same draws).
 
-Only greedy decoding (`top_k = 1`) is exported; top-k sampling and batches run through `CarpPolicy`.
+`top_k` is fixed when the graphs are exported; batches run through `CarpPolicy`.
 """
 
 import contextlib
@@ -40,6 +42,7 @@ from torch import nn
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
 from carp.policy.policy import CarpPolicy, TimedPrediction
+from carp.policy.sampling import check_top_k, gumbel_top_k, sampling_uniforms
 
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
@@ -68,15 +71,19 @@ def _normalizer_buffers(normalizer: MinMaxNormalizer, unnormalize: bool) -> tupl
     return torch.as_tensor(scale[0], dtype=torch.float32), torch.as_tensor(offset[0], dtype=torch.float32)
 
 
-class GreedyPredictionGraph(nn.Module):
-    """Raw observations of one environment -> f_hat of the greedy chunk, in a form that exports to a static graph.
+class PredictionGraph(nn.Module):
+    """Raw observations of one environment -> f_hat of the chosen chunk, in a form that exports to a static graph.
 
     Args:
         policy: trained policy; its transformer and a contiguous-memory copy of its tokenizer are used.
+        top_k: 1 = greedy; k > 1 draws among the k best tokens with uniforms given as the last input.
     """
 
-    def __init__(self, policy: CarpPolicy) -> None:
+    def __init__(self, policy: CarpPolicy, top_k: int = 1) -> None:
         super().__init__()
+        check_top_k(top_k, policy.spec.codebook_size)
+        self.top_k = top_k
+        self.multi_task = policy.spec.num_tasks > 0
         self.transformer = policy.transformer
         # Channels-last kernels only matter to oneDNN; the exported graph is plain NCHW.
         self.tokenizer = copy.deepcopy(policy.tokenizer).to(memory_format=torch.contiguous_format)
@@ -84,17 +91,19 @@ class GreedyPredictionGraph(nn.Module):
         self.register_buffer("obs_scale", obs_scale)
         self.register_buffer("obs_offset", obs_offset)
 
-    def forward(self, obs: torch.Tensor, task_ids: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, *extra: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Predict the chunk's f_hat.
 
         Args:
             obs: (1, To, Do) raw observations.
-            task_ids: (1,) long, for multi-task policies.
+            extra: the task index (1,) long for multi-task policies, then the uniforms (1, L, k) when top_k > 1.
 
         Returns:
-            f_hat (1, A, C, l) accumulated over the K greedily chosen scales, and the chosen tokens (1, L) long in
-            sequence order (DESIGN.md section 4).
+            f_hat (1, A, C, l) accumulated over the K scales, and the chosen tokens (1, L) long in sequence order
+            (DESIGN.md section 4).
         """
+        task_ids = extra[0] if self.multi_task else None
+        uniforms = extra[-1] if self.top_k > 1 else None  # (1, L, k)
         transformer, quantizer = self.transformer, self.tokenizer.quantizer
         spec, layout = transformer.spec, transformer.layout
         width, heads = spec.width, spec.num_heads
@@ -134,7 +143,10 @@ class GreedyPredictionGraph(nn.Module):
                 hidden = block.feed_forward.contract(expanded) * modulations[offset + 5] + hidden
             normed = F.layer_norm(hidden, (width,), modulations[-1], modulations[-2], eps=NORM_EPS)
             logits = transformer.head(normed.unsqueeze(0))  # (1, s_k * A, V)
-            scale_tokens = logits.argmax(dim=-1)  # (1, s_k * A)
+            if uniforms is None:
+                scale_tokens = logits.argmax(dim=-1)  # (1, s_k * A)
+            else:
+                scale_tokens = gumbel_top_k(logits, uniforms[:, start:end])  # (1, s_k * A)
             chosen.append(scale_tokens)
             latent = latent + quantizer.scale_contribution(layout.scale_tokens_to_ids(scale_tokens), scale_index)
         return latent, torch.cat(chosen, dim=1)
@@ -180,32 +192,39 @@ def _export(
         temporary.unlink(missing_ok=True)
 
 
-def export_greedy_policy(policy: CarpPolicy, directory: Path) -> Path:
+def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) -> Path:
     """Write the prediction and decoding graphs of a CPU policy into `directory` (created); returns `directory`.
 
     Takes ~10-20 s for the default model (tracing and graph optimization), once per evaluation.
+
+    Args:
+        policy: the trained policy.
+        directory: destination of the two graphs.
+        top_k: token choice baked into the prediction graph (1 = greedy; k > 1 = top-k draws from given uniforms).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     policy = policy.to("cpu").eval()
     spec = policy.spec
-    obs = torch.zeros(1, spec.obs_steps, spec.obs_dim)
-    prediction = GreedyPredictionGraph(policy)
+    prediction = PredictionGraph(policy, top_k)
+    inputs, names = [torch.zeros(1, spec.obs_steps, spec.obs_dim)], ["obs"]
     if spec.num_tasks > 0:
-        inputs, names = (obs, torch.zeros(1, dtype=torch.long)), ["obs", "task_ids"]
-    else:
-        inputs, names = (obs,), ["obs"]
-    _export(prediction, inputs, names, ["latent", "tokens"], directory / PREDICTION_FILE)
+        inputs.append(torch.zeros(1, dtype=torch.long))
+        names.append("task_ids")
+    if top_k > 1:
+        inputs.append(torch.full((1, spec.sequence_length, top_k), 0.5))
+        names.append("uniforms")
+    _export(prediction, tuple(inputs), names, ["latent", "tokens"], directory / PREDICTION_FILE)
     latent = policy.tokenizer.empty_latent(1)
     _export(DecodingGraph(policy), (latent,), ["latent"], ["actions"], directory / DECODING_FILE)
     return directory
 
 
-class OnnxGreedyPolicy:
-    """Runs the graphs of :func:`export_greedy_policy` on one CPU thread, one environment at a time.
+class OnnxPolicy:
+    """Runs the graphs of :func:`export_policy_graphs` on one CPU thread, one environment at a time.
 
     Args:
-        directory: where :func:`export_greedy_policy` wrote the graphs.
+        directory: where :func:`export_policy_graphs` wrote the graphs.
         threads: ONNX Runtime intra-op threads (1: the simulator uses the other core).
     """
 
@@ -223,17 +242,34 @@ class OnnxGreedyPolicy:
         self._decoding = onnxruntime.InferenceSession(
             str(directory / DECODING_FILE), options, providers=["CPUExecutionProvider"]
         )
-        self._takes_task = any(item.name == "task_ids" for item in self._prediction.get_inputs())
+        inputs = {item.name: item for item in self._prediction.get_inputs()}
+        self._takes_task = "task_ids" in inputs
+        # Greedy graphs take no uniforms; sampling graphs take (1, L, k).
+        self._uniforms_shape = tuple(inputs["uniforms"].shape) if "uniforms" in inputs else None
 
-    def predict_action_timed(self, obs: np.ndarray, task_index: int | None = None) -> TimedPrediction:
-        """Raw observations (1, To, Do) -> raw actions (1, H, A) float32 and the two durations in seconds."""
-        return self._predict(obs, task_index)[0]
+    @property
+    def top_k(self) -> int:
+        """The token choice the graph was exported with (1 = greedy)."""
+        return 1 if self._uniforms_shape is None else self._uniforms_shape[-1]
 
-    def predict_tokens(self, obs: np.ndarray, task_index: int | None = None) -> np.ndarray:
-        """The greedy token sequence (1, L) int64 chosen for raw observations (1, To, Do)."""
-        return self._predict(obs, task_index)[1]
+    def predict_action_timed(
+        self, obs: np.ndarray, task_index: int | None = None, generator: torch.Generator | None = None
+    ) -> TimedPrediction:
+        """Raw observations (1, To, Do) -> raw actions (1, H, A) float32 and the two durations in seconds.
 
-    def _predict(self, obs: np.ndarray, task_index: int | None) -> tuple[TimedPrediction, np.ndarray]:
+        `generator` (CPU) supplies the top-k draws of a sampling graph, as it would to `CarpPolicy`.
+        """
+        return self._predict(obs, task_index, generator)[0]
+
+    def predict_tokens(
+        self, obs: np.ndarray, task_index: int | None = None, generator: torch.Generator | None = None
+    ) -> np.ndarray:
+        """The token sequence (1, L) int64 chosen for raw observations (1, To, Do)."""
+        return self._predict(obs, task_index, generator)[1]
+
+    def _predict(
+        self, obs: np.ndarray, task_index: int | None, generator: torch.Generator | None
+    ) -> tuple[TimedPrediction, np.ndarray]:
         obs = np.asarray(obs, dtype=np.float32)
         expected = tuple(self._prediction.get_inputs()[0].shape)
         if obs.shape != expected:
@@ -245,6 +281,8 @@ class OnnxGreedyPolicy:
         if self._takes_task:
             feeds["task_ids"] = np.asarray([task_index], dtype=np.int64)
         started = time.perf_counter()
+        if self._uniforms_shape is not None:
+            feeds["uniforms"] = sampling_uniforms(*self._uniforms_shape, generator=generator).numpy()
         latent, tokens = self._prediction.run(None, feeds)
         predicted = time.perf_counter()
         (actions,) = self._decoding.run(None, {"latent": latent})

@@ -13,7 +13,7 @@ import torch
 
 from carp.config import EVAL_BACKENDS
 from carp.evaluation.metrics import latency_summary, summarize_episodes
-from carp.evaluation.onnx_policy import export_greedy_policy
+from carp.evaluation.onnx_policy import export_policy_graphs
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.sources import PolicySource
 from carp.policy.policy import CarpPolicy
@@ -44,9 +44,10 @@ def evaluate_policy(
     chunk the policy needs a few ms against ~8 simulator steps, so batching saves little and adds a round trip
     between processes on every decision.
 
-    With `backend` "onnxruntime" and greedy decoding the checkpoint is exported once to ONNX graphs in a temporary
-    directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise, and for top-k
-    sampling, the workers run the PyTorch policy.
+    With `backend` "onnxruntime" the checkpoint is exported once (greedy or top-k, as `top_k` says) to ONNX graphs in
+    a temporary directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise the
+    workers run the PyTorch policy. Both choose the same tokens: top-k draws come from a generator seeded with the
+    episode's seed either way.
     """
     with tempfile.TemporaryDirectory(prefix="carp-onnx-") as scratch:
         onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, Path(scratch))
@@ -82,21 +83,18 @@ def evaluate_policy(
 
 
 def onnx_graphs_for(checkpoint_path: Path, backend: str, top_k: int, directory: Path) -> Path | None:
-    """Export the checkpoint's greedy graphs into `directory` when the ONNX Runtime backend applies.
+    """Export the checkpoint's graphs (token choice `top_k`) into `directory` when the ONNX Runtime backend applies.
 
     Returns:
         `directory` with the graphs, or None when the workers should run the PyTorch policy: `backend` is "torch",
-        `top_k` > 1 (sampling is not exported), or the export failed (logged as a warning, evaluation goes on).
+        or the export failed (logged as a warning, evaluation goes on).
     """
     if backend not in EVAL_BACKENDS:
         raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
     if backend == "torch":
         return None
-    if top_k != 1:
-        logger.info("top_k = %d samples tokens: evaluating with the PyTorch policy", top_k)
-        return None
     try:
-        return export_greedy_policy(CarpPolicy.load(checkpoint_path), directory)
+        return export_policy_graphs(CarpPolicy.load(checkpoint_path), directory, top_k)
     except Exception as error:  # an export problem must not cost the evaluation; PyTorch computes the same actions
         logger.warning(
             "ONNX export of %s failed (%s: %s); evaluating with PyTorch", checkpoint_path, type(error).__name__, error

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from carp.data.rotation import rot6d_to_absolute_actions
-from carp.evaluation.onnx_policy import OnnxGreedyPolicy
+from carp.evaluation.onnx_policy import OnnxPolicy
 from carp.evaluation.rollout import ChunkTiming
 from carp.policy.policy import CarpPolicy
 
@@ -58,8 +58,8 @@ class PolicySource:
         top_k: 1 = greedy; >1 samples from the top-k tokens with a generator seeded per episode.
         task_index: task id for multi-task policies.
         device: torch device for inference.
-        onnx_directory: graphs written by `carp.evaluation.onnx_policy.export_greedy_policy` for this checkpoint;
-            when given (greedy only), chunks are predicted by ONNX Runtime instead of PyTorch.
+        onnx_directory: graphs written by `carp.evaluation.onnx_policy.export_policy_graphs` for this checkpoint
+            and this `top_k`; when given, chunks are predicted by ONNX Runtime instead of PyTorch.
     """
 
     def __init__(
@@ -73,13 +73,15 @@ class PolicySource:
         device: str = "cpu",
         onnx_directory: Path | None = None,
     ) -> None:
-        if onnx_directory is not None and top_k != 1:
-            raise ValueError(f"the ONNX graphs are greedy (top_k = 1), got top_k = {top_k}")
         self.policy = (
-            OnnxGreedyPolicy(onnx_directory)
+            OnnxPolicy(onnx_directory)
             if onnx_directory is not None
             else CarpPolicy.load(Path(checkpoint_path), map_location=device)
         )
+        if isinstance(self.policy, OnnxPolicy) and self.policy.top_k != top_k:
+            raise ValueError(
+                f"the ONNX graphs in {onnx_directory} use top_k = {self.policy.top_k}, got top_k = {top_k}"
+            )
         self.controller = controller
         self.obs_steps = obs_steps
         self.action_steps = action_steps
@@ -102,7 +104,9 @@ class PolicySource:
                 observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
             )
         else:
-            timed = self.policy.predict_action_timed(observation_history[None], task_index=self.task_index)
+            timed = self.policy.predict_action_timed(
+                observation_history[None], task_index=self.task_index, generator=self._generator
+            )
         actions, prediction_seconds, decoding_seconds = timed
         started = time.perf_counter()
         executed = executed_actions(actions[0], self.obs_steps, self.action_steps, self.controller)
