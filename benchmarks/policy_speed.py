@@ -3,7 +3,8 @@
 Measures, with randomly initialized weights (speed does not depend on the values):
 - per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
   decoding (tokenizer decoder + un-normalization), median and p90, for the PyTorch policy and for the ONNX Runtime
-  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~15 s);
+  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~15 s each), greedy
+  and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
   token targets, as `carp.training.policy_trainer` runs it, in float32 and in the precision `policy.precision: auto`
@@ -12,7 +13,7 @@ Measures, with randomly initialized weights (speed does not depend on the values
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
 
-Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--skip-training] [--skip-onnx]
+Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--skip-training] [--skip-onnx] [--top-k 3]
 """
 
 import argparse
@@ -123,6 +124,7 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=8, help="timed training steps at batch 256 per precision")
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~15 s)")
+    parser.add_argument("--top-k", type=int, default=3, help="the sampling graph timed next to the greedy one")
     args = parser.parse_args()
 
     policy = make_policy()
@@ -134,11 +136,13 @@ def main() -> None:
     # Thread CPU time excludes time spent descheduled, a better estimate when other work shares the cores.
     rows.append(("batch 1, 1 thread: CPU time per chunk (ms)", single["cpu"], 1))
     if not args.skip_onnx:
-        with tempfile.TemporaryDirectory(prefix="carp-onnx-") as directory:
-            onnx_policy = OnnxPolicy(export_policy_graphs(policy, Path(directory)))
-            onnx = time_chunks(onnx_policy, 1, args.chunks)
-        for part in ("total", "prediction", "decoding"):
-            rows.append((f"batch 1, 1 thread, onnxruntime: {part} per chunk (ms)", onnx[part], 1))
+        for top_k in (1, args.top_k):
+            with tempfile.TemporaryDirectory(prefix="carp-onnx-") as directory:
+                onnx_policy = OnnxPolicy(export_policy_graphs(policy, Path(directory), top_k))
+                onnx = time_chunks(onnx_policy, 1, args.chunks)
+            choice = "greedy" if top_k == 1 else f"top-{top_k} draws"
+            for part in ("total", "prediction", "decoding"):
+                rows.append((f"batch 1, 1 thread, onnxruntime, {choice}: {part} per chunk (ms)", onnx[part], 1))
     batched = time_chunks(policy, 64, args.batched_calls)
     rows.append(("batch 64, 1 thread: total per call (ms)", batched["total"], 1))
     rows.append(("batch 64, 1 thread: total per chunk (ms)", batched["total"], 64))
@@ -148,11 +152,11 @@ def main() -> None:
         f"policy speed, default config (A=10, L={policy.spec.sequence_length}, depth 8, D 64, 8 heads), torch "
         f"{torch.__version__}"
     )
-    print(f"| {'measurement':<57} | {'median':>8} | {'p90':>8} |")
-    print(f"|{'-' * 59}|{'-' * 10}|{'-' * 10}|")
+    print(f"| {'measurement':<72} | {'median':>8} | {'p90':>8} |")
+    print(f"|{'-' * 74}|{'-' * 10}|{'-' * 10}|")
     for name, values, divisor in rows:
         median, p90 = statistics.median(values) / divisor, percentile(values, 0.9) / divisor
-        print(f"| {name:<57} | {median:8.3f} | {p90:8.3f} |")
+        print(f"| {name:<72} | {median:8.3f} | {p90:8.3f} |")
     print(
         f"official per chunk at batch 1: {OFFICIAL_CHUNK_MS[0]} ms ({OFFICIAL_CHUNK_MS[1]} prediction + "
         f"{OFFICIAL_CHUNK_MS[2]} decoding)"
