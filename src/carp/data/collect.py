@@ -55,10 +55,6 @@ def run_expert_episode(
     """Run one seeded expert episode, stopping at the first success.
 
     Args:
-        env: the task's robosuite env.
-        expert: the task's scripted expert bound to ``env``.
-        seed: reset seed (also seeds the noise).
-        max_steps: step limit.
         noise: when enabled, the executed actions are perturbed (the recorded ones stay the expert's).
 
     Returns:
