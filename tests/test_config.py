@@ -36,8 +36,6 @@ def test_defaults_follow_the_design():
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
         ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
-        ({"data": {"expert_noise_m": -0.01}}, "data.expert_noise_m=-0.01: must be >= 0"),
-        ({"data": {"expert_noise_rad": -1}}, "data.expert_noise_rad=-1.0: must be >= 0"),
         ({"policy": {"width": 64, "num_heads": 5}}, "policy.num_heads=5: must divide policy.width=64"),
         ({"policy": {"depth": "deep"}}, "policy.depth='deep': expected an integer"),
         ({"policy": {"use_ema": "yes"}}, "policy.use_ema='yes': expected true or false"),
