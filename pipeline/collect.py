@@ -33,7 +33,6 @@ def main() -> None:
             return
 
         from carp.data.collect import CollectionError, collect_demonstrations
-        from carp.data.perturbation import ExpertNoise
 
         try:
             summary = collect_demonstrations(
@@ -43,7 +42,6 @@ def main() -> None:
                 seed=params.data.collection_seed,
                 controller=params.data.controller,
                 max_steps=params.data.collection_max_steps,
-                noise=ExpertNoise(params.data.expert_noise_m, params.data.expert_noise_rad),
             )
         except CollectionError as error:
             fail(str(error))

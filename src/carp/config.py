@@ -42,9 +42,6 @@ class DataConfig:
         num_demos: successful scripted demos collected per task.
         collection_seed: first seed of collection; episode i uses ``collection_seed + i`` (failures included).
         collection_max_steps: step limit of one scripted episode (failures are discarded).
-        expert_noise_m: standard deviation (m per axis) of the correlated offset added to the scripted expert's
-            executed position during collection; the demos record the clean command (carp.data.perturbation).
-        expert_noise_rad: the same for the orientation (rad per axis-angle component).
         controller: ``absolute`` (default, 10-D actions with 6-D rotation) or ``delta`` (7-D, kept as-is).
         obs_keys: low-dim observation keys concatenated (in this order) into the policy's input.
         obs_steps: ``To``, observation steps fed to the policy.
@@ -58,8 +55,6 @@ class DataConfig:
     num_demos: int = 100
     collection_seed: int = 0
     collection_max_steps: int = 500
-    expert_noise_m: float = 0.0
-    expert_noise_rad: float = 0.0
     controller: str = "absolute"
     obs_keys: tuple[str, ...] = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
     obs_steps: int = 2
@@ -73,8 +68,6 @@ class DataConfig:
         _require(self.num_demos >= 1, "data.num_demos", self.num_demos, "must be at least 1")
         _require(self.collection_seed >= 0, "data.collection_seed", self.collection_seed, "must be >= 0")
         _require(self.collection_max_steps >= 1, "data.collection_max_steps", self.collection_max_steps, "must be >= 1")
-        _require(self.expert_noise_m >= 0, "data.expert_noise_m", self.expert_noise_m, "must be >= 0")
-        _require(self.expert_noise_rad >= 0, "data.expert_noise_rad", self.expert_noise_rad, "must be >= 0")
         _require(self.controller in CONTROLLERS, "data.controller", self.controller, f"must be one of {CONTROLLERS}")
         _require(len(self.obs_keys) > 0, "data.obs_keys", self.obs_keys, "must name at least one key")
         _require(self.obs_steps >= 1, "data.obs_steps", self.obs_steps, "must be at least 1")

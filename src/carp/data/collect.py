@@ -3,9 +3,6 @@
 Episodes run over consecutive seeds ``seed, seed + 1, ...``; each episode ends at the step where the env's success
 check first fires (as in robomimic's human demonstrations) or after ``max_steps``. Only successful episodes are
 kept. Every step stores the observation *before* the action, so a demo of T actions has T observations.
-
-With an enabled :class:`~carp.data.perturbation.ExpertNoise` the env executes the expert's command displaced by a
-correlated offset (seeded by the episode seed) and the file stores the clean command (see that module).
 """
 
 import logging
@@ -17,7 +14,6 @@ import numpy as np
 from tqdm import tqdm
 
 from carp.data.experts import make_expert
-from carp.data.perturbation import CorrelatedOffset, ExpertNoise
 from carp.data.robomimic_io import Episode, write_demonstrations
 from carp.simulation import is_success, low_dim_observations, make_env, make_env_args, reset_env
 
@@ -49,13 +45,8 @@ class CollectionSummary:
     seconds: float
 
 
-def run_expert_episode(
-    env, expert, seed: int, max_steps: int, noise: ExpertNoise | None = None
-) -> tuple[Episode, bool]:
+def run_expert_episode(env, expert, seed: int, max_steps: int) -> tuple[Episode, bool]:
     """Run one seeded expert episode, stopping at the first success.
-
-    Args:
-        noise: when enabled, the executed actions are perturbed (the recorded ones stay the expert's).
 
     Returns:
         The episode (obs key -> (T, Do_key), actions (T, 7), states (T, S), rewards (T,), dones (T,);
@@ -63,7 +54,6 @@ def run_expert_episode(
     """
     obs = reset_env(env, seed)
     expert.reset()
-    offsets = CorrelatedOffset(noise, np.random.default_rng([seed, 1])) if noise and noise.enabled else None
     observations: dict[str, list[np.ndarray]] = {}
     actions, states, rewards = [], [], []
     success = False
@@ -73,8 +63,7 @@ def run_expert_episode(
         states.append(np.array(env.sim.get_state().flatten()))
         action = expert.act()
         actions.append(action)
-        executed = action if offsets is None else expert.perturbed(*offsets.step(expert.in_free_space))
-        obs, reward, _, _ = env.step(executed)
+        obs, reward, _, _ = env.step(action)
         rewards.append(float(reward))
         if is_success(env):
             success = True
@@ -100,7 +89,6 @@ def collect_demonstrations(
     controller: str = "absolute",
     max_steps: int = 400,
     max_attempts: int | None = None,
-    noise: ExpertNoise | None = None,
 ) -> CollectionSummary:
     """Run the task's scripted expert until ``num_demos`` episodes succeed and write them to ``output_path``.
 
@@ -112,7 +100,6 @@ def collect_demonstrations(
         controller: ``"absolute"`` or ``"delta"`` arm input.
         max_steps: step limit per episode.
         max_attempts: episode budget; defaults to ``3 * num_demos``.
-        noise: optional perturbation of the executed actions (recorded actions stay clean); None = none.
 
     Raises:
         ValueError: unknown task or controller, or non-positive counts.
@@ -143,7 +130,7 @@ def collect_demonstrations(
                         f"max_attempts={max_attempts} (failed seeds: {failed_seeds})"
                     )
                 episode_seed = seed + attempted
-                episode, success = run_expert_episode(env, expert, episode_seed, max_steps, noise)
+                episode, success = run_expert_episode(env, expert, episode_seed, max_steps)
                 attempted += 1
                 if success:
                     episodes.append(episode)
@@ -167,8 +154,6 @@ def collect_demonstrations(
         "failed_seeds": failed_seeds,
         "first_seed": seed,
         "max_steps": max_steps,
-        "expert_noise_m": noise.position_m if noise else 0.0,
-        "expert_noise_rad": noise.rotation_rad if noise else 0.0,
         "robosuite_version": robosuite.__version__,
         "mujoco_version": mujoco.__version__,
     }

@@ -120,8 +120,6 @@ class ScriptedExpert(abc.ABC):
         self.grasped = False
         self.grasp_position = np.zeros(3)
         self.grasp_yaw = HOME_YAW_RAD
-        # True while the latest action moved the commanded pose at free-space speed (no contact phase).
-        self.in_free_space = False
 
     def _bind_robot(self) -> None:
         # A hard reset rebuilds the model and the robot's controllers, so these are looked up again every episode.
@@ -138,7 +136,6 @@ class ScriptedExpert(abc.ABC):
         self.command_rotation = self.site_rotation()
         self.gripper = GRIPPER_OPEN
         self.grasped = False
-        self.in_free_space = False
         self._script_steps = self._script()
 
     def act(self) -> np.ndarray:
@@ -148,23 +145,7 @@ class ScriptedExpert(abc.ABC):
         try:
             return next(self._script_steps)
         except StopIteration:
-            self.in_free_space = False
             return self._encode_action()
-
-    def perturbed(self, position_offset: np.ndarray, rotation_offset: np.ndarray) -> np.ndarray:
-        """The latest action (7,) re-encoded for the commanded pose displaced by an offset; the plan is unchanged.
-
-        Args:
-            position_offset: (3,) world translation (m) added to the commanded position.
-            rotation_offset: (3,) world axis-angle (rad) applied on top of the commanded orientation.
-        """
-        clean_position, clean_rotation = self.command_position, self.command_rotation
-        try:
-            self.command_position = clean_position + np.asarray(position_offset, dtype=np.float64)
-            self.command_rotation = Rotation.from_rotvec(rotation_offset) * clean_rotation
-            return self._encode_action()
-        finally:
-            self.command_position, self.command_rotation = clean_position, clean_rotation
 
     @abc.abstractmethod
     def _script(self) -> Iterator[np.ndarray]:
@@ -229,7 +210,6 @@ class ScriptedExpert(abc.ABC):
         step_m = self.limits.fast_step_m if step_m is None else step_m
         rotation = self.command_rotation if yaw is None else gripper_rotation(yaw)
         settled_steps = 0
-        self.in_free_space = step_m >= self.limits.fast_step_m
         while True:
             commanded = self._step_command(np.asarray(position, dtype=np.float64), rotation, step_m)
             if commanded:
@@ -242,7 +222,6 @@ class ScriptedExpert(abc.ABC):
     def set_gripper(self, command: float, steps: int) -> Iterator[np.ndarray]:
         """Hold the commanded pose while the gripper opens or closes."""
         self.gripper = command
-        self.in_free_space = False
         for _ in range(steps):
             yield self._encode_action()
 
