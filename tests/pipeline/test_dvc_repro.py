@@ -4,6 +4,7 @@ import json
 import sys
 
 import pytest
+import yaml
 
 from tests.pipeline.workspace import make_workspace, run
 
@@ -44,3 +45,13 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     assert "Running stage" not in second.stdout
     status = run([sys.executable, "-m", "dvc", "status"], workspace)
     assert "up to date" in status.stdout, status.stdout
+
+    # top_k only changes decoding: evaluation and the report are stale, the trained stages are not.
+    params_file = workspace / "params.yaml"
+    params = yaml.safe_load(params_file.read_text())
+    params["policy"]["top_k"] = 2
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
+    assert status.returncode == 0, status.stderr[-3000:]
+    stale = set(json.loads(status.stdout))
+    assert "evaluate@lift" in stale and not any(stage.startswith("train_") for stage in stale), stale

@@ -1,0 +1,28 @@
+"""dvc.yaml's parameter lists follow the config: a stage reruns when, and only when, a setting it reads changes."""
+
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+from carp.config import PolicyConfig
+
+REPO = Path(__file__).resolve().parents[2]
+# Read by decoding only (the evaluate stage), never by training.
+INFERENCE_ONLY_POLICY_KEYS = {"top_k"}
+
+
+def stage_params(stage: str) -> list[str]:
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    return stages[stage]["do"]["params"]
+
+
+def test_train_policy_tracks_every_training_setting_and_not_top_k():
+    tracked = {key.removeprefix("policy.") for key in stage_params("train_policy") if key.startswith("policy.")}
+    training_keys = {field.name for field in dataclasses.fields(PolicyConfig)} - INFERENCE_ONLY_POLICY_KEYS
+    assert "policy" not in stage_params("train_policy")
+    assert tracked == training_keys, f"missing: {training_keys - tracked}, not training settings: {tracked - training_keys}"
+
+
+def test_evaluate_tracks_top_k():
+    assert "policy.top_k" in stage_params("evaluate")
