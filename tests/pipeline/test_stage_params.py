@@ -21,7 +21,8 @@ def test_train_policy_tracks_every_training_setting_and_not_top_k():
     tracked = {key.removeprefix("policy.") for key in stage_params("train_policy") if key.startswith("policy.")}
     training_keys = {field.name for field in dataclasses.fields(PolicyConfig)} - INFERENCE_ONLY_POLICY_KEYS
     assert "policy" not in stage_params("train_policy")
-    assert tracked == training_keys, f"missing: {training_keys - tracked}, not training settings: {tracked - training_keys}"
+    missing, extra = training_keys - tracked, tracked - training_keys
+    assert not missing and not extra, f"missing: {missing}, not training settings: {extra}"
 
 
 def test_evaluate_tracks_top_k():
