@@ -2,6 +2,7 @@ import json
 import subprocess
 import sys
 
+import mlflow
 import numpy as np
 import pytest
 import torch
@@ -65,6 +66,12 @@ def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
     )
     loaded = json.loads(output.stdout.strip().splitlines()[-1])
     assert loaded == {"ids": expected, "version": "1"}
+
+    # The pyfunc face: raw actions in, the same token sequence out (the model normalizes with its own bounds).
+    mlflow.set_tracking_uri(uri)
+    pyfunc_model = mlflow.pyfunc.load_model("models:/carp-tokenizer-panda-test2@default")
+    raw_actions = actions.numpy() + np.array([0.0, 1.0], dtype=np.float32)  # normalized [-1, 1] -> [-1, 1] x [0, 2]
+    assert pyfunc_model.predict(raw_actions).tolist() == expected
 
     candidate, reference = fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@candidate")
     assert reference.version == "2" and candidate.sha256 == other_sha

@@ -60,7 +60,7 @@ class TokenizerModel(mlflow.pyfunc.PythonModel):
         """Load the tokenizer directory shipped with the model."""
         self.artifact: TokenizerArtifact = load_tokenizer_artifact(Path(context.artifacts[ARTIFACT_KEY]))
 
-    def predict(self, context, model_input, params=None):
+    def predict(self, context, model_input: np.ndarray, params: dict | None = None) -> np.ndarray:
         """Raw actions (B, H, A) or (B, H*A) -> token ids (B, L) int64."""
         spec = self.artifact.tokenizer.spec
         actions = np.asarray(model_input, dtype=np.float32).reshape(-1, spec.action_horizon, spec.action_dim)
