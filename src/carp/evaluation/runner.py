@@ -48,6 +48,9 @@ def evaluate_policy(
     a temporary directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise the
     workers run the PyTorch policy. Both choose the same tokens: top-k draws come from a generator seeded with the
     episode's seed either way.
+
+    With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
+    calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
     with tempfile.TemporaryDirectory(prefix="carp-onnx-") as scratch:
         onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, Path(scratch))
