@@ -136,7 +136,7 @@ def main() -> None:
     # Thread CPU time excludes time spent descheduled, a better estimate when other work shares the cores.
     rows.append(("batch 1, 1 thread: CPU time per chunk (ms)", single["cpu"], 1))
     if not args.skip_onnx:
-        for top_k in (1, args.top_k):
+        for top_k in sorted({1, args.top_k}):  # greedy, then the sampling graph (once if --top-k 1)
             with tempfile.TemporaryDirectory(prefix="carp-onnx-") as directory:
                 onnx_policy = OnnxPolicy(export_policy_graphs(policy, Path(directory), top_k))
                 onnx = time_chunks(onnx_policy, 1, args.chunks)
