@@ -166,7 +166,7 @@ class PolicyConfig:
     use_ema: bool = False
     ema_decay: float = 0.999
     top_k: int = 1
-    checkpoint_every: int = 10
+    checkpoint_every: int = 1
     seed: int = 0
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)

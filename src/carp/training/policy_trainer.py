@@ -85,7 +85,7 @@ class PolicyTrainingSettings:
     use_ema: bool = False
     ema_decay: float = 0.999
     seed: int = 0
-    checkpoint_every: int = 10
+    checkpoint_every: int = 1
     device: str = "auto"
     precision: str = "auto"
 
