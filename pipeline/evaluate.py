@@ -32,6 +32,7 @@ def main() -> None:
     seeds = [config.seed + index for index in range(config.episodes)]
     workers = config.workers or os.cpu_count() or 1
     policy = CarpPolicy.load(checkpoint)
+    top_k = params.policy.top_k_for(args.task)
     with mlflow_stage(
         params, f"evaluate@{args.task}", args.task, {"carp.policy_run_id": policy.metadata.get("mlflow_run_id", "")}
     ) as run:
@@ -45,7 +46,7 @@ def main() -> None:
             seeds=seeds,
             max_steps=config.max_steps[args.task],
             workers=min(workers, len(seeds)),
-            top_k=params.policy.top_k,
+            top_k=top_k,
             video_episodes=config.video_episodes if config.video else 0,
             backend=config.backend,
         )

@@ -47,6 +47,13 @@ def test_defaults_follow_the_design():
         ({"policy": {"precision": "half"}}, "policy.precision='half': must be one of"),
         ({"policy": {"epochs_per_task": {"kitchen": 5}}}, "policy.epochs_per_task.kitchen='kitchen': task must be"),
         ({"policy": {"epochs_per_task": {"square": 0}}}, "policy.epochs_per_task.square=0: must be >= 1"),
+        ({"policy": {"top_k_per_task": {"kitchen": 3}}}, "policy.top_k_per_task.kitchen='kitchen': task must be"),
+        ({"policy": {"top_k_per_task": {"can": 0}}}, "policy.top_k_per_task.can=0: must be >= 1 (1 = greedy)"),
+        (
+            {"policy": {"top_k_per_task": {"can": 9}}, "codebook_size": 8},
+            "policy.top_k_per_task.can=9: must be <= codebook_size = 8",
+        ),
+        ({"policy": {"top_k": 600}}, "policy.top_k=600: must be <= codebook_size = 512"),
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
@@ -92,3 +99,11 @@ def test_policy_epochs_per_task_override_the_common_value():
     assert params.policy.epochs_for("square") == 35
     assert params.policy.epochs_for("lift") == 20
     assert flatten_params(params)["policy.epochs_per_task.square"] == "35"
+
+
+def test_policy_top_k_per_task_overrides_the_common_token_choice():
+    params = params_from_dict(
+        {"tasks": ["lift", "can", "square"], "policy": {"top_k": 3, "top_k_per_task": {"can": 5, "square": 1}}}
+    )
+    assert [params.policy.top_k_for(task) for task in params.tasks] == [3, 5, 1]
+    assert flatten_params(params)["policy.top_k_per_task.can"] == "5"

@@ -151,6 +151,9 @@ class PolicyConfig:
             inference stay float32 (see `carp.training.runtime.resolve_precision`).
         epochs_per_task: task -> policy epochs of that task's policy, overriding `epochs` (Square measured 34% at
             20 epochs and 68% at 35; Can 82% at 20 alone, 66% at 35 in a three-task run; see the README).
+        top_k_per_task: task -> token choice of that task's evaluation, overriding `top_k` (in three-task run C, top-5
+            draws lifted Can from 48% to 78% while Square did best greedy; see the README). Decoding only: a change
+            reruns evaluation, not training.
     """
 
     depth: int = 8
@@ -170,10 +173,15 @@ class PolicyConfig:
     seed: int = 0
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
+    top_k_per_task: dict[str, int] = field(default_factory=dict)
 
     def epochs_for(self, task: str) -> int:
         """Policy epochs of `task`: its `epochs_per_task` entry, else `epochs`."""
         return self.epochs_per_task.get(task, self.epochs)
+
+    def top_k_for(self, task: str) -> int:
+        """Token choice when evaluating `task`'s policy (1 = greedy): its `top_k_per_task` entry, else `top_k`."""
+        return self.top_k_per_task.get(task, self.top_k)
 
     def __post_init__(self) -> None:
         _require(self.depth >= 1, "policy.depth", self.depth, "must be >= 1")
@@ -201,6 +209,10 @@ class PolicyConfig:
             key = f"policy.epochs_per_task.{task}"
             _require(task in TASK_NAMES, key, task, f"task must be one of {TASK_NAMES}")
             _require(epochs >= 1, key, epochs, "must be >= 1")
+        for task, top_k in self.top_k_per_task.items():
+            key = f"policy.top_k_per_task.{task}"
+            _require(task in TASK_NAMES, key, task, f"task must be one of {TASK_NAMES}")
+            _require(top_k >= 1, key, top_k, "must be >= 1 (1 = greedy)")
 
 
 def _positive_training_fields(section: Any, name: str) -> None:
@@ -324,6 +336,10 @@ class Params:
                 [list(s) for s in self.sweep.scale_schedules],
                 f"every schedule must be strictly increasing and end at l = {latent_length}",
             )
+        for key, top_k in [("policy.top_k", self.policy.top_k)] + [
+            (f"policy.top_k_per_task.{task}", k) for task, k in self.policy.top_k_per_task.items()
+        ]:
+            _require(top_k <= self.codebook_size, key, top_k, f"must be <= codebook_size = {self.codebook_size}")
         # Collection may try up to 3 seeds per kept demo (see carp.data.collect); evaluation must never reuse them.
         collection_end = self.data.collection_seed + 3 * self.data.num_demos
         evaluation_end = self.eval.seed + self.eval.episodes

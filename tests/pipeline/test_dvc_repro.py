@@ -34,7 +34,7 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         assert (workspace / output).exists(), output
     evaluation = json.loads((workspace / "reports/eval/lift.json").read_text())
     assert evaluation["episodes"] == 2 and 0 <= evaluation["success_rate"] <= 1
-    assert evaluation["latency_predict_ms_median"] > 0
+    assert evaluation["latency_predict_ms_median"] > 0 and evaluation["top_k"] == 1
     reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())
     assert reference["name"] == "carp-tokenizer-panda-abs10" and reference["alias"] == "default"
     assert (workspace / "mlflow.db").exists()
@@ -46,12 +46,15 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     status = run([sys.executable, "-m", "dvc", "status"], workspace)
     assert "up to date" in status.stdout, status.stdout
 
-    # top_k only changes decoding: evaluation and the report are stale, the trained stages are not.
+    # The token choice (top_k, or a task's entry in top_k_per_task) only changes decoding: evaluation and the report
+    # are stale, the trained stages are not.
     params_file = workspace / "params.yaml"
-    params = yaml.safe_load(params_file.read_text())
-    params["policy"]["top_k"] = 2
-    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
-    status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
-    assert status.returncode == 0, status.stderr[-3000:]
-    stale = set(json.loads(status.stdout))
-    assert "evaluate@lift" in stale and not any(stage.startswith("train_") for stage in stale), stale
+    original = params_file.read_text()
+    for section, value in (("top_k", 2), ("top_k_per_task", {"lift": 2})):
+        params = yaml.safe_load(original)
+        params["policy"][section] = value
+        params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+        status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
+        assert status.returncode == 0, status.stderr[-3000:]
+        stale = set(json.loads(status.stdout))
+        assert "evaluate@lift" in stale and not any(stage.startswith("train_") for stage in stale), (section, stale)

@@ -9,7 +9,7 @@ from carp.config import PolicyConfig
 
 REPO = Path(__file__).resolve().parents[2]
 # Read by decoding only (the evaluate stage), never by training.
-INFERENCE_ONLY_POLICY_KEYS = {"top_k"}
+INFERENCE_ONLY_POLICY_KEYS = {"top_k", "top_k_per_task"}
 
 
 def stage_params(stage: str) -> list[str]:
@@ -25,5 +25,5 @@ def test_train_policy_tracks_every_training_setting_and_not_top_k():
     assert not missing and not extra, f"missing: {missing}, not training settings: {extra}"
 
 
-def test_evaluate_tracks_top_k():
-    assert "policy.top_k" in stage_params("evaluate")
+def test_evaluate_tracks_every_decoding_setting():
+    assert {f"policy.{key}" for key in INFERENCE_ONLY_POLICY_KEYS} <= set(stage_params("evaluate"))

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from carp.evaluation.metrics import summarize_episodes
-from carp.reporting.report import ReportInputs, write_report
+from carp.reporting.report import ReportInputs, success_table, write_report
 
 
 @pytest.fixture
@@ -32,6 +32,7 @@ def inputs(tmp_path):
             "batched_latency_predict_ms_p90": 10.0,
             "batched_latency_decode_ms_median": 1.0,
             "batched_latency_decode_ms_p90": 1.5,
+            "top_k": 1,
         }
     )
     history = pd.DataFrame({"epoch": [1, 2, 3], "loss": [3.0, 2.0, 1.0], "token_accuracy_scale_1": [0.2, 0.5, 0.9]})
@@ -71,7 +72,7 @@ def test_report_contains_every_section_and_numbers(tmp_path, inputs):
         "Provenance",
     ):
         assert f"## {heading}" in markdown
-    assert "45/50" in markdown and "90.0%" in markdown and "78.6-95.7%" in markdown
+    assert "45/50" in markdown and "90.0%" in markdown and "78.6-95.7%" in markdown and "greedy" in markdown
     assert "2.00" in markdown and "B=64" in markdown
     assert "| x " in markdown and "0.75% of each dimension's range" in markdown
     assert "robosuite 1.5.2" in markdown and "abc123" in markdown and "scales: [1, 2, 3, 4]" in markdown
@@ -88,3 +89,11 @@ def test_html_is_self_contained(tmp_path, inputs):
     assert len(images) >= 4
     assert base64.b64decode(images[0])[:4] == b"\x89PNG"
     assert "45/50" in page
+
+
+def test_success_table_names_each_tasks_token_choice(inputs):
+    lift = inputs.evaluation["lift"]
+    table = success_table(
+        {"lift": lift, "can": {**lift, "top_k": 5}, "square": {k: v for k, v in lift.items() if k != "top_k"}}
+    )
+    assert table.set_index("task")["decoding"].to_dict() == {"lift": "greedy", "can": "top-5 draws", "square": "-"}

@@ -36,7 +36,7 @@ def evaluate_policy(
     task_index: int | None = None,
     backend: str = "onnxruntime",
 ) -> tuple[dict[str, float], list[EpisodeResult]]:
-    """Run one episode per seed with the checkpoint's policy; returns the summary metrics and the episodes.
+    """Run one episode per seed with the checkpoint's policy; returns the summary metrics (with `top_k`), episodes.
 
     Each worker process loads the checkpoint once and runs its policy on one CPU thread. Measured against one policy
     batched across the workers' envs (`benchmarks/eval_batching.py`, 2 workers, 8 Lift episodes, 2 alternating runs
@@ -82,6 +82,7 @@ def evaluate_policy(
         prediction_seconds=[s for r in results for s in r.prediction_seconds],
         decoding_seconds=[s for r in results for s in r.decoding_seconds],
     )
+    summary["top_k"] = top_k  # the report names each task's token choice
     return summary, results
 
 

@@ -60,7 +60,7 @@ class ReportInputs:
 
 
 def success_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
-    """One row per task: successes, rate, 95% Wilson interval, mean episode length."""
+    """One row per task: successes, rate, 95% Wilson interval, mean episode length, token choice."""
     rows = []
     for task, metrics in evaluation.items():
         successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
@@ -73,9 +73,17 @@ def success_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
                 "95% interval": f"{100 * lower:.1f}-{100 * upper:.1f}%",
                 "mean steps": f"{metrics.get('mean_episode_steps', float('nan')):.0f}",
                 "crashed": int(metrics.get("crashed_episodes", 0)),
+                "decoding": token_choice(metrics.get("top_k")),
             }
         )
     return pd.DataFrame(rows)
+
+
+def token_choice(top_k: float | None) -> str:
+    """How an evaluation chose tokens: "greedy", "top-<k> draws", or "-" for metrics that predate the record."""
+    if top_k is None:
+        return "-"
+    return "greedy" if int(top_k) == 1 else f"top-{int(top_k)} draws"
 
 
 def latency_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
@@ -175,7 +183,7 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             paragraphs=[
                 "Prediction is the coarse-to-fine token prediction; decoding turns tokens into actions. Rollouts run "
                 "one environment per worker with the backend of `eval.backend` (default: the exported ONNX graphs on "
-                "ONNX Runtime; PyTorch for top-k sampling); the batched row is the PyTorch policy."
+                "ONNX Runtime, greedy or top-k alike); the batched row is the PyTorch policy."
             ],
             tables=[latency_table(inputs.evaluation)],
         ),
