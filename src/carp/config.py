@@ -205,14 +205,16 @@ class PolicyConfig:
             self.precision,
             f"must be one of {TRAINING_PRECISIONS}",
         )
-        for task, epochs in self.epochs_per_task.items():
-            key = f"policy.epochs_per_task.{task}"
-            _require(task in TASK_NAMES, key, task, f"task must be one of {TASK_NAMES}")
-            _require(epochs >= 1, key, epochs, "must be >= 1")
-        for task, top_k in self.top_k_per_task.items():
-            key = f"policy.top_k_per_task.{task}"
-            _require(task in TASK_NAMES, key, task, f"task must be one of {TASK_NAMES}")
-            _require(top_k >= 1, key, top_k, "must be >= 1 (1 = greedy)")
+        _require_per_task_minimum(self.epochs_per_task, "policy.epochs_per_task", "must be >= 1")
+        _require_per_task_minimum(self.top_k_per_task, "policy.top_k_per_task", "must be >= 1 (1 = greedy)")
+
+
+def _require_per_task_minimum(mapping: dict[str, int], name: str, constraint: str) -> None:
+    """Refuse a task -> integer override whose task is unknown or whose value is below 1."""
+    for task, value in mapping.items():
+        key = f"{name}.{task}"
+        _require(task in TASK_NAMES, key, task, f"task must be one of {TASK_NAMES}")
+        _require(value >= 1, key, value, constraint)
 
 
 def _positive_training_fields(section: Any, name: str) -> None:
