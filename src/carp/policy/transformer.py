@@ -19,7 +19,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS, AdaptiveBlock, KeyValueCache, PerDimensionHead
+from carp.policy.blocks import (
+    MODULATIONS_PER_BLOCK,
+    NORM_EPS,
+    AdaptiveBlock,
+    BlockCausalMask,
+    KeyValueCache,
+    PerDimensionHead,
+)
 from carp.policy.layout import TokenLayout
 from carp.policy.spec import TASK_EMBEDDING_DIM, PolicySpec
 
@@ -178,9 +185,10 @@ class CoarseToFineTransformer(nn.Module):
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
         )  # (B, L, D)
         hidden = tokens + self.position_and_level()
+        mask = BlockCausalMask(self.attention_mask, tuple(end for _, end in self.layout.scale_bounds))
         for index, block in enumerate(self.blocks):
             start = index * MODULATIONS_PER_BLOCK
-            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
+            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], mask)
         if grouped_by_dimension:
             return self.head.grouped_logits(self._final_norm(hidden, modulations))  # (A, B * L / A, V)
         return self._logits(hidden, modulations)  # (B, L, V)
