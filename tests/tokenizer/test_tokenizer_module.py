@@ -3,7 +3,7 @@ import torch
 import torch.nn.functional as F
 
 import carp.tokenizer.quantizer as quantizer_module
-from carp.tokenizer.quantizer import phi_index_for_scale, resampling_matrix
+from carp.tokenizer.quantizer import first_maximum_indices, phi_index_for_scale, resampling_matrix
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
@@ -219,3 +219,15 @@ def test_single_scale_has_no_teacher_forcing_inputs():
     token_ids = tokenizer.encode_to_ids(torch.zeros(2, 4, 2))
     assert tokenizer.teacher_forcing_inputs(token_ids) == []
     assert tokenizer.teacher_forcing_sequence(token_ids).shape == (2, 0, 3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_first_maximum_indices_match_torch_max_and_take_the_first_of_ties(dtype):
+    scores = torch.randn(3, 40, 64, generator=torch.Generator().manual_seed(0)).to(dtype)
+    scores[0, 0, [5, 9, 60]] = 100.0  # a three-way tie for the maximum: the first one wins
+    found = first_maximum_indices(scores)
+    assert found.dtype == torch.long and found.shape == (3, 40)
+    assert torch.equal(found, scores.max(dim=-1).indices)
+    assert found[0, 0] == 5
+    transposed = scores.transpose(0, 1)  # not contiguous
+    assert torch.equal(first_maximum_indices(transposed), transposed.max(dim=-1).indices)
