@@ -1,5 +1,6 @@
 """The (1, k) convolutions over channels-last (B, A * channels, 1, T) images are per-dimension 1-D convolutions."""
 
+import pytest
 import torch
 import torch.nn.functional as F
 from einops import rearrange
@@ -60,3 +61,24 @@ def test_tokenizer_keeps_time_major_memory_end_to_end(tiny_tokenizer, tiny_actio
         assert rearrange(tensor, "b a c t -> b t a c").is_contiguous()
     quantized = tiny_tokenizer.ids_to_latent(token_ids)
     assert tiny_tokenizer.decode_latent(quantized).is_contiguous()  # (B, H, A)
+
+
+@pytest.mark.parametrize(("channels", "length"), [(2, 16), (8, 4)])  # the contiguous and the channels-last kernel
+def test_per_dimension_group_norm_matches_group_norm_and_keeps_the_layout(channels, length):
+    generator = torch.Generator().manual_seed(0)
+    hidden = torch.randn(5, 3 * channels, 1, length, generator=generator).contiguous(memory_format=torch.channels_last)
+    norm = grouped_norm(3, channels)
+    with torch.no_grad():
+        norm.weight.normal_(generator=generator)
+        norm.bias.normal_(generator=generator)
+    reference = torch.nn.GroupNorm(3, 3 * channels, eps=norm.eps)
+    reference.load_state_dict(norm.state_dict())
+    upstream = torch.randn(hidden.shape, generator=generator)
+    inputs = [hidden.clone().requires_grad_(), hidden.clone().requires_grad_()]
+    outputs = [norm(inputs[0]), reference(inputs[1])]
+    assert outputs[0].is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(outputs[0], outputs[1], rtol=1e-5, atol=1e-5)
+    for output in outputs:
+        output.backward(upstream)
+    torch.testing.assert_close(inputs[0].grad, inputs[1].grad, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(norm.weight.grad, reference.weight.grad, rtol=1e-5, atol=1e-5)

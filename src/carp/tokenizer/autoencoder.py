@@ -24,9 +24,27 @@ from torch import nn
 from carp.tokenizer.spec import TokenizerSpec
 
 
+class PerDimensionGroupNorm(nn.GroupNorm):
+    """GroupNorm over (B, A * channels, 1, T) tensors, one group per action dimension, output in the input's layout.
+
+    PyTorch's channels-last GroupNorm kernel runs along the channels, its contiguous kernel along each group's
+    channels x time; for groups with fewer channels than time steps the contiguous one is faster even with the two
+    layout copies around it. Forward + backward at B = 64, A = 10 on one thread of the AVX-512 machine, channels-last
+    against contiguous: 332 vs 112 us at 2 channels x 16 steps, 202 vs 152 at 4 x 16, 138 vs 119 at 4 x 8, but 109 vs
+    171 at 8 x 8 and 81 vs 353 at 8 x 4.
+    """
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        """Normalize (B, A * channels, 1, T) per dimension; the result has the memory format of `hidden`."""
+        channels_per_group = self.num_channels // self.num_groups
+        if hidden.shape[-1] > channels_per_group and hidden.is_contiguous(memory_format=torch.channels_last):
+            return super().forward(hidden.contiguous()).contiguous(memory_format=torch.channels_last)
+        return super().forward(hidden)
+
+
 def grouped_norm(num_dimensions: int, channels: int) -> nn.GroupNorm:
     """GroupNorm with one group per action dimension over (B, A * channels, 1, T) tensors."""
-    return nn.GroupNorm(num_groups=num_dimensions, num_channels=num_dimensions * channels, eps=1e-6)
+    return PerDimensionGroupNorm(num_groups=num_dimensions, num_channels=num_dimensions * channels, eps=1e-6)
 
 
 def grouped_conv(
