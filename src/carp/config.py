@@ -104,7 +104,7 @@ class TokenizerConfig:
     base_channels: int = 2
     channel_mult: tuple[int, ...] = (2, 4)
     commitment_weight: float = 0.25
-    epochs: int = 40
+    epochs: int = 60
     batch_size: int = 64
     learning_rate: float = 1e-2
     weight_decay: float = 0.0
@@ -161,7 +161,7 @@ class PolicyConfig:
     num_heads: int = 8
     mlp_ratio: float = 4.0
     dropout: float = 0.0
-    epochs: int = 12
+    epochs: int = 20
     batch_size: int = 64
     learning_rate: float = 1e-3
     weight_decay: float = 0.05
