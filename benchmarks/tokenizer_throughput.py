@@ -5,9 +5,10 @@ math from the same initial weights (the loop's modules are split off the vectori
 `carp.tokenizer.per_dimension`): per batch, forward + backward of the summed per-dimension losses and one fused AdamW
 step. Throughput is measured over whole epochs of synthetic pick-and-place windows after a short warm-up; the two
 variants alternate epoch by epoch (`--rounds`) so that a change in machine load hits both, and the median epoch of
-each is reported.
+each is reported. Nine rounds by default: on a shared virtual machine the host's speed drifts by ~10% within a minute,
+and 3-round runs of one code spread over 4.4-5.6x where 9-round runs gave 5.2-5.5x (AVX-512 machine).
 
-    .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 3]
+    .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
 """
 
 import argparse
@@ -59,7 +60,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--batch-size", type=int, default=TokenizerTrainingSettings().batch_size)
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
-    parser.add_argument("--rounds", type=int, default=3, help="epochs per variant, alternating")
+    parser.add_argument("--rounds", type=int, default=9, help="epochs per variant, alternating")
     arguments = parser.parse_args()
     torch.set_num_threads(arguments.threads)
     torch.manual_seed(0)
