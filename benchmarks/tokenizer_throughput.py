@@ -6,7 +6,7 @@ math from the same initial weights (the loop's modules are split off the vectori
 step. Throughput is measured over whole epochs of synthetic pick-and-place windows after a short warm-up; the two
 variants alternate epoch by epoch (`--rounds`) so that a change in machine load hits both, and the median epoch of
 each is reported. Nine rounds by default: on a shared virtual machine the host's speed drifts by ~10% within a minute,
-and 3-round runs of one code spread over 4.4-5.6x where 9-round runs gave 5.2-5.5x (AVX-512 machine).
+and 3-round runs of one code spread over 4.4-5.6x where five 9-round runs gave 4.9-5.5x (AVX-512 machine).
 
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
 """
