@@ -43,10 +43,11 @@ def main() -> None:
         check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
     except (TokenizerMismatchError, FileNotFoundError) as error:
         fail(str(error))
-    tokenizer, action_normalizer = artifact.tokenizer, artifact.action_normalizer
+    tokenizer = artifact.tokenizer
 
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
-    obs_normalizer = windows.obs_normalizer
+    # The task's own statistics, as the tokenizer saw every training task's actions (carp.tokenizer.artifact).
+    obs_normalizer, action_normalizer = windows.obs_normalizer, windows.action_normalizer
     train_data = PolicyTrainingData(
         obs=torch.as_tensor(obs_normalizer.normalize(windows.train_obs), dtype=torch.float32),
         actions=torch.as_tensor(action_normalizer.normalize(windows.train_actions), dtype=torch.float32),

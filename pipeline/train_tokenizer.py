@@ -23,7 +23,7 @@ from stage_support import (
     write_json,
 )
 
-from carp.data.dataset import load_task_windows, union_normalizer
+from carp.data.dataset import load_task_windows
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, save_tokenizer_artifact
 from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
 from carp.tokenizer.spec import TokenizerSpec
@@ -41,13 +41,15 @@ def main() -> None:
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer
     tasks = list(params.tokenizer_tasks)
-    windows = [
-        load_task_windows(PROCESSED_DIR / t, data.action_horizon, data.obs_steps, data.action_steps) for t in tasks
-    ]
+    windows = {
+        task: load_task_windows(PROCESSED_DIR / task, data.action_horizon, data.obs_steps, data.action_steps)
+        for task in tasks
+    }
+    # Every task is normalized with its own statistics, in training and in every policy (carp.tokenizer.artifact).
+    own_normalizers = {task: task_windows.action_normalizer for task, task_windows in windows.items()}
     history: list[dict] = []
     with mlflow_stage(params, "train_tokenizer", "tokenizer", {"carp.tokenizer_source": config.source}) as run:
         if config.source == "pipeline":
-            normalizer = union_normalizer([w.action_normalizer for w in windows])
             spec = copy_fields(
                 TokenizerSpec,
                 config,
@@ -63,8 +65,10 @@ def main() -> None:
                 run.log_metrics(metrics, step=epoch + 1)
 
             def normalized(name: str) -> torch.Tensor:
-                values = np.concatenate([getattr(w, name) for w in windows])
-                return torch.as_tensor(normalizer.normalize(values.astype(np.float64)), dtype=torch.float32)
+                values = [
+                    own_normalizers[task].normalize(getattr(w, name).astype(np.float64)) for task, w in windows.items()
+                ]
+                return torch.as_tensor(np.concatenate(values), dtype=torch.float32)
 
             tokenizer = train_tokenizer(
                 spec,
@@ -74,22 +78,23 @@ def main() -> None:
                 CHECKPOINT_DIR / "tokenizer",
                 on_epoch_end=log_epoch,
             ).cpu()
-            trained_on = tasks
+            trained_with = own_normalizers
         else:
             try:
                 artifact, reference = fetch_registered_tokenizer(tracking_uri(params), config.source)
                 check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
             except (LookupError, TokenizerMismatchError) as error:
                 fail(str(error))
-            tokenizer, normalizer, trained_on = artifact.tokenizer, artifact.action_normalizer, artifact.tasks
+            tokenizer, trained_with = artifact.tokenizer, artifact.action_normalizers
             run.set_tags({"carp.tokenizer_version": reference.version})
 
-        held_out = np.concatenate([w.valid_actions if len(w.valid_actions) else w.train_actions for w in windows])
-        buffer = windows[0].buffer
+        held_out = {task: w.valid_actions if len(w.valid_actions) else w.train_actions for task, w in windows.items()}
+        buffer = windows[tasks[0]].buffer
         episode = int(np.flatnonzero(buffer.valid_episodes)[0]) if buffer.valid_episodes.any() else 0
         figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
-        metrics = evaluate_tokenizer(tokenizer.eval(), normalizer, held_out, buffer.episode(episode)[1], figure)
-        sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, normalizer, params.action_space, trained_on)
+        figure_episode = (tasks[0], buffer.episode(episode)[1])
+        metrics = evaluate_tokenizer(tokenizer.eval(), held_out, own_normalizers, figure_episode, figure)
+        sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, trained_with, params.action_space)
         run.log_metrics({key.replace("/", "."): value for key, value in metrics.items()})
         run.log_artifact(figure)
         run.set_tags({"carp.tokenizer_sha256": sha256})
@@ -97,7 +102,7 @@ def main() -> None:
     write_history(TOKENIZER_REPORT_DIR / "history.csv", history)
     action = "trained on" if config.source == "pipeline" else f"fetched {config.source}, trained on"
     names = dimension_names(tokenizer.spec.action_dim)
-    print(f"tokenizer {action} {trained_on}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
+    print(f"tokenizer {action} {list(trained_with)}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
 
 
 if __name__ == "__main__":

@@ -26,14 +26,14 @@ def test_perplexity_counts_effective_codes():
 
 def test_metrics_match_a_manual_computation(tiny_tokenizer, tiny_actions):
     reconstruction, counts = reconstruct(tiny_tokenizer, tiny_actions)
-    metrics = reconstruction_metrics(tiny_tokenizer, tiny_actions, lambda values: values, ["x", "gripper"])
+    metrics = reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.ones(2), ["x", "gripper"])
     errors = reconstruction - tiny_actions
     for dimension, name in enumerate(["x", "gripper"]):
         expected_rmse = errors[..., dimension].pow(2).mean().sqrt().item()
         assert metrics[f"rmse/{name}"] == pytest.approx(expected_rmse, rel=1e-5)
         assert metrics[f"mse/{name}"] == pytest.approx(expected_rmse**2, rel=1e-5)
         assert metrics[f"max_error/{name}"] == pytest.approx(errors[..., dimension].abs().max().item(), rel=1e-5)
-        # Identity un-normalization: the range is 2, so the percentage is 50 x RMSE.
+        # Half range 1 (identity un-normalization): the range is 2, so the percentage is 50 x RMSE.
         assert metrics[f"rmse_percent_range/{name}"] == pytest.approx(50 * expected_rmse, rel=1e-5)
         for scale_index in range(2):
             hit = (counts[scale_index][dimension] > 0).double().mean().item()
@@ -48,20 +48,37 @@ def test_metrics_match_a_manual_computation(tiny_tokenizer, tiny_actions):
 
 
 def test_errors_are_reported_in_original_units(tiny_tokenizer, tiny_actions):
-    scale = torch.tensor([0.1, 4.0])
-    offset = torch.tensor([1.0, -2.0])
-    plain = reconstruction_metrics(tiny_tokenizer, tiny_actions, lambda values: values)
-    scaled = reconstruction_metrics(tiny_tokenizer, tiny_actions, lambda values: values * scale + offset)
+    plain = reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.ones(2))
+    scaled = reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.tensor([0.1, 4.0]))
     assert scaled["rmse/dim0"] == pytest.approx(plain["rmse/dim0"] * 0.1, rel=1e-4)
     assert scaled["max_error/dim1"] == pytest.approx(plain["max_error/dim1"] * 4.0, rel=1e-4)
     assert scaled["rmse_percent_range/dim1"] == pytest.approx(plain["rmse_percent_range/dim1"], rel=1e-4)
 
 
+def test_windows_of_several_tasks_are_measured_against_their_own_ranges(tiny_tokenizer, tiny_actions):
+    """Half the windows from a task with 10x the range: original-unit errors scale per window, % of range does not."""
+    reconstruction, _ = reconstruct(tiny_tokenizer, tiny_actions)
+    errors = reconstruction - tiny_actions  # (N, H, A) normalized
+    half_ranges = torch.ones(len(tiny_actions), 1, 2)
+    half_ranges[: len(tiny_actions) // 2] = 10.0
+    metrics = reconstruction_metrics(tiny_tokenizer, tiny_actions, half_ranges)
+    expected = (errors.double() * half_ranges).pow(2).mean(dim=(0, 1)).sqrt()
+    assert [metrics["rmse/dim0"], metrics["rmse/dim1"]] == pytest.approx(expected.tolist(), rel=1e-5)
+    single = reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.ones(2))
+    assert metrics["rmse_percent_range/mean"] == pytest.approx(single["rmse_percent_range/mean"], rel=1e-6)
+
+
+def test_constant_features_count_as_reconstructed_exactly(tiny_tokenizer, tiny_actions):
+    metrics = reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.tensor([1.0, 0.0]))
+    assert metrics["rmse/dim1"] == 0.0 and metrics["max_error/dim1"] == 0.0
+    assert metrics["rmse_percent_range/dim1"] == 0.0 and metrics["rmse_percent_range/dim0"] > 0.0
+
+
 def test_metrics_reject_bad_names_and_empty_windows(tiny_tokenizer, tiny_actions):
     with pytest.raises(ValueError, match="expected 2 dimension names, got 1"):
-        reconstruction_metrics(tiny_tokenizer, tiny_actions, lambda values: values, ["x"])
+        reconstruction_metrics(tiny_tokenizer, tiny_actions, torch.ones(2), ["x"])
     with pytest.raises(ValueError, match="need at least one window"):
-        reconstruction_metrics(tiny_tokenizer, tiny_actions[:0], lambda values: values)
+        reconstruction_metrics(tiny_tokenizer, tiny_actions[:0], torch.ones(2))
 
 
 def test_trajectory_reconstruction_decodes_consecutive_chunks(tiny_tokenizer):

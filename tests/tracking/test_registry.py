@@ -22,11 +22,14 @@ from carp.tracking.runs import find_runs, stage_run
 SPEC = TokenizerSpec(action_dim=2, action_horizon=8, scales=(1, 2), codebook_size=8, latent_channels=4)
 
 
-def make_artifact(directory, seed=0):
+LIFT_BOUNDS = MinMaxNormalizer(minimum=np.array([-1.0, 0.0]), maximum=np.array([1.0, 2.0]))
+CAN_BOUNDS = MinMaxNormalizer(minimum=np.array([0.0, 0.0]), maximum=np.array([4.0, 1.0]))
+
+
+def make_artifact(directory, seed=0, normalizers=None):
     torch.manual_seed(seed)
     tokenizer = MultiScaleActionTokenizer(SPEC)
-    normalizer = MinMaxNormalizer(minimum=np.array([-1.0, 0.0]), maximum=np.array([1.0, 2.0]))
-    sha = save_tokenizer_artifact(directory, tokenizer, normalizer, "panda-test2", ["lift"])
+    sha = save_tokenizer_artifact(directory, tokenizer, normalizers or {"lift": LIFT_BOUNDS}, "panda-test2")
     return tokenizer, sha
 
 
@@ -48,7 +51,9 @@ def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
     assert (tmp_path / "mlartifacts").exists()  # artifacts beside the store, not in the working directory
 
     other_directory = tmp_path / "other"
-    _, other_sha = make_artifact(other_directory, seed=1)
+    other_tokenizer, other_sha = make_artifact(
+        other_directory, seed=1, normalizers={"lift": LIFT_BOUNDS, "can": CAN_BOUNDS}
+    )
     assert other_sha != sha
     assert register(uri, other_directory, other_sha, alias="candidate").version == "2"
 
@@ -74,7 +79,14 @@ def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
     assert pyfunc_model.predict(raw_actions).tolist() == expected
 
     candidate, reference = fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@candidate")
-    assert reference.version == "2" and candidate.sha256 == other_sha
+    assert reference.version == "2" and candidate.sha256 == other_sha and candidate.tasks == ["lift", "can"]
+    # A two-task tokenizer normalizes raw actions with the statistics of the task named at inference.
+    two_task_model = mlflow.pyfunc.load_model("models:/carp-tokenizer-panda-test2@candidate")
+    can_actions = (actions.numpy() + 1) / 2 * np.array([4.0, 1.0], dtype=np.float32)  # [-1, 1] -> [0, 4] x [0, 1]
+    expected_can = other_tokenizer.encode_to_sequence(actions).tolist()
+    assert two_task_model.predict(can_actions, params={"task": "can"}).tolist() == expected_can
+    with pytest.raises(KeyError, match=r"task None is not one of the tokenizer's training tasks \['lift', 'can'\]"):
+        two_task_model.predict(can_actions)
     with pytest.raises(LookupError, match="not found in the registry"):
         fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@nope")
 
@@ -95,6 +107,32 @@ def test_sha_mismatch_and_incompatible_params_are_refused(tmp_path):
         TokenizerMismatchError, match="action space is 'panda-test2' but the params ask for 'panda-abs10'"
     ):
         check_compatible(artifact, "panda-abs10", (1, 2), 8)
+
+
+def test_each_training_task_keeps_its_own_action_statistics(tmp_path):
+    _, sha = make_artifact(tmp_path / "two", normalizers={"lift": LIFT_BOUNDS, "can": CAN_BOUNDS})
+    artifact = load_tokenizer_artifact(tmp_path / "two", expected_sha256=sha)
+    assert artifact.tasks == ["lift", "can"]
+    assert artifact.action_normalizer("can").maximum.tolist() == [4.0, 1.0]
+    with pytest.raises(KeyError, match=r"task 'square' is not one of the tokenizer's training tasks"):
+        artifact.action_normalizer("square")
+    with pytest.raises(KeyError, match="task None"):
+        artifact.action_normalizer()
+    # Same weights, other statistics or task names: another artifact, another hash.
+    _, lift_only = make_artifact(tmp_path / "one")
+    _, renamed = make_artifact(tmp_path / "renamed", normalizers={"square": LIFT_BOUNDS})
+    assert len({sha, lift_only, renamed}) == 3
+    assert load_tokenizer_artifact(tmp_path / "one").action_normalizer().minimum.tolist() == [-1.0, 0.0]
+
+
+def test_an_artifact_with_one_normalization_for_all_tasks_is_refused(tmp_path):
+    make_artifact(tmp_path)
+    path = tmp_path / "tokenizer.pt"
+    payload = torch.load(path, weights_only=False)
+    payload["action_normalizer"] = payload.pop("action_normalizers")["lift"]
+    torch.save(payload, path)
+    with pytest.raises(TokenizerMismatchError, match="one action normalization for all its tasks"):
+        load_tokenizer_artifact(tmp_path)
 
 
 def test_reference_file_round_trip(tmp_path):

@@ -44,11 +44,3 @@ def load_task_windows(processed_dir: Path, horizon: int, obs_steps: int, action_
     return TaskWindows(
         train_obs, train_actions, valid_obs, valid_actions, normalizers["obs"], normalizers["action"], buffer
     )
-
-
-def union_normalizer(normalizers: list[MinMaxNormalizer]) -> MinMaxNormalizer:
-    """Statistics covering every given task (per-feature min of minima, max of maxima)."""
-    return MinMaxNormalizer(
-        minimum=np.min([n.minimum for n in normalizers], axis=0),
-        maximum=np.max([n.maximum for n in normalizers], axis=0),
-    )

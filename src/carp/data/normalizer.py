@@ -38,6 +38,11 @@ class MinMaxNormalizer:
         """F."""
         return int(self.minimum.shape[0])
 
+    def half_range(self) -> np.ndarray:
+        """(F,) original units per normalized unit: (max - min) / 2, or 0 for a constant feature."""
+        span = self.maximum - self.minimum
+        return np.where(span < CONSTANT_RANGE, 0.0, span / 2.0)
+
     def _scale_offset(self) -> tuple[np.ndarray, np.ndarray]:
         span = self.maximum - self.minimum
         constant = span < CONSTANT_RANGE

@@ -1,15 +1,22 @@
 """The tokenizer artifact: the directory ``models/tokenizer/`` that training writes and the registry ships.
 
-Contents: ``tokenizer.pt`` (spec, weights, the action normalization it was trained with, action space, tasks) and
+Contents: ``tokenizer.pt`` (spec, weights, the action statistics of every task it was trained on, action space) and
 ``tokenizer.json`` (the same metadata readable without torch, plus the weights' sha256). The sha256 is computed over
-the tensors themselves (sorted names, shapes, float32 bytes) and the normalization, not over the pickle, so equal
+the tensors themselves (sorted names, shapes, float32 bytes) and the statistics, not over the pickle, so equal
 weights give equal hashes whatever torch.save does; it makes registration idempotent and lets a policy refuse a
 tokenizer that is not the one it names.
+
+Normalization is per task: the tokenizer sees each task's actions scaled to [-1, 1] by that task's own min-max
+statistics, and a policy always uses the statistics of its own task (also for a task the tokenizer never saw). With
+one statistics for the union of tasks, a task whose actions span a small part of the union's range would be encoded
+with a fraction of the codebook's resolution: Square's y span is 37% of the Lift + Can + Square union, and a shared
+tokenizer trained that way replayed 35 of 50 Square demos open loop against 45 of 50 for Square's own tokenizer.
 """
 
 import hashlib
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,14 +39,30 @@ class TokenizerArtifact:
     """A loaded tokenizer with what is needed to use it on raw actions."""
 
     tokenizer: MultiScaleActionTokenizer
-    action_normalizer: MinMaxNormalizer
+    action_normalizers: dict[str, MinMaxNormalizer]  # task -> the statistics its windows were normalized with
     action_space: str
-    tasks: list[str]
     sha256: str
 
+    @property
+    def tasks(self) -> list[str]:
+        """The tasks whose demos trained the tokenizer."""
+        return list(self.action_normalizers)
 
-def weights_sha256(tokenizer: MultiScaleActionTokenizer, action_normalizer: MinMaxNormalizer) -> str:
-    """Content hash of the tokenizer's weights and normalization."""
+    def action_normalizer(self, task: str | None = None) -> MinMaxNormalizer:
+        """The statistics of one training task; ``task`` may be omitted when there is only one.
+
+        Raises:
+            KeyError: ``task`` is not a training task, or omitted with several; the message names the choices.
+        """
+        if task is None and len(self.action_normalizers) == 1:
+            return next(iter(self.action_normalizers.values()))
+        if task not in self.action_normalizers:
+            raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {self.tasks}")
+        return self.action_normalizers[task]
+
+
+def weights_sha256(tokenizer: MultiScaleActionTokenizer, action_normalizers: Mapping[str, MinMaxNormalizer]) -> str:
+    """Content hash of the tokenizer's weights and of each training task's normalization (in task order)."""
     digest = hashlib.sha256()
     for name, tensor in sorted(tokenizer.state_dict().items()):
         values = tensor.detach().to("cpu").contiguous()
@@ -48,32 +71,41 @@ def weights_sha256(tokenizer: MultiScaleActionTokenizer, action_normalizer: MinM
         digest.update(
             values.to(torch.float32).numpy().tobytes() if values.is_floating_point() else values.numpy().tobytes()
         )
-    for array in (action_normalizer.minimum, action_normalizer.maximum):
-        digest.update(np.asarray(array, dtype=np.float64).tobytes())
+    for task, normalizer in action_normalizers.items():
+        digest.update(task.encode())
+        for array in (normalizer.minimum, normalizer.maximum):
+            digest.update(np.asarray(array, dtype=np.float64).tobytes())
     return digest.hexdigest()
 
 
 def save_tokenizer_artifact(
     directory: Path,
     tokenizer: MultiScaleActionTokenizer,
-    action_normalizer: MinMaxNormalizer,
+    action_normalizers: Mapping[str, MinMaxNormalizer],
     action_space: str,
-    tasks: list[str],
 ) -> str:
-    """Write the artifact into ``directory`` (files replaced atomically); returns the weights' sha256."""
+    """Write the artifact into ``directory`` (files replaced atomically); returns the weights' sha256.
+
+    Args:
+        directory: created if missing; ``tokenizer.pt`` and ``tokenizer.json`` are written into it.
+        tokenizer: the trained tokenizer.
+        action_normalizers: training task -> the statistics its windows were normalized with, in training order.
+        action_space: e.g. ``panda-abs10``; a policy refuses a tokenizer of another action space.
+    """
+    if not action_normalizers:
+        raise ValueError("a tokenizer artifact needs the action statistics of at least one training task")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    sha256 = weights_sha256(tokenizer, action_normalizer)
+    sha256 = weights_sha256(tokenizer, action_normalizers)
     payload = {
         **tokenizer.to_checkpoint(),
-        "action_normalizer": action_normalizer.to_dict(),
+        "action_normalizers": {task: normalizer.to_dict() for task, normalizer in action_normalizers.items()},
         "action_space": action_space,
-        "tasks": list(tasks),
     }
     metadata = {
         "spec": tokenizer.spec.to_dict(),
         "action_space": action_space,
-        "tasks": list(tasks),
+        "tasks": list(action_normalizers),
         "sha256": sha256,
     }
     for filename, write in (
@@ -93,20 +125,26 @@ def load_tokenizer_artifact(
 
     Raises:
         FileNotFoundError: no artifact in ``directory``.
-        TokenizerMismatchError: the weights' hash differs from ``expected_sha256``.
+        TokenizerMismatchError: the weights' hash differs from ``expected_sha256``, or the artifact predates
+            per-task normalization (one set of statistics for all tasks).
     """
     path = Path(directory) / WEIGHTS_FILENAME
     if not path.exists():
         raise FileNotFoundError(f"{path}: tokenizer weights not found")
     payload = torch.load(path, map_location=map_location, weights_only=False)
+    if "action_normalizers" not in payload:
+        raise TokenizerMismatchError(
+            f"{path}: tokenizer saved with one action normalization for all its tasks (carp before per-task "
+            "normalization); train it again"
+        )
     tokenizer = MultiScaleActionTokenizer.from_checkpoint(payload).to(map_location).eval()
-    normalizer = MinMaxNormalizer.from_dict(payload["action_normalizer"])
-    sha256 = weights_sha256(tokenizer, normalizer)
+    normalizers = {task: MinMaxNormalizer.from_dict(state) for task, state in payload["action_normalizers"].items()}
+    sha256 = weights_sha256(tokenizer, normalizers)
     if expected_sha256 is not None and sha256 != expected_sha256:
         raise TokenizerMismatchError(
             f"{path}: weights sha256 {sha256[:12]}... differs from the referenced {expected_sha256[:12]}..."
         )
-    return TokenizerArtifact(tokenizer, normalizer, payload["action_space"], list(payload["tasks"]), sha256)
+    return TokenizerArtifact(tokenizer, normalizers, payload["action_space"], sha256)
 
 
 def check_compatible(

@@ -1,6 +1,6 @@
 """Held-out quality of a tokenizer in original action units: metrics plus the raw-vs-reconstructed figure."""
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -25,30 +25,34 @@ def dimension_names(action_dim: int) -> tuple[str, ...]:
 
 def evaluate_tokenizer(
     tokenizer: MultiScaleActionTokenizer,
-    normalizer: MinMaxNormalizer,
-    held_out_windows: np.ndarray,
-    episode_actions: np.ndarray,
+    held_out_windows: Mapping[str, np.ndarray],
+    normalizers: Mapping[str, MinMaxNormalizer],
+    figure_episode: tuple[str, np.ndarray],
     figure_path: Path,
 ) -> dict[str, float]:
-    """Reconstruction metrics on held-out windows and a figure of one whole held-out episode.
+    """Reconstruction metrics on held-out windows of one or more tasks and a figure of one whole held-out episode.
+
+    Each task's windows are normalized with that task's own statistics, as in training (`carp.tokenizer.artifact`).
 
     Args:
         tokenizer: trained tokenizer (CPU, eval mode).
-        normalizer: the action normalization the tokenizer works in.
-        held_out_windows: (N, H, A) raw action windows.
-        episode_actions: (T, A) raw actions of one episode for the figure.
+        held_out_windows: task -> (N_task, H, A) raw action windows.
+        normalizers: task -> the statistics that task's actions are normalized with.
+        figure_episode: (task, (T, A) raw actions of one of its episodes) for the figure.
         figure_path: PNG written here.
 
     Returns:
-        The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics`.
+        The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics` over all tasks' windows.
     """
     names = dimension_names(tokenizer.spec.action_dim)
-    windows = torch.as_tensor(normalizer.normalize(held_out_windows.astype(np.float64)), dtype=torch.float32)
-
-    def unnormalize(values: torch.Tensor) -> torch.Tensor:
-        return normalizer.unnormalize(values.double()).float()
-
-    metrics = reconstruction_metrics(tokenizer, windows, unnormalize, names)
+    windows, half_ranges = [], []
+    for task, task_windows in held_out_windows.items():
+        normalizer = normalizers[task]
+        windows.append(torch.as_tensor(normalizer.normalize(task_windows.astype(np.float64)), dtype=torch.float32))
+        half_ranges.append(torch.as_tensor(normalizer.half_range()).expand(len(task_windows), 1, -1))
+    metrics = reconstruction_metrics(tokenizer, torch.cat(windows), torch.cat(half_ranges), names)
+    task, episode_actions = figure_episode
+    normalizer = normalizers[task]
     normalized_episode = torch.as_tensor(normalizer.normalize(episode_actions.astype(np.float64)), dtype=torch.float32)
     reconstructed = normalizer.unnormalize(reconstruct_trajectory(tokenizer, normalized_episode).double().numpy())
     plot_reconstruction(episode_actions, reconstructed, figure_path, names)

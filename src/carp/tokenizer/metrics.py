@@ -4,7 +4,7 @@ Metric keys are flat strings (ready for MLflow) of the form `<metric>/<dimension
 scales are numbered from 1 in keys (`usage/scale_1/...` is the coarsest scale).
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -52,7 +52,7 @@ def reconstruct(tokenizer: MultiScaleActionTokenizer, windows: torch.Tensor) -> 
 def reconstruction_metrics(
     tokenizer: MultiScaleActionTokenizer,
     windows: torch.Tensor,
-    unnormalize: Callable[[torch.Tensor], torch.Tensor],
+    half_ranges: torch.Tensor,
     dimension_names: Sequence[str] | None = None,
 ) -> dict[str, float]:
     """Per-dimension reconstruction errors in original units and codebook usage on held-out windows.
@@ -60,14 +60,17 @@ def reconstruction_metrics(
     Args:
         tokenizer: trained tokenizer.
         windows: (N, H, A) float normalized windows.
-        unnormalize: maps normalized (..., A) tensors to original action units (CPU tensors).
+        half_ranges: original action units per normalized unit, (A,) for windows of one normalization or (N, 1, A)
+            when windows of several tasks each carry their task's statistics (see
+            `carp.data.normalizer.MinMaxNormalizer.half_range`; 0 for constant features).
         dimension_names: A names used in the keys (default dim0, dim1, ...).
 
     Returns:
         For every dimension name n: `rmse/n`, `mse/n`, `max_error/n` (original units), `rmse_percent_range/n`
-        (RMSE as % of the dimension's normalization range unnormalize(1) - unnormalize(-1)), `usage/scale_k/n`
-        (fraction of the V codes hit at scale k), `usage/all_scales/n` and `perplexity/n` (over all scales); the same
-        keys with n = mean (mean over dimensions), plus `max_error/max` and `reconstruction_mse_normalized`.
+        (RMSE as % of the dimension's normalization range, each window's error relative to its own task's range),
+        `usage/scale_k/n` (fraction of the V codes hit at scale k), `usage/all_scales/n` and `perplexity/n` (over
+        all scales); the same keys with n = mean (mean over dimensions), plus `max_error/max` and
+        `reconstruction_mse_normalized`.
     """
     spec = tokenizer.spec
     names = list(dimension_names) if dimension_names is not None else [f"dim{d}" for d in range(spec.action_dim)]
@@ -78,18 +81,20 @@ def reconstruction_metrics(
     windows = windows.to(next(tokenizer.parameters()).device, torch.float32)
     reconstructions, counts = reconstruct(tokenizer, windows)
     windows = windows.cpu()
-    errors = unnormalize(reconstructions) - unnormalize(windows)  # (N, H, A) original units
+    half_ranges = torch.as_tensor(half_ranges, dtype=torch.float64)
+    normalized_errors = (reconstructions - windows).double()  # (N, H, A)
+    errors = normalized_errors * half_ranges  # (N, H, A) original units
     mse = errors.pow(2).mean(dim=(0, 1))  # (A,)
     rmse = mse.sqrt()
     max_error = errors.abs().amax(dim=(0, 1))
-    bounds = unnormalize(torch.stack([-torch.ones(spec.action_dim), torch.ones(spec.action_dim)]))  # (2, A)
-    value_range = (bounds[1] - bounds[0]).abs().clamp(min=1e-12)
+    # A normalized error e is e / 2 of the range; constant features (half range 0) reconstruct exactly.
+    relative_errors = torch.where(half_ranges > 0, normalized_errors / 2.0, 0.0)
 
     per_dimension: dict[str, torch.Tensor] = {
         "rmse": rmse,
         "mse": mse,
         "max_error": max_error,
-        "rmse_percent_range": 100.0 * rmse / value_range,
+        "rmse_percent_range": 100.0 * relative_errors.pow(2).mean(dim=(0, 1)).sqrt(),
     }
     for scale_index, scale_counts in enumerate(counts):
         per_dimension[f"usage/scale_{scale_index + 1}"] = (scale_counts > 0).double().mean(dim=-1)

@@ -17,6 +17,8 @@ import mlflow
 import numpy as np
 import torch
 from mlflow import MlflowClient
+from mlflow.models import ModelSignature
+from mlflow.types import ParamSchema, ParamSpec
 
 from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact
 
@@ -54,17 +56,22 @@ class TokenizerReference:
 
 
 class TokenizerModel(mlflow.pyfunc.PythonModel):
-    """pyfunc wrapper: ``predict`` maps raw action chunks (B, H, A) to token sequences (B, L)."""
+    """pyfunc wrapper: ``predict`` maps raw action chunks (B, H, A) of one task to token sequences (B, L).
+
+    Actions are normalized with the statistics of the task named by the ``task`` inference parameter, which may be
+    omitted for a tokenizer trained on a single task (`carp.tokenizer.artifact`: normalization is per task).
+    """
 
     def load_context(self, context) -> None:
         """Load the tokenizer directory shipped with the model."""
         self.artifact: TokenizerArtifact = load_tokenizer_artifact(Path(context.artifacts[ARTIFACT_KEY]))
 
     def predict(self, context, model_input: np.ndarray, params: dict | None = None) -> np.ndarray:
-        """Raw actions (B, H, A) or (B, H*A) -> token ids (B, L) int64."""
+        """Raw actions (B, H, A) or (B, H*A) -> token ids (B, L) int64; ``params["task"]`` picks the statistics."""
         spec = self.artifact.tokenizer.spec
         actions = np.asarray(model_input, dtype=np.float32).reshape(-1, spec.action_horizon, spec.action_dim)
-        normalized = torch.as_tensor(self.artifact.action_normalizer.normalize(actions))
+        task = (params or {}).get("task") or None
+        normalized = torch.as_tensor(self.artifact.action_normalizer(task).normalize(actions))
         with torch.inference_mode():
             return self.artifact.tokenizer.encode_to_sequence(normalized).numpy()
 
@@ -101,6 +108,8 @@ def register_tokenizer(
             python_model=TokenizerModel(),
             artifacts={ARTIFACT_KEY: str(directory)},
             pip_requirements=["torch", "numpy", "carp"],
+            # Declares the `task` inference parameter; MLflow drops parameters a signature does not name.
+            signature=ModelSignature(inputs=None, params=ParamSchema([ParamSpec("task", "string", "")])),
         )
         version = mlflow.register_model(info.model_uri, name, tags={SHA_TAG: sha256})
     client.set_registered_model_alias(name, alias, version.version)
