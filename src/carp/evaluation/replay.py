@@ -1,0 +1,143 @@
+"""Open-loop replay of demonstrations through a tokenizer's round trip: is the tokenizer precise enough for a task?
+
+Each scripted demo is replayed from the seed it was collected with. At every decision step t (every ``Ta`` steps)
+the recorded chunk a policy would have to predict there (rows t - To + 1 .. t - To + H, clamped to the episode like
+the training windows) is normalized with the task's statistics, tokenized, decoded and un-normalized, and its rows
+``[To - 1, To - 1 + Ta)`` are executed, exactly the rows `carp.evaluation.sources.executed_actions` takes from a
+policy's chunk. Without a tokenizer the recorded actions are executed unchanged, which checks that the simulation
+reproduces the demos. Nothing corrects an error once made, so the success rate is a pessimistic bound on what a
+policy can reach through this tokenizer, and a direct comparison of tokenizers on the same demos.
+"""
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.data.robomimic_io import DatasetError, read_demonstrations
+from carp.data.rotation import absolute_to_rot6d_actions
+from carp.evaluation.rollout import ChunkTiming, EpisodeResult, evaluate_episodes
+from carp.evaluation.sources import executed_actions
+from carp.simulation import controller_kind
+from carp.tokenizer.artifact import load_tokenizer_artifact
+
+# The rollout loop keeps an observation history the replay does not read; one small key keeps that cheap.
+_HISTORY_KEYS = ("robot0_eef_pos",)
+
+
+class TokenizedReplaySource:
+    """Replays the recorded actions of the episode's seed, each chunk through the tokenizer when one is given.
+
+    Args:
+        demo_actions: collection seed -> (T, A) recorded actions in the policy's action format (10-D for absolute).
+        action_normalizer: the task's action statistics.
+        tokenizer_directory: a tokenizer artifact, or None to replay the recorded actions unchanged.
+        controller: ``absolute`` or ``delta``.
+        obs_steps: ``To``.
+        action_steps: ``Ta``.
+        horizon: ``H``.
+    """
+
+    def __init__(
+        self,
+        demo_actions: dict[int, np.ndarray],
+        action_normalizer: MinMaxNormalizer,
+        tokenizer_directory: Path | None,
+        controller: str,
+        obs_steps: int,
+        action_steps: int,
+        horizon: int,
+    ) -> None:
+        self.demo_actions = demo_actions
+        self.action_normalizer = action_normalizer
+        self.tokenizer = None if tokenizer_directory is None else load_tokenizer_artifact(tokenizer_directory).tokenizer
+        self.controller = controller
+        self.obs_steps, self.action_steps, self.horizon = obs_steps, action_steps, horizon
+        self._actions = np.empty((0, 0))
+        self._step = 0
+
+    def reset(self, env, seed: int) -> None:
+        """Start replaying the demo collected with ``seed``."""
+        self._actions = self.demo_actions[seed]
+        self._step = 0
+
+    def chunk(self) -> np.ndarray:
+        """(H, A) the recorded chunk of the current decision step, through the tokenizer's round trip if any."""
+        rows = np.clip(self._step - (self.obs_steps - 1) + np.arange(self.horizon), 0, len(self._actions) - 1)
+        chunk = self._actions[rows]
+        if self.tokenizer is None:
+            return chunk
+        normalized = torch.as_tensor(self.action_normalizer.normalize(chunk[None]), dtype=torch.float32)
+        with torch.inference_mode():
+            decoded = self.tokenizer.decode_ids(self.tokenizer.encode_to_ids(normalized))  # (1, H, A)
+        return self.action_normalizer.unnormalize(decoded[0].double().numpy())
+
+    def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming | None]:
+        """(Ta, 7) the next executed actions."""
+        executed = executed_actions(self.chunk(), self.obs_steps, self.action_steps, self.controller)
+        self._step += self.action_steps
+        return executed, None
+
+
+def replay_demonstrations(
+    raw_path: Path,
+    action_normalizer: MinMaxNormalizer,
+    tokenizer_directory: Path | None,
+    obs_steps: int,
+    action_steps: int,
+    horizon: int,
+    num_demos: int | None = None,
+    workers: int = 1,
+) -> list[EpisodeResult]:
+    """Replay the first ``num_demos`` demos of a scripted-demo file (all when None); one result per demo.
+
+    Args:
+        raw_path: robomimic-schema file whose demos carry their collection ``seed`` attribute (`carp.data.collect`).
+        action_normalizer: the task's action statistics (``data/processed/<task>/normalization.json``).
+        tokenizer_directory: tokenizer artifact to round-trip every chunk through; None replays unchanged.
+        obs_steps: ``To`` of the policy.
+        action_steps: ``Ta``, rows executed per chunk.
+        horizon: ``H``, rows per chunk.
+        num_demos: how many demos, from the first.
+        workers: parallel processes, one env each.
+
+    Raises:
+        DatasetError: a demo without a ``seed`` attribute (not collected by carp), naming the file and demo.
+    """
+    demos = read_demonstrations(Path(raw_path), _HISTORY_KEYS)
+    selected = list(zip(demos.names, demos.episodes, strict=True))[:num_demos]
+    missing = [name for name, episode in selected if "seed" not in episode.attrs]
+    if missing:
+        raise DatasetError(
+            f"{raw_path}: demo '{missing[0]}' has no 'seed' attribute; replay needs demos collected by carp"
+        )
+    controller = controller_kind(demos.env_args)
+    demo_actions = {}
+    for _, episode in selected:
+        actions = episode.actions
+        demo_actions[int(episode.attrs["seed"])] = (
+            absolute_to_rot6d_actions(actions) if controller == "absolute" else actions
+        )
+    source_factory = functools.partial(
+        TokenizedReplaySource,
+        demo_actions,
+        action_normalizer,
+        tokenizer_directory,
+        controller,
+        obs_steps,
+        action_steps,
+        horizon,
+    )
+    longest = max(len(actions) for actions in demo_actions.values())
+    return evaluate_episodes(
+        demos.env_args,
+        source_factory,
+        list(demo_actions),
+        _HISTORY_KEYS,
+        obs_steps,
+        max_steps=longest + horizon,
+        workers=workers,
+        description="replay",
+    )
