@@ -94,7 +94,8 @@ class TokenizerConfig:
 
     Attributes:
         source: ``pipeline`` (train and register here) or a registry URI ``models:/<name>@<alias>``.
-        tasks: tasks whose windows train the tokenizer; empty means the pipeline's ``tasks``.
+        tasks: tasks whose windows train the tokenizer, each normalized with its own statistics; empty means the
+            pipeline's ``tasks``.
         registry_alias: alias set on the registered version.
     """
 
