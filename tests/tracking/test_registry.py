@@ -85,7 +85,7 @@ def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
     can_actions = (actions.numpy() + 1) / 2 * np.array([4.0, 1.0], dtype=np.float32)  # [-1, 1] -> [0, 4] x [0, 1]
     expected_can = other_tokenizer.encode_to_sequence(actions).tolist()
     assert two_task_model.predict(can_actions, params={"task": "can"}).tolist() == expected_can
-    with pytest.raises(KeyError, match=r"task None is not one of the tokenizer's training tasks \['lift', 'can'\]"):
+    with pytest.raises(KeyError, match=r"trained on \['lift', 'can'\]: name the task"):
         two_task_model.predict(can_actions)
     with pytest.raises(LookupError, match="not found in the registry"):
         fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@nope")
@@ -116,7 +116,7 @@ def test_each_training_task_keeps_its_own_action_statistics(tmp_path):
     assert artifact.action_normalizer("can").maximum.tolist() == [4.0, 1.0]
     with pytest.raises(KeyError, match=r"task 'square' is not one of the tokenizer's training tasks"):
         artifact.action_normalizer("square")
-    with pytest.raises(KeyError, match="task None"):
+    with pytest.raises(KeyError, match="name the task whose action statistics to use"):
         artifact.action_normalizer()
     # Same weights, other statistics or task names: another artifact, another hash.
     _, lift_only = make_artifact(tmp_path / "one")

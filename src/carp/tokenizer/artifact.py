@@ -10,7 +10,8 @@ Normalization is per task: the tokenizer sees each task's actions scaled to [-1,
 statistics, and a policy always uses the statistics of its own task (also for a task the tokenizer never saw). With
 one statistics for the union of tasks, a task whose actions span a small part of the union's range would be encoded
 with a fraction of the codebook's resolution: Square's y span is 37% of the Lift + Can + Square union, and a shared
-tokenizer trained that way replayed 35 of 50 Square demos open loop against 45 of 50 for Square's own tokenizer.
+tokenizer trained that way replayed 65 of 100 Square demos open loop (`carp.evaluation.replay`) against 90 with
+per-task statistics and 83 for Square's own tokenizer.
 """
 
 import hashlib
@@ -56,6 +57,8 @@ class TokenizerArtifact:
         """
         if task is None and len(self.action_normalizers) == 1:
             return next(iter(self.action_normalizers.values()))
+        if task is None:
+            raise KeyError(f"the tokenizer was trained on {self.tasks}: name the task whose action statistics to use")
         if task not in self.action_normalizers:
             raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {self.tasks}")
         return self.action_normalizers[task]
