@@ -8,16 +8,10 @@ variants alternate epoch by epoch (`--rounds`) so that a change in machine load 
 each is reported. Nine rounds by default: on a shared virtual machine the host's speed drifts by ~10% within a minute,
 and 3-round runs of one code spread over 4.4-5.6x where five 9-round runs gave 4.9-5.5x (AVX-512 machine).
 
-The process keeps freed memory for reuse, as the train_tokenizer stage does (`carp.training.runtime.keep_freed_memory`);
-`--glibc-defaults` leaves the C allocator as it starts, under which the vectorized module's larger tensors are mapped
-and unmapped every step. The page-fault column shows the difference.
-
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
-                                                        [--glibc-defaults]
 """
 
 import argparse
-import resource
 import statistics
 import time
 
@@ -27,7 +21,6 @@ from carp.tokenizer.per_dimension import split_into_single_dimension_tokenizers
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.runtime import keep_freed_memory
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings
 
 WARMUP_STEPS = 3
@@ -52,17 +45,14 @@ def loop_step(tokenizers, optimizer, batch):
     optimizer.step()
 
 
-def timed_epoch(step, windows: torch.Tensor, batch_size: int) -> tuple[float, float]:
-    """Seconds for one epoch of `step` over shuffled batches, and the minor page faults per step it caused."""
+def epoch_seconds(step, windows: torch.Tensor, batch_size: int) -> float:
     batches = torch.split(windows[torch.randperm(windows.shape[0])], batch_size)
     for batch in batches[:WARMUP_STEPS]:
         step(batch)
-    faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     started = time.perf_counter()
     for batch in batches:
         step(batch)
-    seconds = time.perf_counter() - started
-    return seconds, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before) / len(batches)
+    return time.perf_counter() - started
 
 
 def main() -> None:
@@ -71,12 +61,8 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=TokenizerTrainingSettings().batch_size)
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
     parser.add_argument("--rounds", type=int, default=9, help="epochs per variant, alternating")
-    parser.add_argument(
-        "--glibc-defaults", action="store_true", help="leave the C allocator's thresholds at their defaults"
-    )
     arguments = parser.parse_args()
     torch.set_num_threads(arguments.threads)
-    freed_memory_kept = not arguments.glibc_defaults and keep_freed_memory()
     torch.manual_seed(0)
 
     spec = TokenizerSpec(action_dim=10)
@@ -93,26 +79,19 @@ def main() -> None:
         loop_name: lambda batch: loop_step(singles, loop_optimizer, batch),
     }
     seconds: dict[str, list[float]] = {name: [] for name in steps}
-    faults: dict[str, list[float]] = {name: [] for name in steps}
     for _ in range(arguments.rounds):
         for name, step in steps.items():
-            epoch_time, epoch_faults = timed_epoch(step, windows, arguments.batch_size)
-            seconds[name].append(epoch_time)
-            faults[name].append(epoch_faults)
+            seconds[name].append(epoch_seconds(step, windows, arguments.batch_size))
     rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
         f"batch {arguments.batch_size}, {windows.shape[0]} windows, {arguments.threads} thread(s), "
-        f"median of {arguments.rounds} alternating epochs each, torch {torch.__version__}, "
-        f"freed memory {'kept for reuse' if freed_memory_kept else 'returned (glibc defaults)'}"
+        f"median of {arguments.rounds} alternating epochs each, torch {torch.__version__}"
     )
-    print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'faults/step':>13}{'speed-up':>10}")
+    print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'speed-up':>10}")
     for name, values in seconds.items():
         speed_up = rates[name] / rates[loop_name]
-        print(
-            f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}"
-            f"{statistics.median(faults[name]):>13.0f}{speed_up:>9.1f}x"
-        )
+        print(f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}{speed_up:>9.1f}x")
 
 
 if __name__ == "__main__":

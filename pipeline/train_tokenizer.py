@@ -28,7 +28,6 @@ from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, sa
 from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tracking.registry import fetch_registered_tokenizer
-from carp.training.runtime import keep_freed_memory
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
 
 
@@ -39,7 +38,6 @@ def main() -> None:
     # stall next to any other job (Lift, 100 demos, 10 epochs: 15 s on one thread, quiet or not; two threads
     # 12 s quiet with spinning, 31 s passive, > 300 s spinning next to a busy process).
     torch.set_num_threads(1)
-    keep_freed_memory()  # no page faults for the vectorized module's 0.1-1 MB tensors, every step (runtime docstring)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer
     tasks = list(params.tokenizer_tasks)

@@ -1,8 +1,6 @@
-"""Run-time setup shared by the trainers: device, training precision, seeding and the C allocator."""
+"""Run-time setup shared by the trainers: device, training precision and seeding."""
 
 import contextlib
-import ctypes
-import platform
 import random
 
 import numpy as np
@@ -60,31 +58,3 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
     random.seed(seed)
-
-
-# glibc's mallopt parameters (malloc.h) and the values `keep_freed_memory` sets.
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_MMAP_THRESHOLD_BYTES = 32 << 20  # above every tensor of a tokenizer training step at the default sizes
-_TRIM_THRESHOLD_BYTES = 256 << 20
-
-
-def keep_freed_memory() -> bool:
-    """Let this process reuse freed tensor memory instead of handing it back to the OS and faulting it in again.
-
-    With its default settings glibc serves each allocation above 128 KiB with fresh pages from `mmap` and unmaps them
-    on free, and returns free memory at the top of the heap to the OS. A training step of the vectorized tokenizer
-    (A = 10, batch 64) allocates dozens of 0.1-1 MB tensors, so every step faulted in ~2,300 new pages: 5.5 ms of
-    system time in a ~29 ms step (`resource.getrusage`, one thread, AVX-512 machine), while a single-dimension
-    module's tensors stay below the threshold (2 faults per step). Raising both thresholds (allocations up to 32 MB
-    from the heap, up to 256 MB of free heap kept) brings the faults to zero; the cost is that memory freed by the
-    process is reused by it rather than returned to the system.
-
-    Process-wide and permanent, so it belongs in entry points (stage scripts, benchmarks), not in library functions.
-    Returns True if applied, False where the C library is not glibc (the setting is then left alone).
-    """
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    libc = ctypes.CDLL(None)
-    applied = libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES) == 1
-    return libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_BYTES) == 1 and applied
