@@ -1,6 +1,7 @@
 import json
 import subprocess
 import sys
+import tempfile
 
 import mlflow
 import numpy as np
@@ -39,7 +40,7 @@ def register(uri, directory, sha, alias="default"):
 
 
 @pytest.mark.slow
-def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
+def test_registry_round_trip_idempotence_and_new_process_load(tmp_path, monkeypatch):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     directory = tmp_path / "tokenizer"
     tokenizer, sha = make_artifact(directory)
@@ -78,7 +79,11 @@ def test_registry_round_trip_idempotence_and_new_process_load(tmp_path):
     raw_actions = actions.numpy() + np.array([0.0, 1.0], dtype=np.float32)  # normalized [-1, 1] -> [-1, 1] x [0, 2]
     assert pyfunc_model.predict(raw_actions).tolist() == expected
 
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(downloads))
     candidate, reference = fetch_registered_tokenizer(uri, "models:/carp-tokenizer-panda-test2@candidate")
+    assert list(downloads.iterdir()) == []  # the temporary download is gone once the weights are loaded
     assert reference.version == "2" and candidate.sha256 == other_sha and candidate.tasks == ["lift", "can"]
     # A two-task tokenizer normalizes raw actions with the statistics of the task named at inference.
     two_task_model = mlflow.pyfunc.load_model("models:/carp-tokenizer-panda-test2@candidate")

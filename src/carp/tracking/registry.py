@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import tempfile
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -138,6 +139,8 @@ def fetch_registered_tokenizer(
 ) -> tuple[TokenizerArtifact, TokenizerReference]:
     """Resolve ``models:/<name>@<alias>``, download its tokenizer and check the weights' hash against the version tag.
 
+    The download goes to ``destination`` when given (kept), else to a temporary directory that is removed on return.
+
     Raises:
         LookupError: no such registered model or alias.
         carp.tokenizer.artifact.TokenizerMismatchError: the downloaded weights do not hash to the version's sha256.
@@ -149,13 +152,16 @@ def fetch_registered_tokenizer(
     except mlflow.exceptions.MlflowException as error:
         raise LookupError(f"tokenizer {uri}: not found in the registry at {tracking_uri} ({error.message})") from None
     mlflow.set_tracking_uri(tracking_uri)
-    destination = Path(destination or tempfile.mkdtemp(prefix="carp-tokenizer-"))
-    local = mlflow.artifacts.download_artifacts(
-        artifact_uri=f"models:/{name}/{version.version}", dst_path=str(destination)
-    )
-    directories = [p.parent for p in Path(local).rglob("tokenizer.pt")]
-    if not directories:
-        raise LookupError(f"tokenizer {uri}: version {version.version} has no tokenizer.pt artifact")
-    artifact = load_tokenizer_artifact(directories[0], expected_sha256=version.tags.get(SHA_TAG))
+    # Without a destination the download goes to a temporary directory, removed once the weights are in memory.
+    with (
+        tempfile.TemporaryDirectory(prefix="carp-tokenizer-") if destination is None else nullcontext(destination)
+    ) as download_directory:
+        local = mlflow.artifacts.download_artifacts(
+            artifact_uri=f"models:/{name}/{version.version}", dst_path=str(download_directory)
+        )
+        directories = [p.parent for p in Path(local).rglob("tokenizer.pt")]
+        if not directories:
+            raise LookupError(f"tokenizer {uri}: version {version.version} has no tokenizer.pt artifact")
+        artifact = load_tokenizer_artifact(directories[0], expected_sha256=version.tags.get(SHA_TAG))
     reference = TokenizerReference(name, str(version.version), alias, version.run_id, artifact.sha256)
     return artifact, reference
