@@ -37,7 +37,7 @@ def main() -> None:
         try:
             summary = collect_demonstrations(
                 task=args.task,
-                num_demos=params.data.num_demos,
+                num_demos=params.data.demos_for(args.task),
                 output_path=output,
                 seed=params.data.collection_seed,
                 controller=params.data.controller,

@@ -58,6 +58,12 @@ def test_defaults_follow_the_design():
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
         ({"eval": {"seed": 100}, "data": {"num_demos": 50}}, "eval.seed=100: evaluation seeds [100, 150) overlap"),
+        ({"data": {"num_demos_per_task": {"kitchen": 5}}}, "data.num_demos_per_task.kitchen='kitchen': task must be"),
+        ({"data": {"num_demos_per_task": {"lift": 0}}}, "data.num_demos_per_task.lift=0: must be at least 1"),
+        (
+            {"eval": {"seed": 400}, "data": {"num_demos": 50, "num_demos_per_task": {"lift": 200}}},
+            "eval.seed=400: evaluation seeds [400, 450) overlap the collection seeds [0, 600)",
+        ),
         ({"tokenizer": {"tasks": ["can"]}}, "tokenizer.tasks=['can']: every tokenizer task must also be in tasks"),
         ({"colour": "red"}, "colour: unknown key"),
         ({"data": [1, 2]}, "data: expected a mapping"),
@@ -99,6 +105,16 @@ def test_policy_epochs_per_task_override_the_common_value():
     assert params.policy.epochs_for("square") == 35
     assert params.policy.epochs_for("lift") == 20
     assert flatten_params(params)["policy.epochs_per_task.square"] == "35"
+
+
+def test_num_demos_per_task_overrides_the_common_demo_count():
+    params = params_from_dict(
+        {"tasks": ["lift", "square"], "data": {"num_demos": 200, "num_demos_per_task": {"square": 300}}}
+    )
+    assert [params.data.demos_for(task) for task in params.tasks] == [200, 300]
+    assert flatten_params(params)["data.num_demos_per_task.square"] == "300"
+    # A task outside `tasks` is never collected, so its count does not move the collection seeds.
+    assert params_from_dict({"eval": {"seed": 400}, "data": {"num_demos_per_task": {"can": 200}}}).eval.seed == 400
 
 
 def test_policy_top_k_per_task_overrides_the_common_token_choice():

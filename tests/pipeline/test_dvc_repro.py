@@ -3,6 +3,7 @@
 import json
 import sys
 
+import h5py
 import pytest
 import yaml
 
@@ -11,7 +12,8 @@ from tests.pipeline.workspace import make_workspace, run
 
 @pytest.mark.slow
 def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
-    workspace = make_workspace(tmp_path / "carp")
+    # A task's entry in num_demos_per_task overrides num_demos (3 in the tiny params) for its collection.
+    workspace = make_workspace(tmp_path / "carp", {"data": {"num_demos_per_task": {"lift": 4}}})
 
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -32,6 +34,8 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         "reports/report.html",
     ):
         assert (workspace / output).exists(), output
+    with h5py.File(workspace / "data/raw/lift.hdf5", "r") as raw:
+        assert len(raw["data"]) == 4
     evaluation = json.loads((workspace / "reports/eval/lift.json").read_text())
     assert evaluation["episodes"] == 2 and 0 <= evaluation["success_rate"] <= 1
     assert evaluation["latency_predict_ms_median"] > 0 and evaluation["top_k"] == 1
