@@ -152,7 +152,6 @@ def fetch_registered_tokenizer(
     except mlflow.exceptions.MlflowException as error:
         raise LookupError(f"tokenizer {uri}: not found in the registry at {tracking_uri} ({error.message})") from None
     mlflow.set_tracking_uri(tracking_uri)
-    # Without a destination the download goes to a temporary directory, removed once the weights are in memory.
     with (
         tempfile.TemporaryDirectory(prefix="carp-tokenizer-") if destination is None else nullcontext(destination)
     ) as download_directory:
