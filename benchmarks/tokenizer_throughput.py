@@ -3,17 +3,25 @@
 Both variants are the same class (`MultiScaleActionTokenizer`, the loop's with action_dim = 1) and compute the same
 math from the same initial weights (the loop's modules are split off the vectorized one with
 `carp.tokenizer.per_dimension`): per batch, forward + backward of the summed per-dimension losses and one fused AdamW
-step. Throughput is measured over whole epochs of synthetic pick-and-place windows after a short warm-up; the two
-variants alternate epoch by epoch (`--rounds`) so that a change in machine load hits both, and the median epoch of
-each is reported. Nine rounds by default: on a shared virtual machine the host's speed drifts by ~10% within a minute,
-and 3-round runs of one code spread over 4.4-5.6x where five 9-round runs gave 4.9-5.5x (AVX-512 machine).
+step. Throughput is measured over whole epochs of synthetic pick-and-place windows after a short warm-up, and the
+median epoch of each variant over `--rounds` epochs is reported.
+
+Interleaving (`--block`): on a shared virtual machine the host's speed drifts by 10-50% within a minute, so the two
+variants must meet the same host. Each epoch's batches are taken in blocks of `--block` consecutive batches (8 by
+default), every block runs through both variants, one after the other with the order alternating from block to
+block, and a variant's epoch time is the sum of its timed blocks: a slow spell of the host lands on both within ~2 s.
+Blocks rather than single batches because a variant's first step after the other variant's is ~5% slower (caches,
+allocator), which in training, where steps of one model follow each other, never happens. `--block 0` runs whole
+epochs alternately (the method before 2026-11-25), where single rounds spread over 3.4-6.2x on one machine and code.
 
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
+        [--block 8]
 """
 
 import argparse
 import statistics
 import time
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -24,6 +32,8 @@ from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings
 
 WARMUP_STEPS = 3
+
+Step = Callable[[torch.Tensor], None]
 
 
 def make_windows(num_episodes: int, spec: TokenizerSpec) -> torch.Tensor:
@@ -45,14 +55,31 @@ def loop_step(tokenizers, optimizer, batch):
     optimizer.step()
 
 
-def epoch_seconds(step, windows: torch.Tensor, batch_size: int) -> float:
-    batches = torch.split(windows[torch.randperm(windows.shape[0])], batch_size)
-    for batch in batches[:WARMUP_STEPS]:
-        step(batch)
+def shuffled_batches(windows: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, ...]:
+    """One epoch's batches, (b, H, A) each, in a fresh random order."""
+    return torch.split(windows[torch.randperm(windows.shape[0])], batch_size)
+
+
+def timed_block(step: Step, batches: Sequence[torch.Tensor]) -> float:
     started = time.perf_counter()
     for batch in batches:
         step(batch)
     return time.perf_counter() - started
+
+
+def interleaved_epoch_seconds(steps: dict[str, Step], windows: torch.Tensor, batch_size: int, block: int) -> dict:
+    """One epoch of every variant, blocks of `block` batches (0: the whole epoch) in turn; seconds per variant."""
+    batches = shuffled_batches(windows, batch_size)
+    for step in steps.values():
+        timed_block(step, batches[:WARMUP_STEPS])
+    block = block or len(batches)
+    seconds = dict.fromkeys(steps, 0.0)
+    names = list(steps)
+    for index, first in enumerate(range(0, len(batches), block)):
+        turn = index % len(names)  # alternate who goes first
+        for name in names[turn:] + names[:turn]:
+            seconds[name] += timed_block(steps[name], batches[first : first + block])
+    return seconds
 
 
 def main() -> None:
@@ -60,7 +87,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--batch-size", type=int, default=TokenizerTrainingSettings().batch_size)
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
-    parser.add_argument("--rounds", type=int, default=9, help="epochs per variant, alternating")
+    parser.add_argument("--rounds", type=int, default=9, help="epochs per variant")
+    parser.add_argument("--block", type=int, default=8, help="batches per variant's turn; 0: whole epochs in turn")
     arguments = parser.parse_args()
     torch.set_num_threads(arguments.threads)
     torch.manual_seed(0)
@@ -74,31 +102,33 @@ def main() -> None:
     loop_optimizer = torch.optim.AdamW([p for single in singles for p in single.parameters()], lr=1e-3, fused=True)
 
     vectorized_name, loop_name = "vectorized (one module)", f"loop over {spec.action_dim} modules"
-    steps = {
+    steps: dict[str, Step] = {
         vectorized_name: lambda batch: vectorized_step(vectorized, vectorized_optimizer, batch),
         loop_name: lambda batch: loop_step(singles, loop_optimizer, batch),
     }
     seconds: dict[str, list[float]] = {name: [] for name in steps}
     for _ in range(arguments.rounds):
-        for name, step in steps.items():
-            seconds[name].append(epoch_seconds(step, windows, arguments.batch_size))
+        for name, value in interleaved_epoch_seconds(steps, windows, arguments.batch_size, arguments.block).items():
+            seconds[name].append(value)
     rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
         f"batch {arguments.batch_size}, {windows.shape[0]} windows, {arguments.threads} thread(s), "
-        f"median of {arguments.rounds} alternating epochs each, torch {torch.__version__}"
+        f"median of {arguments.rounds} epochs each, in turns of {arguments.block or 'whole epoch'} batches, "
+        f"torch {torch.__version__}"
     )
     print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'speed-up':>10}")
     for name, values in seconds.items():
         speed_up = rates[name] / rates[loop_name]
         print(f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}{speed_up:>9.1f}x")
-    # Each round's loop epoch over the vectorized epoch that ran just before it: how much one round can be trusted.
+    # Each round's loop epoch over its vectorized epoch: how far one round alone can be trusted.
     round_ratios = [
         loop / vectorized for vectorized, loop in zip(seconds[vectorized_name], seconds[loop_name], strict=True)
     ]
     print(
         f"speed-up of single rounds: {min(round_ratios):.1f}x to {max(round_ratios):.1f}x, "
-        f"median {statistics.median(round_ratios):.1f}x"
+        f"median {statistics.median(round_ratios):.1f}x; vectorized epochs "
+        f"{min(seconds[vectorized_name]):.2f}-{max(seconds[vectorized_name]):.2f} s"
     )
 
 
