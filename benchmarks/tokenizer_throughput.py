@@ -90,6 +90,10 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=9, help="epochs per variant")
     parser.add_argument("--block", type=int, default=8, help="batches per variant's turn; 0: whole epochs in turn")
     arguments = parser.parse_args()
+    if arguments.rounds < 1:
+        parser.error(f"--rounds must be at least 1, got {arguments.rounds}")
+    if arguments.block < 0:
+        parser.error(f"--block must be 0 (whole epochs) or a positive number of batches, got {arguments.block}")
     torch.set_num_threads(arguments.threads)
     torch.manual_seed(0)
 
@@ -110,11 +114,12 @@ def main() -> None:
     for _ in range(arguments.rounds):
         for name, value in interleaved_epoch_seconds(steps, windows, arguments.batch_size, arguments.block).items():
             seconds[name].append(value)
+    turns = f"{arguments.block} batches" if arguments.block else "whole epochs"
     rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
         f"batch {arguments.batch_size}, {windows.shape[0]} windows, {arguments.threads} thread(s), "
-        f"median of {arguments.rounds} epochs each, in turns of {arguments.block or 'whole epoch'} batches, "
+        f"median of {arguments.rounds} epochs each, in turns of {turns}, "
         f"torch {torch.__version__}"
     )
     print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'speed-up':>10}")
