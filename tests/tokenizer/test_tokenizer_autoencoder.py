@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 from einops import rearrange
 
-from carp.tokenizer.autoencoder import grouped_conv, grouped_norm, grouped_upsampling
+from carp.tokenizer.autoencoder import grouped_conv, grouped_norm, grouped_upsampling, two_phase_upsampling
 
 
 def channels_last_image(sequence: torch.Tensor) -> torch.Tensor:
@@ -34,6 +34,29 @@ def test_grouped_upsampling_doubles_the_length_like_conv_transpose1d():
     assert output.shape == (3, 8, 1, 8)
     expected = F.conv_transpose1d(sequence, upsampling.weight[:, :, 0], upsampling.bias, stride=2, padding=1, groups=2)
     assert torch.allclose(output[:, :, 0], expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("groups", [1, 3])
+def test_two_phase_upsampling_matches_conv_transpose_with_gradients(groups):
+    # The CPU form of the grouped up-sampling: same outputs and same gradients as PyTorch's transposed convolution.
+    torch.manual_seed(0)
+    upsampling = grouped_upsampling(groups, 4).to(memory_format=torch.channels_last)
+    image = channels_last_image(torch.randn(5, groups * 4, 6)).requires_grad_()
+    expected = F.conv_transpose2d(
+        image, upsampling.weight, upsampling.bias, stride=(1, 2), padding=(0, 1), groups=groups
+    )  # (B, A * ch, 1, 12)
+    output = two_phase_upsampling(image, upsampling.weight, upsampling.bias, groups)
+    assert output.shape == expected.shape == (5, groups * 4, 1, 12)
+    assert output.is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(output, expected, atol=1e-6)
+    grad_output = torch.randn_like(expected)
+    inputs = (image, upsampling.weight, upsampling.bias)
+    for got, want in zip(
+        torch.autograd.grad(output, inputs, grad_output),
+        torch.autograd.grad(expected, inputs, grad_output),
+        strict=True,
+    ):
+        assert torch.allclose(got, want, atol=1e-5)
 
 
 def test_grouped_norm_keeps_statistics_per_sample_and_dimension():
