@@ -59,6 +59,27 @@ def test_two_phase_upsampling_matches_conv_transpose_with_gradients(groups):
         assert torch.allclose(got, want, atol=1e-5)
 
 
+@pytest.mark.parametrize("length", [8, 7])
+def test_grouped_downsampling_matches_strided_conv_with_gradients(length):
+    # On the CPU with several groups it runs as a stride-1 convolution kept at every second step.
+    torch.manual_seed(0)
+    downsampling = grouped_conv(3, 4, 5, stride=2).to(memory_format=torch.channels_last)
+    image = channels_last_image(torch.randn(5, 3 * 4, length)).requires_grad_()
+    expected = F.conv2d(image, downsampling.weight, downsampling.bias, stride=(1, 2), padding=(0, 1), groups=3)
+    output = downsampling(image)
+    assert output.shape == expected.shape == (5, 3 * 5, 1, (length + 1) // 2)
+    assert output.is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(output, expected, atol=1e-6)
+    grad_output = torch.randn_like(expected)
+    inputs = (image, downsampling.weight, downsampling.bias)
+    for got, want in zip(
+        torch.autograd.grad(output, inputs, grad_output),
+        torch.autograd.grad(expected, inputs, grad_output),
+        strict=True,
+    ):
+        assert torch.allclose(got, want, atol=1e-5)
+
+
 def test_grouped_norm_keeps_statistics_per_sample_and_dimension():
     image = channels_last_image(torch.randn(3, 2 * 4, 8) * 5 + 3)
     normalized = rearrange(grouped_norm(2, 4)(image), "b (a c) 1 t -> b a (c t)", a=2)

@@ -54,7 +54,8 @@ def grouped_conv(
 
     Padding kernel_size // 2 keeps the length for stride 1 and halves an even length for stride 2 with kernel 3.
     """
-    return nn.Conv2d(
+    convolution_class = GroupedDownsampling if stride == 2 else nn.Conv2d
+    return convolution_class(
         num_dimensions * in_channels,
         num_dimensions * out_channels,
         kernel_size=(1, kernel_size),
@@ -77,16 +78,20 @@ def grouped_upsampling(num_dimensions: int, channels: int) -> nn.ConvTranspose2d
     )
 
 
-# Up-sampling on the CPU.
+# Stride-2 convolutions on the CPU.
 #
-# oneDNN has no direct (brgemm) kernel for a grouped transposed convolution with stride 2 and falls back to im2col +
-# GEMM. A transposed convolution with kernel 4, stride 2, padding 1 splits into two phases: output step 2u + r
-# (r = 0, 1) sees input steps u - 1, u, u + 1 through kernel taps 3, 1, - (r = 0) and -, 2, 0 (r = 1). So it is one
-# stride-1 grouped convolution (kernel 3, padding 1, which oneDNN runs directly) with two phases of `out` channels per
-# group, and one copy that interleaves the phases in time: the same linear map, rounding aside, differentiated by
-# autograd. In a training step at A = 10 on the AVX2 machine the decoder's two up-samplings took 1.1 ms of forward
-# instead of 2.0, and the whole step 1.3% less time. With one group (the single-dimension tokenizer) oneDNN's direct
-# kernel is faster, and on CUDA cuDNN has its own, so both keep `nn.ConvTranspose2d.forward`, as does ONNX export.
+# oneDNN has no direct (brgemm) kernel for two grouped stride-2 ops and falls back to im2col + GEMM: a transposed
+# convolution's forward and a convolution's input gradient. Both get a form that only uses stride-1 convolutions, the
+# same linear maps, rounding aside, differentiated by autograd:
+# - Up-sampling (transposed, kernel 4, stride 2, padding 1) splits into two phases: output step 2u + r (r = 0, 1) sees
+#   input steps u - 1, u, u + 1 through kernel taps 3, 1, - (r = 0) and -, 2, 0 (r = 1). So it is one stride-1 grouped
+#   convolution (kernel 3, padding 1) with two phases of `out` channels per group, and one copy that interleaves the
+#   phases in time. In a training step at A = 10 on the AVX2 machine the decoder's two up-samplings took 1.1 ms of
+#   forward instead of 2.0, and the whole step 1.3% less time.
+# - Down-sampling (kernel 3, stride 2, padding 1) is the stride-1 convolution kept at every second step: twice the
+#   forward work, but a direct backward; the step 1.2% faster.
+# With one group (the single-dimension tokenizer) oneDNN's direct kernels are faster, and on CUDA cuDNN has its own,
+# so both keep PyTorch's convolutions, as does ONNX export.
 
 # Transposed-conv tap feeding phase r from input offset d, for (r, d) in (0, 1) x (-1, 0, 1); 4 = none (zero).
 _PHASE_TAPS = (3, 1, 4, 4, 2, 0)
@@ -128,14 +133,32 @@ class GroupedUpsampling(nn.ConvTranspose2d):
     def forward(self, hidden: torch.Tensor) -> torch.Tensor:
         """Map (B, A * ch, 1, T) to (B, A * ch, 1, 2T)."""
         settings = (self.kernel_size, self.stride, self.padding, self.output_padding, self.dilation)
-        if (
-            self.groups == 1
-            or hidden.device.type != "cpu"
-            or settings != ((1, 4), (1, 2), (0, 1), (0, 0), (1, 1))
-            or torch.onnx.is_in_onnx_export()  # the exported decoder keeps one ConvTranspose node
-        ):
+        if not _grouped_on_onednn(hidden, self.groups) or settings != ((1, 4), (1, 2), (0, 1), (0, 0), (1, 1)):
             return super().forward(hidden)
         return two_phase_upsampling(hidden, self.weight, self.bias, self.groups)
+
+
+class GroupedDownsampling(nn.Conv2d):
+    """`nn.Conv2d` with stride 2 over time per dimension, run as a stride-1 convolution on the CPU (see above)."""
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        """Map (B, A * in, 1, T) to (B, A * out, 1, ceil(T / 2))."""
+        settings = (self.kernel_size, self.stride, self.padding, self.dilation)
+        if not _grouped_on_onednn(hidden, self.groups) or settings != ((1, 3), (1, 2), (0, 1), (1, 1)):
+            return super().forward(hidden)
+        # Kernel 3, padding 1: stride-2 output t is stride-1 output 2t.
+        every_step = F.conv2d(hidden, self.weight, self.bias, padding=(0, 1), groups=self.groups)  # (B, A*out, 1, T)
+        return every_step[..., ::2].contiguous(memory_format=torch.channels_last)
+
+
+def _grouped_on_onednn(hidden: torch.Tensor, groups: int) -> bool:
+    """Whether a grouped convolution over channels-last `hidden` would run on oneDNN (not while exporting to ONNX)."""
+    return (
+        groups > 1
+        and hidden.device.type == "cpu"
+        and hidden.is_contiguous(memory_format=torch.channels_last)
+        and not torch.onnx.is_in_onnx_export()  # the exported graph keeps PyTorch's own convolution nodes
+    )
 
 
 class ResidualBlock(nn.Module):
