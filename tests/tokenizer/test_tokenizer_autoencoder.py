@@ -36,6 +36,20 @@ def test_grouped_upsampling_doubles_the_length_like_conv_transpose1d():
     assert torch.allclose(output[:, :, 0], expected, atol=1e-6)
 
 
+def assert_same_values_and_gradients(output, expected, inputs):
+    """`output` equals `expected` (both channels-last), and so do their gradients with respect to `inputs`."""
+    assert output.shape == expected.shape
+    assert output.is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(output, expected, atol=1e-6)
+    grad_output = torch.randn_like(expected)
+    for got, want in zip(
+        torch.autograd.grad(output, inputs, grad_output),
+        torch.autograd.grad(expected, inputs, grad_output),
+        strict=True,
+    ):
+        assert torch.allclose(got, want, atol=1e-5)
+
+
 @pytest.mark.parametrize("groups", [1, 3])
 def test_two_phase_upsampling_matches_conv_transpose_with_gradients(groups):
     # The CPU form of the grouped up-sampling: same outputs and same gradients as PyTorch's transposed convolution.
@@ -47,16 +61,7 @@ def test_two_phase_upsampling_matches_conv_transpose_with_gradients(groups):
     )  # (B, A * ch, 1, 12)
     output = two_phase_upsampling(image, upsampling.weight, upsampling.bias, groups)
     assert output.shape == expected.shape == (5, groups * 4, 1, 12)
-    assert output.is_contiguous(memory_format=torch.channels_last)
-    assert torch.allclose(output, expected, atol=1e-6)
-    grad_output = torch.randn_like(expected)
-    inputs = (image, upsampling.weight, upsampling.bias)
-    for got, want in zip(
-        torch.autograd.grad(output, inputs, grad_output),
-        torch.autograd.grad(expected, inputs, grad_output),
-        strict=True,
-    ):
-        assert torch.allclose(got, want, atol=1e-5)
+    assert_same_values_and_gradients(output, expected, (image, upsampling.weight, upsampling.bias))
 
 
 @pytest.mark.parametrize("length", [8, 7])
@@ -68,16 +73,7 @@ def test_grouped_downsampling_matches_strided_conv_with_gradients(length):
     expected = F.conv2d(image, downsampling.weight, downsampling.bias, stride=(1, 2), padding=(0, 1), groups=3)
     output = downsampling(image)
     assert output.shape == expected.shape == (5, 3 * 5, 1, (length + 1) // 2)
-    assert output.is_contiguous(memory_format=torch.channels_last)
-    assert torch.allclose(output, expected, atol=1e-6)
-    grad_output = torch.randn_like(expected)
-    inputs = (image, downsampling.weight, downsampling.bias)
-    for got, want in zip(
-        torch.autograd.grad(output, inputs, grad_output),
-        torch.autograd.grad(expected, inputs, grad_output),
-        strict=True,
-    ):
-        assert torch.allclose(got, want, atol=1e-5)
+    assert_same_values_and_gradients(output, expected, (image, downsampling.weight, downsampling.bias))
 
 
 def test_grouped_norm_keeps_statistics_per_sample_and_dimension():
