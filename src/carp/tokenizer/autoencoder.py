@@ -103,7 +103,8 @@ def grouped_upsampling(num_dimensions: int, channels: int) -> nn.ConvTranspose2d
 # so both keep PyTorch's convolutions, as does ONNX export.
 
 # Transposed-conv tap feeding phase r from input offset d, for (r, d) in (0, 1) x (-1, 0, 1); 4 = none (zero).
-_PHASE_TAPS = (3, 1, 4, 4, 2, 0)
+# Built once: the two-phase form only runs on the CPU.
+_PHASE_TAPS = torch.tensor((3, 1, 4, 4, 2, 0))
 
 
 def two_phase_upsampling(
@@ -122,7 +123,7 @@ def two_phase_upsampling(
     """
     batch, _, _, length = hidden.shape
     in_channels, out_channels = weight.shape[0] // groups, weight.shape[1]
-    taps = torch.tensor(_PHASE_TAPS, device=weight.device)
+    taps = _PHASE_TAPS.to(weight.device)  # a no-op on the CPU
     # (G, in, out, 4 taps + a zero tap) -> (G, in, out, phase, offset) -> (G * phase * out, in, 1, offset), a
     # convolution weight (cross-correlation), whose taps 0, 1, 2 read offsets -1, 0, 1.
     phase_weight = F.pad(weight.reshape(groups, in_channels, out_channels, 4), (0, 1)).index_select(3, taps)
