@@ -5,7 +5,13 @@ import torch
 import torch.nn.functional as F
 from einops import rearrange
 
-from carp.tokenizer.autoencoder import grouped_conv, grouped_norm, grouped_upsampling, two_phase_upsampling
+from carp.tokenizer.autoencoder import (
+    grouped_conv,
+    grouped_norm,
+    grouped_upsampling,
+    stride1_downsampling,
+    two_phase_upsampling,
+)
 
 
 def channels_last_image(sequence: torch.Tensor) -> torch.Tensor:
@@ -66,13 +72,25 @@ def test_two_phase_upsampling_matches_conv_transpose_with_gradients(groups):
 
 @pytest.mark.parametrize("length", [8, 7])
 def test_grouped_downsampling_matches_strided_conv_with_gradients(length):
-    # On the CPU with several groups it runs as a stride-1 convolution kept at every second step.
+    # Whichever form this CPU runs (the stride-1 one without AVX-512), the module is PyTorch's strided convolution.
     torch.manual_seed(0)
     downsampling = grouped_conv(3, 4, 5, stride=2).to(memory_format=torch.channels_last)
     image = channels_last_image(torch.randn(5, 3 * 4, length)).requires_grad_()
     expected = F.conv2d(image, downsampling.weight, downsampling.bias, stride=(1, 2), padding=(0, 1), groups=3)
     output = downsampling(image)
     assert output.shape == expected.shape == (5, 3 * 5, 1, (length + 1) // 2)
+    assert_same_values_and_gradients(output, expected, (image, downsampling.weight, downsampling.bias))
+
+
+@pytest.mark.parametrize(("groups", "length"), [(1, 8), (3, 8), (3, 7)])
+def test_stride1_downsampling_matches_strided_conv_with_gradients(groups, length):
+    # The form CPUs without AVX-512 run, checked on every machine.
+    torch.manual_seed(0)
+    downsampling = grouped_conv(groups, 4, 5, stride=2).to(memory_format=torch.channels_last)
+    image = channels_last_image(torch.randn(5, groups * 4, length)).requires_grad_()
+    expected = F.conv2d(image, downsampling.weight, downsampling.bias, stride=(1, 2), padding=(0, 1), groups=groups)
+    output = stride1_downsampling(image, downsampling.weight, downsampling.bias, groups)
+    assert output.shape == expected.shape == (5, groups * 5, 1, (length + 1) // 2)
     assert_same_values_and_gradients(output, expected, (image, downsampling.weight, downsampling.bias))
 
 
