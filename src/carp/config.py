@@ -159,10 +159,10 @@ class PolicyConfig:
             elsewhere; `float32` or `bfloat16` force one. Weights, optimizer state, attention on CPU, the loss and
             inference stay float32 (see `carp.training.runtime.resolve_precision`).
         epochs_per_task: task -> policy epochs of that task's policy, overriding `epochs` (Square measured 34% at
-            20 epochs and 68% at 35; Can 82% at 20 alone, 66% at 35 in a three-task run; see the README).
+            20 epochs and 68% at 35; Can 82% at 20 alone, 66% at 35 in a three-task run; see docs/measurements.md).
         top_k_per_task: task -> token choice of that task's evaluation, overriding `top_k` (in three-task run C, top-5
-            draws lifted Can from 48% to 78% while Square did best greedy; see the README). Decoding only: a change
-            reruns evaluation, not training.
+            draws lifted Can from 48% to 78% while Square did best greedy; see docs/measurements.md). Decoding only: a
+            change reruns evaluation, not training.
     """
 
     depth: int = 8

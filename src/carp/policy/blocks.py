@@ -158,9 +158,10 @@ def _blockwise_attention(
     """Block-causal attention of (B, Nh, L, d) queries, keys and values, one unmasked product per block.
 
     The queries of block k score only the keys of blocks 1..k, so no score is masked out and none is computed in vain:
-    with scales (1, 2, 3, 4) that is 65% of the L x L scores. On a 2-core AMD EPYC with AVX2 only (README),
-    forward + backward at training size (B 64, 8 heads of width 8, L 100) took 33 ms per layer this way against 64 ms
-    for PyTorch's flash kernel with the dense mask and 47 ms for the same products over all L x L scores.
+    with scales (1, 2, 3, 4) that is 65% of the L x L scores. On a 2-core AMD EPYC with AVX2 only
+    (docs/measurements.md), forward + backward at training size (B 64, 8 heads of width 8, L 100) took 33 ms per layer
+    this way against 64 ms for PyTorch's flash kernel with the dense mask and 47 ms for the same products over all
+    L x L scores.
     """
     scale = query.shape[-1] ** -0.5
     attended = []
