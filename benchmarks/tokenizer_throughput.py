@@ -14,8 +14,11 @@ Blocks rather than single batches because a variant's first step after the other
 allocator), which in training, where steps of one model follow each other, never happens. `--block 0` runs whole
 epochs alternately (the method before 2026-11-25), where single rounds spread over 3.4-6.2x on one machine and code.
 
+Device (`--device`): "auto" as the trainer (`tokenizer.device`), so CUDA where present; the timer waits for the GPU
+at the end of every block. The targets and measurements in docs/measurements.md are from CPUs.
+
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
-        [--block 8]
+        [--block 8] [--device auto]
 """
 
 import argparse
@@ -29,6 +32,7 @@ from carp.tokenizer.per_dimension import split_into_single_dimension_tokenizers
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.runtime import resolve_device
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings
 
 WARMUP_STEPS = 3
@@ -57,13 +61,15 @@ def loop_step(tokenizers, optimizer, batch):
 
 def shuffled_batches(windows: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, ...]:
     """One epoch's batches, (b, H, A) each, in a fresh random order."""
-    return torch.split(windows[torch.randperm(windows.shape[0])], batch_size)
+    return torch.split(windows[torch.randperm(windows.shape[0], device=windows.device)], batch_size)
 
 
 def timed_block(step: Step, batches: Sequence[torch.Tensor]) -> float:
     started = time.perf_counter()
     for batch in batches:
         step(batch)
+    if batches[0].is_cuda:
+        torch.cuda.synchronize(batches[0].device)  # kernels are queued: wait for them before reading the clock
     return time.perf_counter() - started
 
 
@@ -89,17 +95,24 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
     parser.add_argument("--rounds", type=int, default=9, help="epochs per variant")
     parser.add_argument("--block", type=int, default=8, help="batches per variant's turn; 0: whole epochs in turn")
+    parser.add_argument("--device", default=TokenizerTrainingSettings().device, help='"auto", "cpu", "cuda", ...')
     arguments = parser.parse_args()
     if arguments.rounds < 1:
         parser.error(f"--rounds must be at least 1, got {arguments.rounds}")
     if arguments.block < 0:
         parser.error(f"--block must be 0 (whole epochs) or a positive number of batches, got {arguments.block}")
+    try:
+        device = resolve_device(arguments.device)
+    except RuntimeError:
+        parser.error(f'--device must be "auto", "cpu", "cuda" or "cuda:<index>", got {arguments.device!r}')
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error(f"--device {arguments.device}: CUDA is not available here")
     torch.set_num_threads(arguments.threads)
     torch.manual_seed(0)
 
     spec = TokenizerSpec(action_dim=10)
-    windows = make_windows(arguments.episodes, spec)
-    vectorized = MultiScaleActionTokenizer(spec).train()
+    windows = make_windows(arguments.episodes, spec).to(device)
+    vectorized = MultiScaleActionTokenizer(spec).to(device).train()
     singles = [single.train() for single in split_into_single_dimension_tokenizers(vectorized)]
     # Both use the trainer's optimizer (fused AdamW), so the comparison isolates the model's forward and backward.
     vectorized_optimizer = torch.optim.AdamW(vectorized.parameters(), lr=1e-3, fused=True)
@@ -118,7 +131,7 @@ def main() -> None:
     rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
-        f"batch {arguments.batch_size}, {windows.shape[0]} windows, {arguments.threads} thread(s), "
+        f"batch {arguments.batch_size}, {windows.shape[0]} windows, {device}, {arguments.threads} thread(s), "
         f"median of {arguments.rounds} epochs each, in turns of {turns}, "
         f"torch {torch.__version__}"
     )

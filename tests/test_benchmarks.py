@@ -1,0 +1,90 @@
+"""`make benchmark`'s scripts run end to end on tiny settings and print tables whose numbers agree with each other.
+
+Speeds are not asserted here (they live in the benchmarks' own output and docs/measurements.md); what is asserted is
+that the scripts still run against the current library, print every row, and refuse bad arguments with one line.
+"""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+NUMBER = r"(\d+(?:\.\d+)?)"
+
+
+def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, f"benchmarks/{script}", *arguments],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def test_tokenizer_throughput_prints_both_variants_with_consistent_numbers():
+    completed = run_benchmark(
+        "tokenizer_throughput.py", "--episodes", "3", "--rounds", "2", "--block", "2", "--device", "cpu"
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    header = completed.stdout.splitlines()[0]
+    windows = int(re.search(r"(\d+) windows", header).group(1))
+    assert "A=10" in header and "cpu" in header and "median of 2 epochs" in header and "turns of 2 batches" in header
+    row_pattern = rf"^(vectorized \(one module\)|loop over \d+ modules)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}x$"
+    rows = {
+        match.group(1): tuple(float(value) for value in match.groups()[1:])
+        for match in re.finditer(row_pattern, completed.stdout, flags=re.MULTILINE)
+    }
+    assert set(rows) == {"vectorized (one module)", "loop over 10 modules"}, completed.stdout
+    (vectorized_seconds, vectorized_rate, speed_up), (loop_seconds, loop_rate, loop_speed_up) = rows.values()
+    assert loop_speed_up == 1.0
+    for seconds, rate in ((vectorized_seconds, vectorized_rate), (loop_seconds, loop_rate)):
+        assert seconds > 0
+        assert rate == pytest.approx(windows / seconds, rel=0.06)  # seconds are printed to 0.01 s
+    assert speed_up == pytest.approx(vectorized_rate / loop_rate, abs=0.06)
+    low, high, median = (
+        float(value)
+        for value in re.search(rf"single rounds: {NUMBER}x to {NUMBER}x, median {NUMBER}x", completed.stdout).groups()
+    )
+    assert low <= median <= high
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (("--rounds", "0"), "--rounds must be at least 1, got 0"),
+        (("--block", "-1"), "--block must be 0 (whole epochs) or a positive number of batches, got -1"),
+        (("--device", "gpu0"), '--device must be "auto", "cpu", "cuda" or "cuda:<index>", got \'gpu0\''),
+    ],
+)
+def test_tokenizer_throughput_refuses_bad_arguments_in_one_line(arguments, message):
+    completed = run_benchmark("tokenizer_throughput.py", *arguments, timeout=120)
+    assert completed.returncode == 2
+    assert completed.stderr.strip().splitlines()[-1] == f"tokenizer_throughput.py: error: {message}"
+    assert completed.stdout == ""
+
+
+@pytest.mark.slow
+def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
+    completed = run_benchmark(
+        "policy_speed.py", "--chunks", "2", "--batched-calls", "1", "--train-steps", "1", "--skip-onnx"
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    table = {
+        match.group(1).strip(): (float(match.group(2)), float(match.group(3)))
+        for match in re.finditer(rf"^\| ([^|]+?)\s+\|\s+{NUMBER} \|\s+{NUMBER} \|$", completed.stdout, re.MULTILINE)
+    }
+    for part in ("total", "prediction", "decoding"):
+        median, p90 = table[f"batch 1, 1 thread: {part} per chunk (ms)"]
+        assert 0 < median <= p90
+    per_call, _ = table["batch 64, 1 thread: total per call (ms)"]
+    per_chunk, _ = table["batch 64, 1 thread: total per chunk (ms)"]
+    assert per_chunk == pytest.approx(per_call / 64, rel=0.01)
+    training = re.findall(rf"{NUMBER} s per step .*?, {NUMBER} samples/s, speed-up x{NUMBER}", completed.stdout)
+    assert len(training) >= 1, completed.stdout
+    for seconds, samples_per_second, speed_up in ((float(value) for value in row) for row in training):
+        assert samples_per_second == pytest.approx(256 / seconds, rel=0.01)
+        assert speed_up == pytest.approx(2.6 / seconds, rel=0.01)
