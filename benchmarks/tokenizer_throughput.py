@@ -14,7 +14,7 @@ Blocks rather than single batches because a variant's first step after the other
 allocator), which in training, where steps of one model follow each other, never happens. `--block 0` runs whole
 epochs alternately (the method before 2026-11-25), where single rounds spread over 3.4-6.2x on one machine and code.
 
-Device (`--device`): "auto" as the trainer (`tokenizer.device`), so CUDA where present; the timer waits for the GPU
+Device (`--device`): "auto" as the pipeline's `device` param, so CUDA where present; the timer waits for the GPU
 at the end of every block. The targets and measurements in docs/measurements.md are from CPUs.
 
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
