@@ -32,7 +32,12 @@ def test_tokenizer_throughput_prints_both_variants_with_consistent_numbers():
     assert completed.returncode == 0, completed.stderr[-2000:]
     header = completed.stdout.splitlines()[0]
     windows = int(re.search(r"(\d+) windows", header).group(1))
-    assert "A=10" in header and "cpu" in header and "median of 2 epochs" in header and "turns of 2 batches" in header
+    assert (
+        "A=10" in header
+        and re.search(r"\bcpu [A-Z0-9]+\b", header)
+        and "median of 2 epochs" in header
+        and "turns of 2 batches" in header
+    )
     row_pattern = rf"^(vectorized \(one module\)|loop over \d+ modules)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}x$"
     rows = {
         match.group(1): tuple(float(value) for value in match.groups()[1:])
@@ -50,6 +55,12 @@ def test_tokenizer_throughput_prints_both_variants_with_consistent_numbers():
         for value in re.search(rf"single rounds: {NUMBER}x to {NUMBER}x, median {NUMBER}x", completed.stdout).groups()
     )
     assert low <= median <= high
+    target = re.search(rf"target: at least {NUMBER}x at A=10: (met|not met) \({NUMBER}x\)", completed.stdout)
+    assert target is not None, completed.stdout
+    target_speed_up, verdict, measured = float(target.group(1)), target.group(2), float(target.group(3))
+    assert measured == pytest.approx(speed_up, abs=0.051)  # the table gives one decimal, this line two
+    if abs(measured - target_speed_up) > 0.005:  # printed to two decimals: 5.00 may be 4.996 and not met
+        assert verdict == ("met" if measured > target_speed_up else "not met")
 
 
 @pytest.mark.parametrize(
