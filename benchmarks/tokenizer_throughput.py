@@ -140,6 +140,7 @@ def main() -> None:
             seconds[name].append(value)
     turns = f"{arguments.block} batches" if arguments.block else "whole epochs"
     rates = {name: windows.shape[0] / statistics.median(values) for name, values in seconds.items()}
+    speed_ups = {name: rate / rates[loop_name] for name, rate in rates.items()}
     print(
         f"tokenizer training throughput: A={spec.action_dim}, H={spec.action_horizon}, V={spec.codebook_size}, "
         f"batch {arguments.batch_size}, {windows.shape[0]} windows, {device_description(device)}, "
@@ -149,8 +150,7 @@ def main() -> None:
     )
     print(f"{'variant':<26}{'epoch s':>10}{'windows/s':>12}{'speed-up':>10}")
     for name, values in seconds.items():
-        speed_up = rates[name] / rates[loop_name]
-        print(f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}{speed_up:>9.1f}x")
+        print(f"{name:<26}{statistics.median(values):>10.2f}{rates[name]:>12.0f}{speed_ups[name]:>9.1f}x")
     # Each round's loop epoch over its vectorized epoch: how far one round alone can be trusted.
     round_ratios = [
         loop / vectorized for vectorized, loop in zip(seconds[vectorized_name], seconds[loop_name], strict=True)
@@ -160,9 +160,10 @@ def main() -> None:
         f"median {statistics.median(round_ratios):.1f}x; vectorized epochs "
         f"{min(seconds[vectorized_name]):.2f}-{max(seconds[vectorized_name]):.2f} s"
     )
-    speed_up = rates[vectorized_name] / rates[loop_name]
-    verdict = "met" if speed_up >= TARGET_SPEED_UP else "not met"  # unrounded: 4.96x is not 5x
-    print(f"target: at least {TARGET_SPEED_UP:.1f}x at A={spec.action_dim}: {verdict} ({speed_up:.2f}x)")
+    verdict = "met" if speed_ups[vectorized_name] >= TARGET_SPEED_UP else "not met"  # unrounded: 4.96x is not 5x
+    print(
+        f"target: at least {TARGET_SPEED_UP:.1f}x at A={spec.action_dim}: {verdict} ({speed_ups[vectorized_name]:.2f}x)"
+    )
 
 
 if __name__ == "__main__":
