@@ -2,7 +2,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import BlockCausalMask, _attention, _blockwise_attention
+from carp.policy import blocks
+from carp.policy.blocks import (
+    BlockCausalMask,
+    _attention,
+    _blockwise_attention,
+    cpu_prefers_blockwise_attention,
+    cpu_vendor,
+)
 from carp.policy.layout import TokenLayout
 
 
@@ -38,11 +45,17 @@ def test_blockwise_attention_equals_dense_masked_attention_and_its_gradients(act
         torch.testing.assert_close(mine, reference, rtol=1e-5, atol=1e-5)
 
 
-def test_cpu_attention_with_a_block_causal_mask_runs_blockwise():
+@pytest.mark.parametrize("blockwise", [True, False])
+def test_cpu_attention_with_a_block_causal_mask_runs_the_kernel_the_cpu_prefers(monkeypatch, blockwise):
+    monkeypatch.setattr(blocks, "_CPU_BLOCKWISE_ATTENTION", blockwise)
     mask = _layout_mask(10, (1, 2, 3, 4))
     query, key, value = (tensor.detach() for tensor in _qkv(2, 8, 100, 8))
     attended = _attention(query, key, value, mask, 0.0)
-    torch.testing.assert_close(attended, _blockwise_attention(query, key, value, mask.block_ends, 0.0), rtol=0, atol=0)
+    if blockwise:
+        expected = _blockwise_attention(query, key, value, mask.block_ends, 0.0)
+    else:
+        expected = F.scaled_dot_product_attention(query, key, value, attn_mask=mask.dense)
+    torch.testing.assert_close(attended, expected, rtol=0, atol=0)
     # A query of the first scale never sees a later key: changing the last scale's keys leaves it unchanged.
     changed_key = key.clone()
     changed_key[:, :, 60:] += 1.0
@@ -58,3 +71,23 @@ def test_blockwise_attention_dropout_drops_weights_only_when_asked():
     torch.manual_seed(0)
     dropped = _blockwise_attention(query, key, value, mask.block_ends, 0.5)
     assert not torch.allclose(plain, dropped)
+
+
+@pytest.mark.parametrize(
+    ("text", "vendor", "blockwise"),
+    [
+        ("processor\t: 0\nvendor_id\t: GenuineIntel\nflags\t\t: avx2\n", "GenuineIntel", False),
+        ("processor\t: 0\nvendor_id\t: AuthenticAMD\n", "AuthenticAMD", True),
+        ("processor\t: 0\nCPU implementer\t: 0x41\n", "", True),
+    ],
+)
+def test_cpu_vendor_is_read_from_cpuinfo_and_only_intel_takes_the_masked_kernel(tmp_path, text, vendor, blockwise):
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(text)
+    assert cpu_vendor(cpuinfo) == vendor
+    assert cpu_prefers_blockwise_attention(vendor) is blockwise
+
+
+def test_unreadable_cpuinfo_gives_no_vendor_and_the_blockwise_kernel(tmp_path):
+    assert cpu_vendor(tmp_path / "missing") == ""
+    assert cpu_prefers_blockwise_attention(cpu_vendor(tmp_path / "missing"))

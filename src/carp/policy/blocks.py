@@ -15,6 +15,7 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
 """
 
 import math
+from pathlib import Path
 from typing import NamedTuple
 
 import torch
@@ -24,6 +25,35 @@ from torch import nn
 NORM_EPS = 1e-6
 MODULATIONS_PER_BLOCK = 6
 """Shift, scale and gate for the attention branch, then the same for the feed-forward branch."""
+
+
+def cpu_vendor(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's vendor string as Linux reports it ("GenuineIntel", "AuthenticAMD"), or "" where it cannot be read."""
+    try:
+        with cpuinfo.open() as lines:
+            for line in lines:
+                name, _, value = line.partition(":")
+                if name.strip() == "vendor_id":
+                    return value.strip()
+    except OSError:
+        pass
+    return ""
+
+
+def cpu_prefers_blockwise_attention(vendor: str) -> bool:
+    """Whether block-causal training attention on this CPU runs faster block by block than as one masked kernel.
+
+    Measured per machine kind (docs/measurements.md, "Benchmarks"), forward + backward of the float32 attention at
+    training size: on a 2-core AMD EPYC with AVX2 the blocks took 33 ms per layer at batch 64 against 64 ms for
+    PyTorch's flash kernel with the dense mask; on a 2-core Intel Xeon with AMX the flash kernel took 12.5 against
+    12.6 ms at batch 64 and 53 against 64 ms at batch 256, and whole bfloat16 training steps were 10% faster with it
+    at batch 64 and 11% at batch 256. Intel CPUs therefore take the flash kernel and all others the blocks, which is
+    what the AMD AVX-512 machine has run and been measured with.
+    """
+    return vendor != "GenuineIntel"
+
+
+_CPU_BLOCKWISE_ATTENTION = cpu_prefers_blockwise_attention(cpu_vendor())
 
 
 class BlockCausalMask(NamedTuple):
@@ -136,20 +166,20 @@ def _attention(
 ) -> torch.Tensor:
     """Scaled dot-product attention of (B, Nh, N, d) queries on (B, Nh, n, d) keys and values.
 
-    With a block-causal mask on the CPU the attention is computed block by block (`_blockwise_attention`); elsewhere
-    by `F.scaled_dot_product_attention` with the dense mask. Under CPU autocast (bfloat16 training) attention still
+    With a block-causal mask on a CPU that prefers it (`cpu_prefers_blockwise_attention`) the attention is computed
+    block by block (`_blockwise_attention`); elsewhere by `F.scaled_dot_product_attention` with the dense mask; both
+    agree to float rounding (tests/policy/test_blocks.py). Under CPU autocast (bfloat16 training) attention still
     runs in float32: PyTorch's CPU flash-attention backward measured ~7x slower in bfloat16 than in float32 at
     training size (head width 8), more than the casts cost.
     """
-    if query.device.type != "cpu":
-        dense = None if mask is None else mask.dense
-        return F.scaled_dot_product_attention(query, key, value, attn_mask=dense, dropout_p=dropout)
-    if torch.is_autocast_enabled("cpu"):
+    on_cpu = query.device.type == "cpu"
+    if on_cpu and torch.is_autocast_enabled("cpu"):
         with torch.autocast("cpu", enabled=False):
             return _attention(query.float(), key.float(), value.float(), mask, dropout)
-    if mask is None:
-        return F.scaled_dot_product_attention(query, key, value, dropout_p=dropout)
-    return _blockwise_attention(query, key, value, mask.block_ends, dropout)
+    if on_cpu and mask is not None and _CPU_BLOCKWISE_ATTENTION:
+        return _blockwise_attention(query, key, value, mask.block_ends, dropout)
+    dense = None if mask is None else mask.dense
+    return F.scaled_dot_product_attention(query, key, value, attn_mask=dense, dropout_p=dropout)
 
 
 def _blockwise_attention(
@@ -158,10 +188,8 @@ def _blockwise_attention(
     """Block-causal attention of (B, Nh, L, d) queries, keys and values, one unmasked product per block.
 
     The queries of block k score only the keys of blocks 1..k, so no score is masked out and none is computed in vain:
-    with scales (1, 2, 3, 4) that is 65% of the L x L scores. On a 2-core AMD EPYC with AVX2 only
-    (docs/measurements.md), forward + backward at training size (B 64, 8 heads of width 8, L 100) took 33 ms per layer
-    this way against 64 ms for PyTorch's flash kernel with the dense mask and 47 ms for the same products over all
-    L x L scores.
+    with scales (1, 2, 3, 4) that is 65% of the L x L scores. Which CPUs run it: `cpu_prefers_blockwise_attention`
+    (on the AMD AVX2 machine the same products over all L x L scores, masked, took 47 ms per layer against 33 ms).
     """
     scale = query.shape[-1] ** -0.5
     attended = []
