@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from carp.policy.blocks import cpu_prefers_blockwise_attention, cpu_vendor
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NUMBER = r"(\d+(?:\.\d+)?)"
 
@@ -81,7 +83,15 @@ def test_tokenizer_throughput_refuses_bad_arguments_in_one_line(arguments, messa
 @pytest.mark.slow
 def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     completed = run_benchmark(
-        "policy_speed.py", "--chunks", "2", "--batched-calls", "1", "--train-steps", "1", "--skip-onnx"
+        "policy_speed.py",
+        "--chunks",
+        "2",
+        "--batched-calls",
+        "1",
+        "--train-steps",
+        "1",
+        "--skip-onnx",
+        "--compare-attention",
     )
     assert completed.returncode == 0, completed.stderr[-2000:]
     table = {
@@ -99,3 +109,17 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     for seconds, samples_per_second, speed_up in ((float(value) for value in row) for row in training):
         assert samples_per_second == pytest.approx(256 / seconds, rel=0.01)
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01)
+    # --compare-attention: both kernels at batch 256 and at 64, and the kernel this CPU trains with.
+    vendor = cpu_vendor() or "unknown"
+    preferred = "blockwise" if cpu_prefers_blockwise_attention(cpu_vendor()) else "masked flash"
+    assert f"(CPU vendor {vendor}: trains with {preferred} attention)" in completed.stdout
+    kernel_rows = re.findall(
+        rf"^ batch (\d+):\n.*?, blockwise attention {NUMBER} s per step .*?, {NUMBER} samples/s.*\n"
+        rf".*?, masked flash attention {NUMBER} s per step .*?, {NUMBER} samples/s",
+        completed.stdout,
+        flags=re.MULTILINE,
+    )
+    assert [int(row[0]) for row in kernel_rows] == [256, 64], completed.stdout
+    for batch_size, *numbers in kernel_rows:
+        for seconds, samples_per_second in zip(numbers[0::2], numbers[1::2], strict=True):
+            assert float(samples_per_second) == pytest.approx(int(batch_size) / float(seconds), rel=0.01)
