@@ -21,7 +21,6 @@ Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--ski
 """
 
 import argparse
-import contextlib
 import statistics
 import tempfile
 import time
@@ -32,7 +31,7 @@ import torch
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
-from carp.policy import blocks
+from carp.policy.blocks import cpu_attention_kernel, cpu_prefers_blockwise_attention, cpu_vendor
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
@@ -90,17 +89,6 @@ Variant = tuple[torch.dtype, bool | None]
 """A training step's precision, and whether CPU attention runs block by block (None: as this CPU prefers)."""
 
 
-@contextlib.contextmanager
-def attention_kernel(blockwise: bool | None):
-    """Block-causal CPU attention block by block (True), as one masked kernel (False) or as this CPU prefers (None)."""
-    preferred = blocks._CPU_BLOCKWISE_ATTENTION
-    blocks._CPU_BLOCKWISE_ATTENTION = preferred if blockwise is None else blockwise
-    try:
-        yield
-    finally:
-        blocks._CPU_BLOCKWISE_ATTENTION = preferred
-
-
 def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, variants: list[Variant]) -> dict:
     """Median wall and CPU seconds per training step (all threads) per variant, steps alternating between them."""
     spec = policy.spec
@@ -116,7 +104,7 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, variant
         optimizer = make_optimizer(transformer, PolicyTrainingSettings())
 
         def step() -> None:
-            with attention_kernel(blockwise):
+            with cpu_attention_kernel(blockwise):
                 loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -138,11 +126,11 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, variant
     return {variant: (statistics.median(wall), statistics.median(cpu)) for variant, (wall, cpu) in durations.items()}
 
 
-def print_training(timings: dict, batch_size: int, auto: torch.dtype, label_kernels: bool) -> None:
+def print_training(timings: dict, batch_size: int, auto: torch.dtype) -> None:
     """One line per variant: seconds per step, samples/s and the speed-up over the official step at batch 256."""
     for (precision, blockwise), (seconds, cpu_seconds) in timings.items():
         name = precision_name(precision) + (" (auto)" if precision == auto else "")
-        if label_kernels:
+        if blockwise is not None:
             name += ", blockwise attention" if blockwise else ", masked flash attention"
         line = (
             f"  {name:<16} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over both threads), "
@@ -210,17 +198,16 @@ def main() -> None:
             f"training at batch 256, 2 threads (official: {OFFICIAL_TRAIN_STEP_SECONDS} s per step = "
             f"{256 / OFFICIAL_TRAIN_STEP_SECONDS:.0f} samples/s):"
         )
-        print_training(timings, 256, auto, label_kernels=False)
+        print_training(timings, 256, auto)
         if args.compare_attention:
-            vendor = blocks.cpu_vendor() or "unknown"
-            preferred = "blockwise" if blocks._CPU_BLOCKWISE_ATTENTION else "masked flash"
+            vendor = cpu_vendor()
+            preferred = "blockwise" if cpu_prefers_blockwise_attention(vendor) else "masked flash"
+            vendor = vendor or "unknown"
             print(f"attention kernels in training, 2 threads (CPU vendor {vendor}: trains with {preferred} attention):")
             for batch_size in (256, 64):
                 print(f" batch {batch_size}:")
                 variants = [(auto, True), (auto, False)]
-                print_training(
-                    train_steps_seconds(policy, batch_size, args.train_steps, variants), batch_size, auto, True
-                )
+                print_training(train_steps_seconds(policy, batch_size, args.train_steps, variants), batch_size, auto)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ from carp.policy.blocks import (
     BlockCausalMask,
     _attention,
     _blockwise_attention,
+    cpu_attention_kernel,
     cpu_prefers_blockwise_attention,
     cpu_vendor,
 )
@@ -91,3 +92,20 @@ def test_cpu_vendor_is_read_from_cpuinfo_and_only_intel_takes_the_masked_kernel(
 def test_unreadable_cpuinfo_gives_no_vendor_and_the_blockwise_kernel(tmp_path):
     assert cpu_vendor(tmp_path / "missing") == ""
     assert cpu_prefers_blockwise_attention(cpu_vendor(tmp_path / "missing"))
+
+
+@pytest.mark.parametrize("blockwise", [True, False])
+def test_cpu_attention_kernel_selects_a_kernel_for_its_block_only(blockwise):
+    mask = _layout_mask(3, (1, 2, 4))
+    query, key, value = (tensor.detach() for tensor in _qkv(2, 4, 21, 8))
+    preferred = blocks._CPU_BLOCKWISE_ATTENTION
+    with cpu_attention_kernel(blockwise):
+        attended = _attention(query, key, value, mask, 0.0)
+        with cpu_attention_kernel(None):
+            assert blocks._CPU_BLOCKWISE_ATTENTION is blockwise
+    assert blocks._CPU_BLOCKWISE_ATTENTION is preferred
+    if blockwise:
+        expected = _blockwise_attention(query, key, value, mask.block_ends, 0.0)
+    else:
+        expected = F.scaled_dot_product_attention(query, key, value, attn_mask=mask.dense)
+    torch.testing.assert_close(attended, expected, rtol=0, atol=0)

@@ -14,7 +14,9 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
   one Linear(D -> V) across dimensions and relies on the position embedding to tell them apart.
 """
 
+import contextlib
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -54,6 +56,22 @@ def cpu_prefers_blockwise_attention(vendor: str) -> bool:
 
 
 _CPU_BLOCKWISE_ATTENTION = cpu_prefers_blockwise_attention(cpu_vendor())
+
+
+@contextlib.contextmanager
+def cpu_attention_kernel(blockwise: bool | None) -> Iterator[None]:
+    """Choose the block-causal CPU attention kernel inside a `with` block: block by block (True) or one masked kernel.
+
+    None leaves the kernel as it is (outside any such block, the one `cpu_prefers_blockwise_attention` chose). Meant
+    for measuring both kernels on one machine (`benchmarks/policy_speed.py --compare-attention`).
+    """
+    global _CPU_BLOCKWISE_ATTENTION
+    preferred = _CPU_BLOCKWISE_ATTENTION
+    _CPU_BLOCKWISE_ATTENTION = preferred if blockwise is None else blockwise
+    try:
+        yield
+    finally:
+        _CPU_BLOCKWISE_ATTENTION = preferred
 
 
 class BlockCausalMask(NamedTuple):
