@@ -20,7 +20,7 @@ Device (`--device`): "auto" as the pipeline's `device` param, so CUDA where pres
 at the end of every block. The targets and measurements in docs/measurements.md are from CPUs.
 
     .venv/bin/python benchmarks/tokenizer_throughput.py [--threads 1] [--batch-size 64] [--episodes 40] [--rounds 9]
-        [--block 8] [--device auto]
+        [--block 8] [--device auto] [--also-onednn-loop]
 """
 
 import argparse
@@ -30,6 +30,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from carp.tokenizer.autoencoder import cpu_single_group_rows
 from carp.tokenizer.per_dimension import split_into_single_dimension_tokenizers
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
@@ -61,6 +62,12 @@ def loop_step(tokenizers, optimizer, batch):
     for dimension, tokenizer in enumerate(tokenizers):
         tokenizer(batch[:, :, dimension : dimension + 1]).loss.backward()
     optimizer.step()
+
+
+def onednn_loop_step(tokenizers, optimizer, batch):
+    """`loop_step` with the single-group convolutions on oneDNN's kernels (the loop before 2026-11-25)."""
+    with cpu_single_group_rows(False):
+        loop_step(tokenizers, optimizer, batch)
 
 
 def shuffled_batches(windows: torch.Tensor, batch_size: int) -> tuple[torch.Tensor, ...]:
@@ -107,6 +114,11 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=9, help="epochs per variant")
     parser.add_argument("--block", type=int, default=8, help="batches per variant's turn; 0: whole epochs in turn")
     parser.add_argument("--device", default=TokenizerTrainingSettings().device, help='"auto", "cpu", "cuda", ...')
+    parser.add_argument(
+        "--also-onednn-loop",
+        action="store_true",
+        help="also time the loop with oneDNN's single-group convolutions (the baseline before 2026-11-25)",
+    )
     arguments = parser.parse_args()
     if arguments.rounds < 1:
         parser.error(f"--rounds must be at least 1, got {arguments.rounds}")
@@ -130,10 +142,17 @@ def main() -> None:
     loop_optimizer = torch.optim.AdamW([p for single in singles for p in single.parameters()], lr=1e-3, fused=True)
 
     vectorized_name, loop_name = "vectorized (one module)", f"loop over {spec.action_dim} modules"
+    onednn_loop_name = "loop, oneDNN convolutions"
     steps: dict[str, Step] = {
         vectorized_name: lambda batch: vectorized_step(vectorized, vectorized_optimizer, batch),
         loop_name: lambda batch: loop_step(singles, loop_optimizer, batch),
     }
+    if arguments.also_onednn_loop:
+        # Its own copies of the initial weights (split before any step), so each loop trains as it would alone.
+        onednn_singles = [single.train() for single in split_into_single_dimension_tokenizers(vectorized)]
+        onednn_parameters = [p for single in onednn_singles for p in single.parameters()]
+        onednn_optimizer = torch.optim.AdamW(onednn_parameters, lr=1e-3, fused=True)
+        steps[onednn_loop_name] = lambda batch: onednn_loop_step(onednn_singles, onednn_optimizer, batch)
     seconds: dict[str, list[float]] = {name: [] for name in steps}
     for _ in range(arguments.rounds):
         for name, value in interleaved_epoch_seconds(steps, windows, arguments.batch_size, arguments.block).items():
@@ -164,6 +183,11 @@ def main() -> None:
     print(
         f"target: at least {TARGET_SPEED_UP:.1f}x at A={spec.action_dim}: {verdict} ({speed_ups[vectorized_name]:.2f}x)"
     )
+    if onednn_loop_name in rates:
+        print(
+            f"vectorized against the loop with oneDNN convolutions (the baseline before 2026-11-25): "
+            f"{rates[vectorized_name] / rates[onednn_loop_name]:.2f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -27,9 +27,10 @@ def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subproc
     )
 
 
-def test_tokenizer_throughput_prints_both_variants_with_consistent_numbers():
+def test_tokenizer_throughput_prints_every_variant_with_consistent_numbers():
     completed = run_benchmark(
-        "tokenizer_throughput.py", "--episodes", "3", "--rounds", "2", "--block", "2", "--device", "cpu"
+        "tokenizer_throughput.py",
+        *("--episodes", "3", "--rounds", "2", "--block", "2", "--device", "cpu", "--also-onednn-loop"),
     )
     assert completed.returncode == 0, completed.stderr[-2000:]
     header = completed.stdout.splitlines()[0]
@@ -40,18 +41,22 @@ def test_tokenizer_throughput_prints_both_variants_with_consistent_numbers():
         and "median of 2 epochs" in header
         and "turns of 2 batches" in header
     )
-    row_pattern = rf"^(vectorized \(one module\)|loop over \d+ modules)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}x$"
+    variants = ("vectorized (one module)", "loop over 10 modules", "loop, oneDNN convolutions")
+    row_pattern = rf"^({'|'.join(map(re.escape, variants))})\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}x$"
     rows = {
         match.group(1): tuple(float(value) for value in match.groups()[1:])
         for match in re.finditer(row_pattern, completed.stdout, flags=re.MULTILINE)
     }
-    assert set(rows) == {"vectorized (one module)", "loop over 10 modules"}, completed.stdout
-    (vectorized_seconds, vectorized_rate, speed_up), (loop_seconds, loop_rate, loop_speed_up) = rows.values()
+    assert tuple(rows) == variants, completed.stdout
+    (_, vectorized_rate, speed_up), (_, loop_rate, loop_speed_up), onednn = rows.values()
     assert loop_speed_up == 1.0
-    for seconds, rate in ((vectorized_seconds, vectorized_rate), (loop_seconds, loop_rate)):
+    for seconds, rate, _ in rows.values():
         assert seconds > 0
         assert rate == pytest.approx(windows / seconds, rel=0.06)  # seconds are printed to 0.01 s
     assert speed_up == pytest.approx(vectorized_rate / loop_rate, abs=0.06)
+    assert onednn[2] == pytest.approx(onednn[1] / loop_rate, abs=0.06)
+    against_onednn = re.search(rf"loop with oneDNN convolutions .*: {NUMBER}x$", completed.stdout, flags=re.MULTILINE)
+    assert float(against_onednn.group(1)) == pytest.approx(vectorized_rate / onednn[1], rel=0.02)
     low, high, median = (
         float(value)
         for value in re.search(rf"single rounds: {NUMBER}x to {NUMBER}x, median {NUMBER}x", completed.stdout).groups()

@@ -17,6 +17,9 @@ padded stride-2 convolution for down-sampling (CARP pads one step on the right),
 up-sampling (CARP: kernel 3 with output padding) and a GroupNorm + SiLU before the decoder's output convolution.
 """
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -46,7 +49,7 @@ def grouped_conv(
 
     Padding kernel_size // 2 keeps the length for stride 1 and halves an even length for stride 2 with kernel 3.
     """
-    convolution_class = GroupedDownsampling if stride == 2 else nn.Conv2d
+    convolution_class = GroupedDownsampling if stride == 2 else GroupedConvolution
     return convolution_class(
         num_dimensions * in_channels,
         num_dimensions * out_channels,
@@ -85,8 +88,9 @@ def grouped_upsampling(num_dimensions: int, channels: int) -> nn.ConvTranspose2d
 # With AVX-512 oneDNN runs both ops directly and the stride-1 forms only add work: forward + backward at A = 10, B = 64
 # on the AVX-512 machine, 827 against 547 us for a down-sampling of 4 channels x 16 steps, 1093 against 814 us for an
 # up-sampling of 8 channels x 4 steps, and training steps 2% faster without them (four runs of steps taking turns,
-# 30-50 x 8 each: -4.6%, -2.2%, +0.3%, -1.9%). With one group (the single-dimension tokenizer) oneDNN's direct kernels
-# are faster everywhere, and on CUDA cuDNN has its own, so both keep PyTorch's convolutions, as does ONNX export.
+# 30-50 x 8 each: -4.6%, -2.2%, +0.3%, -1.9%). Single-group ones (the single-dimension tokenizer) have a faster form of
+# their own (below); on CUDA cuDNN has its own kernels, so both ops keep PyTorch's convolutions there, as does ONNX
+# export.
 
 # Transposed-conv tap feeding phase r from input offset d, for (r, d) in (0, 1) x (-1, 0, 1); 4 = none (zero).
 # Built once: the two-phase form only runs on the CPU.
@@ -142,11 +146,73 @@ def stride1_downsampling(
     return every_step[..., ::2].contiguous(memory_format=torch.channels_last)
 
 
+# Single-group convolutions on the CPU.
+#
+# A single-dimension tokenizer (A = 1: the loop baseline of `benchmarks/tokenizer_throughput.py`, the modules
+# `carp.tokenizer.per_dimension` splits off, a one-dimensional action space) has single-group convolutions. On a
+# (B, ch, 1, T) image oneDNN runs them with direct kernels that cost 160-270 us forward + backward at B = 64 whatever
+# the layer's shape. The same memory read as one image of B rows, (1, ch, B, T), is a view (a (1, k) kernel never
+# mixes rows), and PyTorch sends it to its own im2col + GEMM convolution instead: 50-150 us per layer, and a whole
+# training step at A = 1 takes 6.2 instead of 9.1-9.4 ms on the Intel machine (5.9 instead of 8.6 ms with oneDNN and
+# PyTorch limited to AVX2 there). Grouped convolutions keep oneDNN's grouped kernel, which the view does not speed up
+# (training steps at A = 10: 24.2 against 19.8 ms), and CUDA and ONNX export keep PyTorch's convolution as it is.
+_CPU_SINGLE_GROUP_ROWS = True
+
+
+@contextmanager
+def cpu_single_group_rows(enabled: bool | None) -> Iterator[None]:
+    """Run single-group CPU convolutions on the batch as image rows (True) or as a batch of images (False).
+
+    None leaves the choice as it is (outside any such block: rows). Meant for measuring both forms on one machine
+    (`benchmarks/tokenizer_throughput.py --also-onednn-loop`).
+    """
+    global _CPU_SINGLE_GROUP_ROWS
+    preferred = _CPU_SINGLE_GROUP_ROWS
+    _CPU_SINGLE_GROUP_ROWS = preferred if enabled is None else enabled
+    try:
+        yield
+    finally:
+        _CPU_SINGLE_GROUP_ROWS = preferred
+
+
+def on_batch_rows(convolution: Callable[[torch.Tensor], torch.Tensor], hidden: torch.Tensor) -> torch.Tensor:
+    """Apply a (1, k)-kernel `convolution` to (B, ch, 1, T) images read as the rows of one image (1, ch, B, T).
+
+    Returns the convolution's output as (B, ch', 1, T'), channels-last like the input, the same values (rounding aside)
+    as `convolution(hidden)`.
+    """
+    rows = convolution(hidden.transpose(0, 2))  # (1, ch', B, T')
+    return rows.transpose(0, 2).contiguous(memory_format=torch.channels_last)
+
+
+def _use_batch_rows(hidden: torch.Tensor, groups: int) -> bool:
+    """Whether a convolution on `hidden` runs on the batch as image rows (single-group, CPU, not exporting)."""
+    return (
+        _CPU_SINGLE_GROUP_ROWS
+        and groups == 1
+        and hidden.device.type == "cpu"
+        and hidden.shape[2] == 1
+        and not torch.onnx.is_in_onnx_export()
+    )
+
+
+class GroupedConvolution(nn.Conv2d):
+    """`nn.Conv2d` over time per dimension, single-group ones run on the batch as image rows on the CPU (above)."""
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        """Map (B, A * in, 1, T) to (B, A * out, 1, T)."""
+        if _use_batch_rows(hidden, self.groups):
+            return on_batch_rows(super().forward, hidden)
+        return super().forward(hidden)
+
+
 class GroupedUpsampling(nn.ConvTranspose2d):
-    """`nn.ConvTranspose2d` doubling the length per dimension, run in two phases where that is faster (above)."""
+    """`nn.ConvTranspose2d` doubling the length per dimension, in the CPU's fastest form (two notes above)."""
 
     def forward(self, hidden: torch.Tensor) -> torch.Tensor:
         """Map (B, A * ch, 1, T) to (B, A * ch, 1, 2T)."""
+        if _use_batch_rows(hidden, self.groups):
+            return on_batch_rows(super().forward, hidden)
         settings = (self.kernel_size, self.stride, self.padding, self.output_padding, self.dilation)
         if not _use_stride1_forms(hidden, self.groups) or settings != ((1, 4), (1, 2), (0, 1), (0, 0), (1, 1)):
             return super().forward(hidden)
@@ -154,10 +220,12 @@ class GroupedUpsampling(nn.ConvTranspose2d):
 
 
 class GroupedDownsampling(nn.Conv2d):
-    """`nn.Conv2d` with stride 2 over time per dimension, run as a stride-1 convolution where that is faster (above)."""
+    """`nn.Conv2d` with stride 2 over time per dimension, in the CPU's fastest form (two notes above)."""
 
     def forward(self, hidden: torch.Tensor) -> torch.Tensor:
         """Map (B, A * in, 1, T) to (B, A * out, 1, ceil(T / 2))."""
+        if _use_batch_rows(hidden, self.groups):
+            return on_batch_rows(super().forward, hidden)
         settings = (self.kernel_size, self.stride, self.padding, self.dilation)
         if not _use_stride1_forms(hidden, self.groups) or settings != ((1, 3), (1, 2), (0, 1), (1, 1)):
             return super().forward(hidden)
