@@ -153,9 +153,9 @@ def stride1_downsampling(
 # (B, ch, 1, T) image oneDNN runs them with direct kernels that cost 160-270 us forward + backward at B = 64 whatever
 # the layer's shape. The same memory read as one image of B rows, (1, ch, B, T), is a view (a (1, k) kernel never
 # mixes rows), and PyTorch sends it to its own im2col + GEMM convolution instead: 50-150 us per layer, and a whole
-# training step at A = 1 takes 6.2 instead of 9.1-9.4 ms on the Intel machine (5.9 instead of 8.6 ms with oneDNN and
-# PyTorch limited to AVX2 there). Grouped convolutions keep oneDNN's grouped kernel, which the view does not speed up
-# (training steps at A = 10: 24.2 against 19.8 ms), and CUDA and ONNX export keep PyTorch's convolution as it is.
+# training step at A = 1 takes 6.2-6.6 instead of 9.1-9.6 ms on the Intel machine (5.9 instead of 8.6 ms with oneDNN
+# and PyTorch limited to AVX2 there). Grouped convolutions keep oneDNN's grouped kernel, which the view does not
+# speed up (training steps at A = 10: 24.2 against 19.8 ms), and CUDA and ONNX export keep PyTorch's convolution.
 _CPU_SINGLE_GROUP_ROWS = True
 
 
