@@ -48,7 +48,7 @@ def test_blockwise_attention_equals_dense_masked_attention_and_its_gradients(act
 
 @pytest.mark.parametrize("blockwise", [True, False])
 def test_cpu_attention_with_a_block_causal_mask_runs_the_kernel_the_cpu_prefers(monkeypatch, blockwise):
-    monkeypatch.setattr(blocks, "_CPU_BLOCKWISE_ATTENTION", blockwise)
+    monkeypatch.setattr(blocks._CPU_BLOCKWISE_ATTENTION, "enabled", blockwise)
     mask = _layout_mask(10, (1, 2, 3, 4))
     query, key, value = (tensor.detach() for tensor in _qkv(2, 8, 100, 8))
     attended = _attention(query, key, value, mask, 0.0)
@@ -98,12 +98,12 @@ def test_unreadable_cpuinfo_gives_no_vendor_and_the_blockwise_kernel(tmp_path):
 def test_cpu_attention_kernel_selects_a_kernel_for_its_block_only(blockwise):
     mask = _layout_mask(3, (1, 2, 4))
     query, key, value = (tensor.detach() for tensor in _qkv(2, 4, 21, 8))
-    preferred = blocks._CPU_BLOCKWISE_ATTENTION
+    preferred = blocks._CPU_BLOCKWISE_ATTENTION.enabled
     with cpu_attention_kernel(blockwise):
         attended = _attention(query, key, value, mask, 0.0)
         with cpu_attention_kernel(None):
-            assert blocks._CPU_BLOCKWISE_ATTENTION is blockwise
-    assert blocks._CPU_BLOCKWISE_ATTENTION is preferred
+            assert blocks._CPU_BLOCKWISE_ATTENTION.enabled is blockwise
+    assert blocks._CPU_BLOCKWISE_ATTENTION.enabled is preferred
     if blockwise:
         expected = _blockwise_attention(query, key, value, mask.block_ends, 0.0)
     else:

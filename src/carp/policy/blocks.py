@@ -14,15 +14,16 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
   one Linear(D -> V) across dimensions and relies on the position embedding to tell them apart.
 """
 
-import contextlib
 import math
-from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from carp.cpu_kernels import KernelChoice
 
 NORM_EPS = 1e-6
 MODULATIONS_PER_BLOCK = 6
@@ -55,23 +56,16 @@ def cpu_prefers_blockwise_attention(vendor: str) -> bool:
     return vendor != "GenuineIntel"
 
 
-_CPU_BLOCKWISE_ATTENTION = cpu_prefers_blockwise_attention(cpu_vendor())
+_CPU_BLOCKWISE_ATTENTION = KernelChoice(cpu_prefers_blockwise_attention(cpu_vendor()))
 
 
-@contextlib.contextmanager
-def cpu_attention_kernel(blockwise: bool | None) -> Iterator[None]:
+def cpu_attention_kernel(blockwise: bool | None) -> AbstractContextManager[None]:
     """Choose the block-causal CPU attention kernel inside a `with` block: block by block (True) or one masked kernel.
 
     None leaves the kernel as it is (outside any such block, the one `cpu_prefers_blockwise_attention` chose). Meant
     for measuring both kernels on one machine (`benchmarks/policy_speed.py --compare-attention`).
     """
-    global _CPU_BLOCKWISE_ATTENTION
-    preferred = _CPU_BLOCKWISE_ATTENTION
-    _CPU_BLOCKWISE_ATTENTION = preferred if blockwise is None else blockwise
-    try:
-        yield
-    finally:
-        _CPU_BLOCKWISE_ATTENTION = preferred
+    return _CPU_BLOCKWISE_ATTENTION.overridden(blockwise)
 
 
 class BlockCausalMask(NamedTuple):
@@ -194,7 +188,7 @@ def _attention(
     if on_cpu and torch.is_autocast_enabled("cpu"):
         with torch.autocast("cpu", enabled=False):
             return _attention(query.float(), key.float(), value.float(), mask, dropout)
-    if on_cpu and mask is not None and _CPU_BLOCKWISE_ATTENTION:
+    if on_cpu and mask is not None and _CPU_BLOCKWISE_ATTENTION.enabled:
         return _blockwise_attention(query, key, value, mask.block_ends, dropout)
     dense = None if mask is None else mask.dense
     return F.scaled_dot_product_attention(query, key, value, attn_mask=dense, dropout_p=dropout)

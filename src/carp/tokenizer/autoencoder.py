@@ -17,13 +17,14 @@ padded stride-2 convolution for down-sampling (CARP pads one step on the right),
 up-sampling (CARP: kernel 3 with output padding) and a GroupNorm + SiLU before the decoder's output convolution.
 """
 
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from carp.cpu_kernels import KernelChoice
 from carp.tokenizer.spec import TokenizerSpec
 
 # Whether PyTorch's CPU kernels run on AVX-512 on this machine, which decides the form of the grouped stride-2
@@ -156,23 +157,16 @@ def stride1_downsampling(
 # training step at A = 1 takes 6.2-6.6 instead of 9.1-9.6 ms on the Intel machine (5.9 instead of 8.6 ms with oneDNN
 # and PyTorch limited to AVX2 there). Grouped convolutions keep oneDNN's grouped kernel, which the view does not
 # speed up (training steps at A = 10: 24.2 against 19.8 ms), and CUDA and ONNX export keep PyTorch's convolution.
-_CPU_SINGLE_GROUP_ROWS = True
+_CPU_SINGLE_GROUP_ROWS = KernelChoice(True)
 
 
-@contextmanager
-def cpu_single_group_rows(enabled: bool | None) -> Iterator[None]:
+def cpu_single_group_rows(enabled: bool | None) -> AbstractContextManager[None]:
     """Run single-group CPU convolutions on the batch as image rows (True) or as a batch of images (False).
 
     None leaves the choice as it is (outside any such block: rows). Meant for measuring both forms on one machine
     (`benchmarks/tokenizer_throughput.py --also-onednn-loop`).
     """
-    global _CPU_SINGLE_GROUP_ROWS
-    preferred = _CPU_SINGLE_GROUP_ROWS
-    _CPU_SINGLE_GROUP_ROWS = preferred if enabled is None else enabled
-    try:
-        yield
-    finally:
-        _CPU_SINGLE_GROUP_ROWS = preferred
+    return _CPU_SINGLE_GROUP_ROWS.overridden(enabled)
 
 
 def on_batch_rows(convolution: Callable[[torch.Tensor], torch.Tensor], hidden: torch.Tensor) -> torch.Tensor:
@@ -188,7 +182,7 @@ def on_batch_rows(convolution: Callable[[torch.Tensor], torch.Tensor], hidden: t
 def _use_batch_rows(hidden: torch.Tensor, groups: int) -> bool:
     """Whether a convolution on `hidden` runs on the batch as image rows (single-group, CPU, not exporting)."""
     return (
-        _CPU_SINGLE_GROUP_ROWS
+        _CPU_SINGLE_GROUP_ROWS.enabled
         and groups == 1
         and hidden.device.type == "cpu"
         and hidden.shape[2] == 1
