@@ -3,7 +3,7 @@
 Measures, with randomly initialized weights (speed does not depend on the values):
 - per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
   decoding (tokenizer decoder + un-normalization), median and p90, for the PyTorch policy and for the ONNX Runtime
-  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~15 s each), greedy
+  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~1-2 s each), greedy
   and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
@@ -147,7 +147,7 @@ def main() -> None:
     parser.add_argument("--batched-calls", type=int, default=30, help="timed calls at batch 64")
     parser.add_argument("--train-steps", type=int, default=8, help="timed training steps at batch 256 per precision")
     parser.add_argument("--skip-training", action="store_true")
-    parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~15 s)")
+    parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~1-2 s)")
     parser.add_argument("--top-k", type=int, default=3, help="the sampling graph timed next to the greedy one")
     parser.add_argument(
         "--compare-attention", action="store_true", help="also time training with both CPU attention kernels"

@@ -46,8 +46,9 @@ from carp.policy.sampling import check_top_k, gumbel_top_k, sampling_uniforms
 
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
-# The exporter's passes log every rewrite at INFO and warn about torchvision operators this model never uses.
-EXPORTER_LOGGERS = ("onnxscript", "onnx_ir", "torch.onnx")
+ONNX_OPSET = 18
+# The exporter's passes log every rewrite at INFO.
+EXPORTER_LOGGERS = ("torch.onnx",)
 
 
 @contextlib.contextmanager
@@ -170,21 +171,31 @@ class DecodingGraph(nn.Module):
 def _export(
     module: nn.Module, inputs: tuple[torch.Tensor, ...], names: list[str], outputs: list[str], path: Path
 ) -> None:
+    """Trace `module` on `inputs` into the ONNX file `path` (written to a temporary name, then renamed).
+
+    PyTorch's TorchScript-based exporter (`dynamo=False`) rather than its default `torch.export`-based one: both give
+    graphs that choose the same tokens at the same ONNX Runtime latency, but tracing takes ~1 s for the default
+    policy where `torch.export` with its decompositions took ~15 s, once per evaluated task and sweep trial
+    (session 29 under "Benchmarks" in docs/measurements.md). Every shape here is static, so the tracer's warnings
+    about Python values it records as constants (tensor sizes) do not apply, and its deprecation notice is not
+    actionable while torch is pinned.
+    """
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with torch.no_grad(), warnings.catch_warnings(), _quiet_exporter():
-            # One eager call first fills the tokenizer's cached resampling matrices, which the export then sees as
-            # constants; the exporter's own deprecation notices are not actionable here.
+            # One eager call first fills the tokenizer's cached resampling matrices, which the trace then records as
+            # constants.
             module.eval()(*inputs)
-            warnings.simplefilter("ignore", FutureWarning)
+            for category in (torch.jit.TracerWarning, DeprecationWarning, FutureWarning):
+                warnings.simplefilter("ignore", category)
             torch.onnx.export(
                 module,
                 inputs,
                 str(temporary),
-                dynamo=True,
+                dynamo=False,
+                opset_version=ONNX_OPSET,
                 input_names=names,
                 output_names=outputs,
-                external_data=False,
                 verbose=False,
             )
         os.replace(temporary, path)
@@ -195,7 +206,7 @@ def _export(
 def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) -> Path:
     """Write the prediction and decoding graphs of a CPU policy into `directory` (created); returns `directory`.
 
-    Takes ~10-20 s for the default model (tracing and graph optimization), once per evaluation.
+    Takes ~1-2 s for the default model, once per evaluation.
 
     Args:
         policy: the trained policy.

@@ -123,12 +123,13 @@ class MultiScaleQuantizer(nn.Module):
 
     def resample(self, latent: torch.Tensor, size: int, mode: str) -> torch.Tensor:
         """Resample (B, A, C, T) along time to time-major (B, A, C, size); `mode` is "area" (down) or "bicubic" (up)."""
-        if latent.shape[-1] == size:
+        source_length = int(latent.shape[-1])  # a plain int, also where an ONNX trace records sizes as tensors
+        if source_length == size:
             return latent
-        key = (latent.shape[-1], size, mode, latent.device, latent.dtype)
+        key = (source_length, size, mode, latent.device, latent.dtype)
         matrix = self._resampling_matrices.get(key)
         if matrix is None:
-            matrix = resampling_matrix(latent.shape[-1], size, mode).to(device=latent.device, dtype=latent.dtype)
+            matrix = resampling_matrix(source_length, size, mode).to(device=latent.device, dtype=latent.dtype)
             self._resampling_matrices[key] = matrix
         batch, num_dimensions, _, length = latent.shape
         # One (size, T) x (T, B * A * C) product: a matmul broadcast over the batch runs B tiny products instead, and
