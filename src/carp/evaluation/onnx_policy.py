@@ -25,9 +25,7 @@ return the same actions, greedy and sampled (the same generator gives the same u
 `top_k` is fixed when the graphs are exported; batches run through `CarpPolicy`.
 """
 
-import contextlib
 import copy
-import logging
 import math
 import os
 import time
@@ -47,20 +45,6 @@ from carp.policy.sampling import check_top_k, gumbel_top_k, sampling_uniforms
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
 ONNX_OPSET = 18
-# The exporter's passes log every rewrite at INFO.
-EXPORTER_LOGGERS = ("torch.onnx",)
-
-
-@contextlib.contextmanager
-def _quiet_exporter():
-    saved = {name: logging.getLogger(name).level for name in EXPORTER_LOGGERS}
-    try:
-        for name in EXPORTER_LOGGERS:
-            logging.getLogger(name).setLevel(logging.ERROR)
-        yield
-    finally:
-        for name, level in saved.items():
-            logging.getLogger(name).setLevel(level)
 
 
 def _normalizer_buffers(normalizer: MinMaxNormalizer, unnormalize: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -182,7 +166,7 @@ def _export(
     """
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with torch.no_grad(), warnings.catch_warnings(), _quiet_exporter():
+        with torch.no_grad(), warnings.catch_warnings():
             # One eager call first fills the tokenizer's cached resampling matrices, which the trace then records as
             # constants.
             module.eval()(*inputs)
