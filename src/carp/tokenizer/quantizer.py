@@ -131,10 +131,10 @@ class MultiScaleQuantizer(nn.Module):
         if matrix is None:
             matrix = resampling_matrix(source_length, size, mode).to(device=latent.device, dtype=latent.dtype)
             self._resampling_matrices[key] = matrix
-        batch, num_dimensions, _, length = latent.shape
+        batch, num_dimensions = latent.shape[:2]
         # One (size, T) x (T, B * A * C) product: a matmul broadcast over the batch runs B tiny products instead, and
         # its backward measured ~2x slower at B = 64. The two small copies keep the result time-major.
-        columns = rearrange(latent, "b a c t -> t b (a c)").reshape(length, -1)  # (T, B * A * C)
+        columns = rearrange(latent, "b a c t -> t b (a c)").reshape(source_length, -1)  # (T, B * A * C)
         resampled = (matrix @ columns).view(size, batch, -1).transpose(0, 1).contiguous()  # (B, size, A * C)
         return rearrange(resampled, "b s (a c) -> b a c s", a=num_dimensions)
 
