@@ -94,8 +94,8 @@ class PredictionGraph(nn.Module):
         width, heads = spec.width, spec.num_heads
         head_width = width // heads
         condition = transformer.encode_condition(obs * self.obs_scale + self.obs_offset, task_ids)  # (1, D)
-        modulations = transformer.modulations(condition)  # M tensors (1, 1, D)
-        modulations = [vector.reshape(width) for vector in modulations]  # M x (D,)
+        # One Split of the flat vector: M (D,) outputs, where unbinding (1, M, 1, D) adds a Squeeze and a Reshape each.
+        modulations = transformer.modulation_vector(condition).reshape(-1).split(width)  # M x (D,)
         positions = transformer.position_and_level()[0]  # (L, D)
 
         keys: list[torch.Tensor | None] = [None] * spec.depth  # (1, Nh, n, D / Nh) of the scales so far

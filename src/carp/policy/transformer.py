@@ -139,9 +139,13 @@ class CoarseToFineTransformer(nn.Module):
             raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
         return self.condition_projection(features)  # (B, D)
 
+    def modulation_vector(self, condition: torch.Tensor) -> torch.Tensor:
+        """The M AdaLN vectors of a condition (B, D) side by side, (B, M * D), in the order of `modulations`."""
+        return self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
+
     def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
-        modulation = self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
+        modulation = self.modulation_vector(condition)  # (B, M * D)
         return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.width).unbind(1)
 
     def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
