@@ -22,11 +22,16 @@ $(STAMP): requirements.lock pyproject.toml
 repro: setup
 	dvc repro
 
+# Tests run in TEST_WORKERS pytest-xdist processes (one per core of the 2-core target machine); a module's tests stay
+# in one process, so its module-scoped fixtures are built once. `make test TEST_WORKERS=0` runs them in this process.
+TEST_WORKERS ?= 2
+PYTEST := $(BIN)/python -m pytest $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
+
 test: setup
-	$(BIN)/python -m pytest
+	$(PYTEST)
 
 test-fast: setup
-	$(BIN)/python -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 lint: setup
 	$(BIN)/ruff check src pipeline tests benchmarks

@@ -4,6 +4,7 @@ Speeds are not asserted here (they live in the benchmarks' own output and docs/m
 that the scripts still run against the current library, print every row, and refuse bad arguments with one line.
 """
 
+import os
 import re
 import subprocess
 import sys
@@ -18,9 +19,12 @@ NUMBER = r"(\d+(?:\.\d+)?)"
 
 
 def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    # Short OpenMP spinning, as in dvc.yaml's training stages: `make test` runs two test processes on two cores, and
+    # the benchmark's two-thread training steps spinning at full length against the other one take minutes.
     return subprocess.run(
         [sys.executable, f"benchmarks/{script}", *arguments],
         cwd=REPO_ROOT,
+        env={**os.environ, "GOMP_SPINCOUNT": "5000"},
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -112,8 +116,10 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     training = re.findall(rf"{NUMBER} s per step .*?, {NUMBER} samples/s, speed-up x{NUMBER}", completed.stdout)
     assert len(training) >= 1, completed.stdout
     for seconds, samples_per_second, speed_up in ((float(value) for value in row) for row in training):
-        assert samples_per_second == pytest.approx(256 / seconds, rel=0.01)
-        assert speed_up == pytest.approx(2.6 / seconds, rel=0.01)
+        # Printed rounded (samples/s to a whole number, the speed-up to 0.01), which on a busy host with slow steps is
+        # more than 1% off: below 50 samples/s or a speed-up of 0.5.
+        assert samples_per_second == pytest.approx(256 / seconds, rel=0.01, abs=0.5)
+        assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
     # --compare-attention: both kernels at batch 256 and at 64, and the kernel this CPU trains with.
     vendor = cpu_vendor() or "unknown"
     preferred = "blockwise" if cpu_prefers_blockwise_attention(cpu_vendor()) else "masked flash"
@@ -127,4 +133,4 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     assert [int(row[0]) for row in kernel_rows] == [256, 64], completed.stdout
     for batch_size, *numbers in kernel_rows:
         for seconds, samples_per_second in zip(numbers[0::2], numbers[1::2], strict=True):
-            assert float(samples_per_second) == pytest.approx(int(batch_size) / float(seconds), rel=0.01)
+            assert float(samples_per_second) == pytest.approx(int(batch_size) / float(seconds), rel=0.01, abs=0.5)
