@@ -1,4 +1,8 @@
-"""What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run."""
+"""What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run.
+
+torch and pandas are imported where they are used, so the always-run ``check_inputs`` stage starts in a fraction of
+a second.
+"""
 
 import argparse
 import dataclasses
@@ -10,11 +14,12 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-
-import pandas as pd
-import torch
+from typing import TYPE_CHECKING
 
 from carp.config import ConfigError, Params, flatten_params, load_params
+
+if TYPE_CHECKING:
+    import torch
 
 logger = logging.getLogger("carp.pipeline")
 
@@ -70,8 +75,10 @@ def fail(message: str) -> None:
     sys.exit(1)
 
 
-def select_device(params: Params) -> torch.device:
+def select_device(params: Params) -> "torch.device":
     """``auto`` picks CUDA when present; an explicit ``cuda`` without a GPU is an error."""
+    import torch
+
     if params.device == "cuda" and not torch.cuda.is_available():
         fail("device=cuda but no CUDA device is available (set device: auto or cpu)")
     if params.device == "auto":
@@ -145,6 +152,8 @@ def write_json(path: Path, payload: dict) -> None:
 
 def write_history(path: Path, history: list[dict]) -> None:
     """Write per-epoch metrics as CSV atomically; no epochs (a state resumed from older code) gives just a header."""
+    import pandas as pd
+
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     pd.DataFrame(history, columns=None if history else ["epoch"]).to_csv(temporary, index=False)

@@ -1,6 +1,7 @@
 """A temporary copy of the repository with tiny params, for end-to-end `dvc repro` / `dvc exp run` tests."""
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -72,3 +73,8 @@ def make_workspace(directory: Path, params: dict | None = None) -> Path:
         completed = run(command, directory)
         assert completed.returncode == 0, completed.stderr
     return directory
+
+
+def stages_run(dvc_stdout: str) -> set[str]:
+    """Names of the stages a `dvc repro` / `dvc exp run` ran, from its "Running stage 'name':" lines."""
+    return set(re.findall(r"Running stage '([^']+)'", dvc_stdout))
