@@ -48,7 +48,8 @@ ui: setup
 sweep: setup
 	$(BIN)/python pipeline/sweep.py $(if $(TRIALS),--trials $(TRIALS))
 
-# Experiments side by side: swept params, success rate, tokenizer reconstruction error, latency per chunk.
-EXP_COLUMNS := ^(Experiment|scales|codebook_size|success_rate|rmse_percent_range/mean|latency_(predict|decode)_ms_median)$$
+# Experiments side by side: state (a failed queued experiment shows Failed, and its metrics are not its own), swept
+# params, success rate, tokenizer reconstruction error, latency per chunk.
+EXP_COLUMNS := ^(Experiment|State|scales|codebook_size|success_rate|rmse_percent_range/mean|latency_(predict|decode)_ms_median)$$
 exps: setup
 	$(BIN)/dvc exp show --drop '.*' --keep '$(EXP_COLUMNS)'

@@ -103,6 +103,29 @@ def test_invalid_set_values_are_refused_with_one_line(template, tmp_path):
 
 
 @pytest.mark.slow
+def test_two_queued_experiments_run_at_once_on_a_fresh_store_keep_every_run(template, tmp_path):
+    # No mlflow.db yet: both workers' first stages open a store that does not exist (the schema-creation race).
+    workspace = copy_workspace(template, tmp_path)
+    assert not (workspace / "mlflow.db").exists()
+    sizes = {"tiny-a": 8, "tiny-b": 16}
+    for name, size in sizes.items():
+        queued = run(dvc("exp", "run", "--queue", "-n", name, "-S", f"codebook_size={size}"), workspace)
+        assert queued.returncode == 0, queued.stderr[-3000:]
+    completed = run(dvc("exp", "run", "--run-all", "--jobs", "2"), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+
+    shown = experiments(workspace)
+    assert set(shown) == set(sizes), run(dvc("queue", "status"), workspace).stdout
+    stages = {"train_tokenizer", "register_tokenizer", "train_policy@lift", "evaluate@lift"}
+    for name, size in sizes.items():
+        assert isinstance(shown[name]["metrics"]["success_rate"], float), name
+        tagged = [r for r in mlflow_runs(workspace) if r.data.tags.get("carp.dvc_experiment") == name]
+        assert sorted(r.data.tags["carp.dvc_stage"] for r in tagged) == sorted(stages), name
+        assert {r.info.status for r in tagged} == {"FINISHED"}, name
+        assert {r.data.params["codebook_size"] for r in tagged} == {str(size)}, name
+
+
+@pytest.mark.slow
 def test_temp_experiment_lands_in_the_workspace_store_with_its_name(template, tmp_path):
     workspace = copy_workspace(template, tmp_path)
     params_before = (workspace / "params.yaml").read_text()

@@ -1,12 +1,17 @@
 """MLflow runs for pipeline stages: the only module (with the registry and the sweep) that imports mlflow.
 
 One run per stage execution, tagged with the git commit, the DVC stage, the DVC experiment name (when run under
-``dvc exp run``) and a hash of the params; params are logged flattened (``policy.depth``).
+``dvc exp run``), a hash of the params and the host and process that ran it; params are logged flattened
+(``policy.depth``). A run whose process was killed (``kill -9``) cannot end itself: the next execution of the same
+stage on the same host marks it ``KILLED``.
 """
 
+import fcntl
 import hashlib
 import json
 import logging
+import os
+import socket
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -19,6 +24,9 @@ logger = logging.getLogger(__name__)
 
 # MLflow caps a param value at 6000 characters; longer values (e.g. nested lists) are cut with a marker.
 MAX_PARAM_LENGTH = 6000
+# Which process runs a stage, so that a run left RUNNING by a killed process can be recognized later.
+HOST_TAG = "carp.host"
+PID_TAG = "carp.pid"
 
 
 def resolve_tracking_uri(uri: str, project_root: Path) -> str:
@@ -34,23 +42,90 @@ def resolve_tracking_uri(uri: str, project_root: Path) -> str:
     return uri
 
 
+def sqlite_path(tracking_uri: str) -> Path | None:
+    """The database file of an absolute ``sqlite:///`` URI, or ``None`` for any other store."""
+    prefix = "sqlite:///"
+    return Path(tracking_uri[len(prefix) :]) if tracking_uri.startswith(prefix) else None
+
+
+@contextmanager
+def store_creation_lock(tracking_uri: str) -> Iterator[None]:
+    """Hold an exclusive inter-process lock while a SQLite store's schema and experiments are created.
+
+    Two stages that open a store which does not exist yet (``dvc exp run --run-all --jobs 2`` on a fresh project)
+    otherwise both run MLflow's schema migrations, and one of them fails; two that create the same experiment at
+    once fail the same way. The lock file sits beside the database (``mlflow.db.lock``). Server stores serialize
+    this themselves, so other URIs take no lock.
+    """
+    database = sqlite_path(tracking_uri)
+    if database is None:
+        yield
+        return
+    database.parent.mkdir(parents=True, exist_ok=True)
+    with open(database.with_name(f"{database.name}.lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def artifact_root(tracking_uri: str) -> str | None:
     """Artifacts next to a SQLite store (``<dir>/mlartifacts``), so runs never write into the working directory."""
-    prefix = "sqlite:///"
-    if tracking_uri.startswith(prefix):
-        return (Path(tracking_uri[len(prefix) :]).parent / "mlartifacts").as_uri()
-    return None
+    database = sqlite_path(tracking_uri)
+    return (database.parent / "mlartifacts").as_uri() if database is not None else None
 
 
 def ensure_experiment(tracking_uri: str, experiment_name: str) -> str:
-    """Id of the named experiment, created (with its artifact root beside the store) when missing."""
+    """Id of the named experiment, created (with its artifact root beside the store) when missing.
+
+    The first call on a new SQLite store also creates its schema; both happen under :func:`store_creation_lock`.
+    """
+    with store_creation_lock(tracking_uri):
+        client = MlflowClient(tracking_uri=tracking_uri)
+        experiment = client.get_experiment_by_name(experiment_name)
+        if experiment is not None:
+            return experiment.experiment_id
+        root = artifact_root(tracking_uri)
+        location = f"{root}/{experiment_name}" if root else None
+        return client.create_experiment(experiment_name, artifact_location=location)
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def end_orphaned_runs(tracking_uri: str, experiment_id: str, run_name: str) -> list[str]:
+    """Mark ``KILLED`` the ``RUNNING`` runs of ``run_name`` whose process on this host no longer exists.
+
+    A run of the same stage still going in another live process (a parallel ``dvc exp run`` worker) is left alone,
+    and so is one started on another host, whose processes cannot be seen from here.
+
+    Returns:
+        The ids of the runs that were ended.
+    """
     client = MlflowClient(tracking_uri=tracking_uri)
-    experiment = client.get_experiment_by_name(experiment_name)
-    if experiment is not None:
-        return experiment.experiment_id
-    root = artifact_root(tracking_uri)
-    location = f"{root}/{experiment_name}" if root else None
-    return client.create_experiment(experiment_name, artifact_location=location)
+    running = client.search_runs(
+        [experiment_id],
+        filter_string=f"attributes.run_name = '{run_name}' and attributes.status = 'RUNNING'",
+    )
+    ended = []
+    for run in running:
+        tags = run.data.tags
+        pid = tags.get(PID_TAG, "")
+        if tags.get(HOST_TAG) != socket.gethostname() or not pid.isdigit() or _process_alive(int(pid)):
+            continue
+        client.set_tag(run.info.run_id, "carp.end_reason", f"process {pid} ended without closing the run")
+        client.set_terminated(run.info.run_id, status="KILLED")
+        logger.warning("MLflow run %s of %s (process %s, gone) marked KILLED", run.info.run_id, run_name, pid)
+        ended.append(run.info.run_id)
+    return ended
 
 
 def params_hash(flat_params: Mapping[str, str]) -> str:
@@ -109,7 +184,13 @@ def stage_run(
     """
     mlflow.set_tracking_uri(tracking_uri)
     experiment = mlflow.set_experiment(experiment_id=ensure_experiment(tracking_uri, experiment_name))
-    all_tags = {**tags, "carp.params_hash": params_hash(flat_params)}
+    end_orphaned_runs(tracking_uri, experiment.experiment_id, run_name)
+    all_tags = {
+        **tags,
+        "carp.params_hash": params_hash(flat_params),
+        HOST_TAG: socket.gethostname(),
+        PID_TAG: str(os.getpid()),
+    }
     if parent_run_id is not None:
         all_tags["mlflow.parentRunId"] = parent_run_id
     with mlflow.start_run(run_name=run_name, tags=all_tags) as run:
