@@ -14,7 +14,8 @@ lives in git. This script looks for the words that history is written in:
 Markdown and YAML files are read line by line; in Python files only comments and string literals (docstrings
 included) are read, so code such as hexadecimal constants never matches.
 
-    python tools/check_history_words.py [PATH ...]   (default: README.md docs params.yaml dvc.yaml src pipeline)
+    python tools/check_history_words.py [PATH ...]
+        (default: README.md docs params.yaml dvc.yaml src pipeline benchmarks)
 
 Prints one line per hit, `<file>:<line>: <kind>: "<text>"`, and exits with 1 if there is any.
 """
@@ -27,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_PATHS = ("README.md", "docs", "params.yaml", "dvc.yaml", "src", "pipeline")
+DEFAULT_PATHS = ("README.md", "docs", "params.yaml", "dvc.yaml", "src", "pipeline", "benchmarks")
 SUFFIXES = (".md", ".yaml", ".yml", ".py", ".txt", ".toml")
 SKIPPED = ("__pycache__", "carp.egg-info")  # build outputs, not sources
 
@@ -56,7 +57,7 @@ RULES: tuple[tuple[str, re.Pattern[str]], ...] = (
         "named development machine",
         re.compile(
             rf"\b(?:{_HARDWARE})(?:\s*\+\s*\w+)?(?:\s+(?:CPU|host|VM))?\s+(?:machine|host|box|one)s?\b"
-            r"|\b(?:this|that|our|the\s+(?:same|other|first|second|third|slow(?:er)?|fast(?:er)?|earlier|current)"
+            r"|\b(?:this|that|our|the\s+(?:other|first|second|third|slow(?:er)?|fast(?:er)?|earlier|current)"
             r")\s+(?:machine|host)s?\b",
             re.IGNORECASE,
         ),
