@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup repro test test-fast lint benchmark ui sweep exps
+.PHONY: setup repro test test-fast lint docs benchmark ui sweep exps
 
 setup: $(STAMP)
 
@@ -22,8 +22,8 @@ $(STAMP): requirements.lock pyproject.toml
 repro: setup
 	dvc repro
 
-# Tests run in TEST_WORKERS pytest-xdist processes (one per core of the 2-core target machine); a module's tests stay
-# in one process, so its module-scoped fixtures are built once. `make test TEST_WORKERS=0` runs them in this process.
+# Tests run in TEST_WORKERS pytest-xdist processes (one per core of a 2-core CPU); a module's tests stay in one
+# process, so its module-scoped fixtures are built once. `make test TEST_WORKERS=0` runs them in this process.
 TEST_WORKERS ?= 2
 PYTEST := $(BIN)/python -m pytest $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
 
@@ -33,9 +33,17 @@ test: setup
 test-fast: setup
 	$(PYTEST) -m "not slow"
 
+# Style, then the two documentation checks (also run by `make test` as tests): no development-history words in the
+# user-facing files, and docs/params.md documents every param and is what `make docs` generates.
 lint: setup
-	$(BIN)/ruff check src pipeline tests benchmarks
-	$(BIN)/ruff format --check src pipeline tests benchmarks
+	$(BIN)/ruff check src pipeline tests benchmarks tools
+	$(BIN)/ruff format --check src pipeline tests benchmarks tools
+	$(BIN)/python tools/check_history_words.py
+	$(BIN)/python tools/params_docs.py --check
+
+# docs/params.md from the docstrings of src/carp/config.py.
+docs: setup
+	$(BIN)/python tools/params_docs.py
 
 benchmark: setup
 	$(BIN)/python benchmarks/tokenizer_throughput.py

@@ -8,16 +8,12 @@ Measures, with randomly initialized weights (speed does not depend on the values
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
   token targets, as `carp.training.policy_trainer` runs it, in float32 and in the precision `policy.precision: auto`
-  picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate;
-- with `--compare-attention`, the same training step in the `auto` precision with the block-causal attention computed
-  block by block and as one masked flash kernel, steps alternating, at batch 256 and at the pipeline's batch 64: the
-  measurement behind `carp.policy.blocks.cpu_prefers_blockwise_attention`, which picks one per CPU vendor.
+  picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
 
 Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--skip-training] [--skip-onnx] [--top-k 3]
-    [--compare-attention]
 """
 
 import argparse
@@ -31,7 +27,6 @@ import torch
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
-from carp.policy.blocks import cpu_attention_kernel, cpu_prefers_blockwise_attention, cpu_vendor
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
@@ -85,53 +80,47 @@ def percentile(values: list[float], fraction: float) -> float:
     return float(np.percentile(values, 100 * fraction))
 
 
-Variant = tuple[torch.dtype, bool | None]
-"""A training step's precision, and whether CPU attention runs block by block (None: as this CPU prefers)."""
-
-
-def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, variants: list[Variant]) -> dict:
-    """Median wall and CPU seconds per training step (all threads) per variant, steps alternating between them."""
+def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisions: list[torch.dtype]) -> dict:
+    """Median wall and CPU seconds per training step (all threads) per precision, steps alternating between them."""
     spec = policy.spec
     generator = torch.Generator().manual_seed(0)
     obs = torch.randn(batch_size, OBS_STEPS, OBS_DIM, generator=generator)
     teacher = torch.randn(batch_size, spec.sequence_length - spec.scales[0] * spec.action_dim, spec.latent_channels)
     targets = torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator)
 
-    def make_step(variant: Variant):
-        precision, blockwise = variant
+    def make_step(precision: torch.dtype):
         torch.manual_seed(0)
         transformer = CoarseToFineTransformer(spec).train()
         optimizer = make_optimizer(transformer, PolicyTrainingSettings())
 
         def step() -> None:
-            with cpu_attention_kernel(blockwise):
-                loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
+            loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
             optimizer.step()
 
         return step
 
-    runs = {variant: make_step(variant) for variant in variants}
+    runs = {precision: make_step(precision) for precision in precisions}
     for step in runs.values():
         for _ in range(2):
             step()
-    durations = {variant: ([], []) for variant in variants}
+    durations = {precision: ([], []) for precision in precisions}
     for _ in range(steps):
-        for variant, step in runs.items():
+        for precision, step in runs.items():
             started, cpu_started = time.perf_counter(), time.process_time()
             step()
-            durations[variant][0].append(time.perf_counter() - started)
-            durations[variant][1].append(time.process_time() - cpu_started)
-    return {variant: (statistics.median(wall), statistics.median(cpu)) for variant, (wall, cpu) in durations.items()}
+            durations[precision][0].append(time.perf_counter() - started)
+            durations[precision][1].append(time.process_time() - cpu_started)
+    return {
+        precision: (statistics.median(wall), statistics.median(cpu)) for precision, (wall, cpu) in durations.items()
+    }
 
 
 def print_training(timings: dict, batch_size: int, auto: torch.dtype) -> None:
-    """One line per variant: seconds per step, samples/s and the speed-up over the official step at batch 256."""
-    for (precision, blockwise), (seconds, cpu_seconds) in timings.items():
+    """One line per precision: seconds per step, samples/s and the speed-up over the official step at batch 256."""
+    for precision, (seconds, cpu_seconds) in timings.items():
         name = precision_name(precision) + (" (auto)" if precision == auto else "")
-        if blockwise is not None:
-            name += ", blockwise attention" if blockwise else ", masked flash attention"
         line = (
             f"  {name:<16} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over both threads), "
             f"{batch_size / seconds:.0f} samples/s"
@@ -149,9 +138,6 @@ def main() -> None:
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~1-2 s)")
     parser.add_argument("--top-k", type=int, default=3, help="the sampling graph timed next to the greedy one")
-    parser.add_argument(
-        "--compare-attention", action="store_true", help="also time training with both CPU attention kernels"
-    )
     args = parser.parse_args()
 
     policy = make_policy()
@@ -193,21 +179,12 @@ def main() -> None:
         torch.set_num_threads(2)
         auto = resolve_precision("auto", torch.device("cpu"))
         precisions = list(dict.fromkeys([torch.float32, auto]))
-        timings = train_steps_seconds(policy, 256, args.train_steps, [(precision, None) for precision in precisions])
+        timings = train_steps_seconds(policy, 256, args.train_steps, precisions)
         print(
             f"training at batch 256, 2 threads (official: {OFFICIAL_TRAIN_STEP_SECONDS} s per step = "
             f"{256 / OFFICIAL_TRAIN_STEP_SECONDS:.0f} samples/s):"
         )
         print_training(timings, 256, auto)
-        if args.compare_attention:
-            vendor = cpu_vendor()
-            preferred = "blockwise" if cpu_prefers_blockwise_attention(vendor) else "masked flash"
-            vendor = vendor or "unknown"
-            print(f"attention kernels in training, 2 threads (CPU vendor {vendor}: trains with {preferred} attention):")
-            for batch_size in (256, 64):
-                print(f" batch {batch_size}:")
-                variants = [(auto, True), (auto, False)]
-                print_training(train_steps_seconds(policy, batch_size, args.train_steps, variants), batch_size, auto)
 
 
 if __name__ == "__main__":

@@ -33,10 +33,9 @@ from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tok
 
 def main() -> None:
     setup_logging()
-    # One thread: the tokenizer's steps are hundreds of small ops, where a second thread gains ~20% on a quiet
-    # machine but passive OpenMP waiting (dvc.yaml) makes two threads 2.6x slower than one, and spinning threads
-    # stall next to any other job (Lift, 100 demos, 10 epochs: 15 s on one thread, quiet or not; two threads
-    # 12 s quiet with spinning, 31 s passive, > 300 s spinning next to a busy process).
+    # One thread: the tokenizer's steps are hundreds of small ops, where a second thread gains ~20% when the cores
+    # are free, but its OpenMP threads wait for each other at every op: passively that makes two threads slower
+    # than one, and spinning stalls them many times over as soon as another job uses a core.
     torch.set_num_threads(1)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer

@@ -1,7 +1,7 @@
 """`make benchmark`'s scripts run end to end on tiny settings and print tables whose numbers agree with each other.
 
-Speeds are not asserted here (they live in the benchmarks' own output and docs/measurements.md); what is asserted is
-that the scripts still run against the current library, print every row, and refuse bad arguments with one line.
+Speeds are not asserted here (they depend on the machine; docs/benchmarks.md states the measured ones); what is asserted
+is that the scripts still run against the current library, print every row, and refuse bad arguments with one line.
 """
 
 import os
@@ -12,16 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from carp.policy.blocks import cpu_prefers_blockwise_attention, cpu_vendor
-
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NUMBER = r"(\d+(?:\.\d+)?)"
 
 
 def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subprocess.CompletedProcess:
     # Short OpenMP spinning, as in dvc.yaml's training stages: `make test` runs two test processes on two cores, and
-    # the benchmark's two-thread training steps, spinning at full length against the other one, ran ~20x slower
-    # (policy_speed's test: 77 s against 32 s with short spinning).
+    # the benchmark's two-thread training steps, spinning at full length against the other process, slow down many
+    # times over.
     return subprocess.run(
         [sys.executable, f"benchmarks/{script}", *arguments],
         cwd=REPO_ROOT,
@@ -35,7 +33,7 @@ def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subproc
 def test_tokenizer_throughput_prints_every_variant_with_consistent_numbers():
     completed = run_benchmark(
         "tokenizer_throughput.py",
-        *("--episodes", "3", "--rounds", "2", "--block", "2", "--device", "cpu", "--also-onednn-loop"),
+        *("--episodes", "3", "--rounds", "2", "--block", "2", "--device", "cpu"),
     )
     assert completed.returncode == 0, completed.stderr[-2000:]
     header = completed.stdout.splitlines()[0]
@@ -46,33 +44,27 @@ def test_tokenizer_throughput_prints_every_variant_with_consistent_numbers():
         and "median of 2 epochs" in header
         and "turns of 2 batches" in header
     )
-    variants = ("vectorized (one module)", "loop over 10 modules", "loop, oneDNN convolutions")
+    variants = ("vectorized (one module)", "loop over 10 modules")
     row_pattern = rf"^({'|'.join(map(re.escape, variants))})\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}x$"
     rows = {
         match.group(1): tuple(float(value) for value in match.groups()[1:])
         for match in re.finditer(row_pattern, completed.stdout, flags=re.MULTILINE)
     }
     assert tuple(rows) == variants, completed.stdout
-    (_, vectorized_rate, speed_up), (_, loop_rate, loop_speed_up), onednn = rows.values()
+    (_, vectorized_rate, speed_up), (_, loop_rate, loop_speed_up) = rows.values()
     assert loop_speed_up == 1.0
     for seconds, rate, _ in rows.values():
         assert seconds > 0
         assert rate == pytest.approx(windows / seconds, rel=0.06)  # seconds are printed to 0.01 s
-    assert speed_up == pytest.approx(vectorized_rate / loop_rate, abs=0.06)
-    assert onednn[2] == pytest.approx(onednn[1] / loop_rate, abs=0.06)
-    against_onednn = re.search(rf"loop with oneDNN convolutions .*: {NUMBER}x$", completed.stdout, flags=re.MULTILINE)
-    assert float(against_onednn.group(1)) == pytest.approx(vectorized_rate / onednn[1], rel=0.02)
+    # The speed-up is printed to 0.01, the rates to whole windows/s (a tiny run's rates are small).
+    assert speed_up == pytest.approx(vectorized_rate / loop_rate, rel=0.01, abs=0.006)
     low, high, median = (
         float(value)
         for value in re.search(rf"single rounds: {NUMBER}x to {NUMBER}x, median {NUMBER}x", completed.stdout).groups()
     )
     assert low <= median <= high
-    target = re.search(rf"target: at least {NUMBER}x at A=10: (met|not met) \({NUMBER}x\)", completed.stdout)
-    assert target is not None, completed.stdout
-    target_speed_up, verdict, measured = float(target.group(1)), target.group(2), float(target.group(3))
-    assert measured == pytest.approx(speed_up, abs=0.051)  # the table gives one decimal, this line two
-    if abs(measured - target_speed_up) > 0.005:  # printed to two decimals: 5.00 may be 4.996 and not met
-        assert verdict == ("met" if measured > target_speed_up else "not met")
+    # The ratio is a figure of this machine and batch size, not a pass/fail line.
+    assert "target" not in completed.stdout
 
 
 @pytest.mark.parametrize(
@@ -101,7 +93,6 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
         "--train-steps",
         "1",
         "--skip-onnx",
-        "--compare-attention",
     )
     assert completed.returncode == 0, completed.stderr[-2000:]
     table = {
@@ -115,23 +106,9 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     per_chunk, _ = table["batch 64, 1 thread: total per chunk (ms)"]
     assert per_chunk == pytest.approx(per_call / 64, rel=0.01)
     training = re.findall(rf"{NUMBER} s per step .*?, {NUMBER} samples/s, speed-up x{NUMBER}", completed.stdout)
-    assert len(training) >= 1, completed.stdout
+    assert len(training) >= 1, completed.stdout  # float32, and bfloat16 where `auto` picks it
     for seconds, samples_per_second, speed_up in ((float(value) for value in row) for row in training):
         # Printed rounded (samples/s to a whole number, the speed-up to 0.01), which on a busy host with slow steps is
         # more than 1% off: below 50 samples/s or a speed-up of 0.5.
         assert samples_per_second == pytest.approx(256 / seconds, rel=0.01, abs=0.5)
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
-    # --compare-attention: both kernels at batch 256 and at 64, and the kernel this CPU trains with.
-    vendor = cpu_vendor() or "unknown"
-    preferred = "blockwise" if cpu_prefers_blockwise_attention(cpu_vendor()) else "masked flash"
-    assert f"(CPU vendor {vendor}: trains with {preferred} attention)" in completed.stdout
-    kernel_rows = re.findall(
-        rf"^ batch (\d+):\n.*?, blockwise attention {NUMBER} s per step .*?, {NUMBER} samples/s.*\n"
-        rf".*?, masked flash attention {NUMBER} s per step .*?, {NUMBER} samples/s",
-        completed.stdout,
-        flags=re.MULTILINE,
-    )
-    assert [int(row[0]) for row in kernel_rows] == [256, 64], completed.stdout
-    for batch_size, *numbers in kernel_rows:
-        for seconds, samples_per_second in zip(numbers[0::2], numbers[1::2], strict=True):
-            assert float(samples_per_second) == pytest.approx(int(batch_size) / float(seconds), rel=0.01, abs=0.5)

@@ -39,19 +39,33 @@ class DataConfig:
     """Demonstrations, ingestion and the time convention (DESIGN.md sections 1 and 2).
 
     Attributes:
-        num_demos: successful scripted demos collected per task.
-        num_demos_per_task: task -> demos overriding `num_demos` for that task's collection (Square gained most from
-            more data: alone, 100 -> 200 demos took it from 62-68% to 88%).
-        collection_seed: first seed of collection; episode i uses ``collection_seed + i`` (failures included).
-        collection_max_steps: step limit of one scripted episode (failures are discarded).
-        controller: ``absolute`` (default, 10-D actions with 6-D rotation) or ``delta`` (7-D, kept as-is).
-        obs_keys: low-dim observation keys concatenated (in this order) into the policy's input.
-        obs_steps: ``To``, observation steps fed to the policy.
-        action_horizon: ``H``, actions predicted per call.
-        action_steps: ``Ta``, actions executed per call.
-        filter_key: optional robomimic ``mask/<filter_key>`` selecting the demos to ingest.
-        valid_fraction: share of demos held out for validation metrics.
-        raw_files: optional task -> path of a user's robomimic file, used instead of scripted collection.
+        num_demos: Successful scripted demos collected per task; an integer >= 1. Collection may try up to 3 seeds per
+            kept demo, so the collection seeds ``[collection_seed, collection_seed + 3 * demos)`` must stay clear of
+            the evaluation seeds (see ``eval.seed``).
+        collection_seed: First seed of scripted collection; an integer >= 0. Attempt i uses ``collection_seed + i``,
+            failed attempts included.
+        collection_max_steps: Step limit of one scripted episode, in control steps (20 Hz); an integer >= 1. An
+            attempt that has not succeeded by then is discarded.
+        controller: ``absolute`` or ``delta``. With ``absolute`` the operational-space controller takes absolute
+            poses and actions are stored 10-D (position, 6-D rotation, gripper), so A = 10; with ``delta`` it takes
+            pose deltas and actions stay 7-D (A = 7). Part of the registered tokenizer's name (``panda-abs10``).
+        obs_keys: Low-dim observation keys of the robomimic file (``obs/<key>``), concatenated in this order into the
+            policy's input; at least one, and each must exist in the file (checked when the data is ingested).
+        obs_steps: ``To``, observation steps the policy sees per decision; an integer >= 1.
+        action_horizon: ``H``, actions predicted per decision, in control steps; an integer >= 1. Must be divisible by
+            ``2**len(tokenizer.channel_mult)`` (each encoder level halves the length), and the latent length
+            ``l = action_horizon / 2**len(tokenizer.channel_mult)`` must equal the last entry of ``scales``.
+        action_steps: ``Ta``, actions executed per decision before the policy is asked again; an integer between 1
+            and ``action_horizon - obs_steps + 1``.
+        filter_key: Optional robomimic filter key: only the demos listed in the file's ``mask/<filter_key>`` are
+            ingested; null ingests every demo.
+        valid_fraction: Share of each task's demos held out for validation metrics when the file has no
+            ``mask/valid`` (that mask wins when present); a number in [0, 1).
+        raw_files: Task -> path of your own robomimic-schema HDF5 file (relative to the project root), validated and
+            used instead of scripted collection; tasks among lift, can and square.
+        num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
+            among lift, can and square. DVC tracks the whole mapping: changing one entry reruns every ``collect``
+            stage, but collection is deterministic, so only that task's data and what depends on it change.
     """
 
     num_demos: int = 100
@@ -101,10 +115,31 @@ class TokenizerConfig:
     """The per-dimension multi-scale VQ-VAE (DESIGN.md section 3) and its training.
 
     Attributes:
-        source: ``pipeline`` (train and register here) or a registry URI ``models:/<name>@<alias>``.
-        tasks: tasks whose windows train the tokenizer, each normalized with its own statistics; empty means the
-            pipeline's ``tasks``.
-        registry_alias: alias set on the registered version.
+        source: Where the tokenizer comes from: ``pipeline`` trains it here and registers it in the MLflow Model
+            Registry; a registry URI ``models:/<name>@<alias>`` fetches that registered version instead, whose action
+            space, ``scales`` and ``codebook_size`` must match these params.
+        tasks: Tasks whose demo windows train the tokenizer, each normalized with its own min-max statistics; empty
+            means the pipeline's ``tasks``. Every entry must also be in ``tasks`` (its demos are ingested there).
+        latent_channels: ``C``, latent channels per action dimension, which is also the width of a code; an integer
+            >= 1.
+        base_channels: Channels per action dimension of the encoder's first convolution; an integer >= 1. Level i of
+            the encoder has ``base_channels * channel_mult[i]`` channels per dimension.
+        channel_mult: Channel multiplier of each encoder level (the decoder mirrors it); a non-empty list of positive
+            integers. Each level halves the time length, so its length sets ``l = action_horizon /
+            2**len(channel_mult)``, which ``scales`` must end at.
+        commitment_weight: Weight of the commitment loss that pulls encoder latents towards their quantized values,
+            relative to the reconstruction loss; a number >= 0.
+        epochs: Passes over the training windows; an integer >= 1.
+        batch_size: Windows per optimizer step; an integer >= 1.
+        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 5% of
+            the peak; a number > 0.
+        weight_decay: AdamW weight decay of the convolution weights (biases, norms and the codebook are not decayed);
+            a number >= 0.
+        checkpoint_every: Epochs between resumable training states in ``checkpoints/``; an integer >= 1. The last
+            epoch is always saved.
+        seed: Seeds weight initialization, shuffling, augmentation and code restarts; any integer.
+        registry_alias: Alias the ``register_tokenizer`` stage sets on the registered version; not empty, not
+            ``latest`` and not starting with a digit (both reserved by the MLflow registry).
     """
 
     source: str = "pipeline"
@@ -154,15 +189,38 @@ class PolicyConfig:
     """The coarse-to-fine transformer (DESIGN.md section 5) and its training.
 
     Attributes:
-        precision: matmul precision of training steps: `auto` trains with bfloat16 autocast where the hardware
+        depth: Transformer blocks; an integer >= 1.
+        width: ``D``, width of every token; an integer >= 1, divisible by ``num_heads``.
+        num_heads: Attention heads per block; an integer >= 1 that divides ``width``.
+        mlp_ratio: Hidden width of each block's feed-forward layer as a multiple of ``width``; a number > 0.
+        dropout: Dropout probability of the attention weights and of both residual branches during training; a
+            number in [0, 1).
+        epochs: Passes over a task's training windows; an integer >= 1. ``epochs_per_task`` overrides it per task.
+        batch_size: Windows per optimizer step; an integer >= 1.
+        learning_rate: Peak AdamW learning rate, reached after ``warmup_steps`` of linear warm-up and followed by a
+            cosine decay to 1% of the peak; a number > 0.
+        weight_decay: AdamW weight decay of the weight matrices (biases and embeddings are not decayed); a number
+            >= 0.
+        warmup_steps: Optimizer steps of linear learning-rate warm-up; an integer >= 0.
+        use_ema: Keep an exponential moving average of the weights during training and save it instead of the raw
+            weights; true or false.
+        ema_decay: Decay of the moving average per optimizer step, used only with ``use_ema``; a number in (0, 1).
+        top_k: How evaluation chooses each token: 1 takes the most likely one (greedy); k > 1 draws among the k most
+            likely ones, with draws seeded per episode so results reproduce. An integer between 1 and
+            ``codebook_size``. Decoding only: a change reruns evaluation, not training.
+        checkpoint_every: Epochs between resumable training states in ``checkpoints/``; an integer >= 1. The last
+            epoch is always saved.
+        seed: Seeds weight initialization and shuffling; any integer.
+        precision: Matmul precision of training steps: ``auto`` trains with bfloat16 autocast where the hardware
             multiplies bfloat16 natively (CPUs with AMX or AVX512-BF16, CUDA GPUs that support it) and in float32
-            elsewhere; `float32` or `bfloat16` force one. Weights, optimizer state, attention on CPU, the loss and
-            inference stay float32 (see `carp.training.runtime.resolve_precision`).
-        epochs_per_task: task -> policy epochs of that task's policy, overriding `epochs` (Square measured 34% at
-            20 epochs and 68% at 35; Can 82% at 20 alone, 66% at 35 in a three-task run; see docs/measurements.md).
-        top_k_per_task: task -> token choice of that task's evaluation, overriding `top_k` (in three-task run C, top-5
-            draws lifted Can from 48% to 78% while Square did best greedy; see docs/measurements.md). Decoding only: a
-            change reruns evaluation, not training.
+            elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
+            and inference stay float32 (see ``carp.training.runtime.resolve_precision``).
+        epochs_per_task: Task -> epochs of that task's policy, overriding ``epochs``; each an integer >= 1, tasks
+            among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
+            ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+        top_k_per_task: Task -> token choice when evaluating that task, overriding ``top_k``; each an integer between
+            1 and ``codebook_size``, tasks among lift, can and square. Decoding only: a change reruns evaluation, not
+            training.
     """
 
     depth: int = 8
@@ -239,11 +297,21 @@ class EvalConfig:
     """Simulated evaluation (DESIGN.md section 6).
 
     Attributes:
-        seed: first evaluation seed; must stay disjoint from the collection seeds.
-        workers: parallel env processes; 0 means one per CPU core.
-        max_steps: task -> step limit of one episode.
-        backend: `onnxruntime` runs greedy batch-1 inference as an exported ONNX graph (~3x faster per chunk, see
-            `carp.evaluation.onnx_policy`); `torch` runs the PyTorch modules. Top-k sampling always uses torch.
+        episodes: Seeded evaluation episodes per task; an integer >= 1. The success rate is reported with its 95%
+            Wilson interval, which narrows with more episodes.
+        seed: First evaluation seed; an integer >= 0. Episode i uses ``seed + i``. The range ``[seed, seed +
+            episodes)`` must not overlap the collection seeds ``[data.collection_seed, data.collection_seed + 3 *
+            demos)``, with demos the largest per-task demo count.
+        workers: Simulator worker processes, each with its own copy of the policy; an integer >= 0, where 0 means
+            one per CPU core.
+        max_steps: Task -> step limit of one episode, in control steps (20 Hz); each an integer >= 1. Every task in
+            ``tasks`` needs an entry; an episode that has not succeeded by then counts as a failure.
+        video: Record GIF videos of the first ``video_episodes`` episodes of each task into ``reports/eval/videos/``
+            (needs offscreen rendering through EGL); true or false.
+        video_episodes: Episodes recorded per task when ``video`` is true; an integer >= 0.
+        backend: ``onnxruntime`` runs batch-1 inference as exported ONNX graphs, several times faster per chunk than
+            the eager modules (see ``carp.evaluation.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
+            the same tokens.
     """
 
     episodes: int = 50
@@ -267,7 +335,14 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """MLflow tracking. A relative SQLite path is resolved against the project root by the pipeline."""
+    """MLflow tracking (runs, metrics, artifacts and the model registry).
+
+    Attributes:
+        uri: MLflow tracking URI; not empty. A relative SQLite path (``sqlite:///mlflow.db``) is resolved against the
+            project root, also for experiments run in a temporary copy.
+        experiment_prefix: Prefix of the MLflow experiment names: ``<prefix>-<task>``, ``<prefix>-tokenizer`` and
+            ``<prefix>-sweep``; not empty.
+    """
 
     uri: str = "sqlite:///mlflow.db"
     experiment_prefix: str = "carp"
@@ -279,11 +354,22 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """Optuna study over scale schedules and codebook sizes (outside the default DAG).
+    """Optuna study over scale schedules and codebook sizes (``make sweep``; outside the default DAG).
 
     Attributes:
-        heartbeat_seconds: how often a running trial marks itself alive in the storage; a killed sweep's trial is
-            retried once its heartbeat is two intervals old.
+        study_name: Name of the Optuna study, also part of each trial's DVC experiment name
+            (``sweep-<study>-t<number>``); a changed search space needs a new name.
+        storage: Optuna storage URL; a relative SQLite path (``sqlite:///optuna.db``) is resolved against the project
+            root.
+        num_trials: Total number of finished trials (complete, pruned or failed), counted across restarts of the
+            sweep; an integer >= 1.
+        scale_schedules: Candidate values of ``scales``; at least one, each strictly increasing and ending at the
+            latent length ``l``.
+        codebook_sizes: Candidate values of ``codebook_size``; each an integer >= 2.
+        prune_factor: A trial whose tokenizer reconstruction error is more than this many times the lowest error of
+            the study so far is pruned before its policy is trained; a number > 1.
+        heartbeat_seconds: How often a running trial marks itself alive in the storage, in seconds; an integer >= 1.
+            A killed sweep's trial is retried once its heartbeat is two intervals old.
     """
 
     study_name: str = "carp-sweep"
@@ -305,7 +391,25 @@ class SweepConfig:
 
 @dataclass(frozen=True)
 class Params:
-    """All of ``params.yaml``. ``scales`` and ``codebook_size`` are top-level so ``dvc exp run -S`` reaches them."""
+    """All of ``params.yaml``. ``scales`` and ``codebook_size`` are top-level so ``dvc exp run -S`` reaches them.
+
+    Attributes:
+        scales: ``s_k``, tokens per action dimension at each scale, coarse to fine; ``K`` is the number of scales and
+            a chunk has ``L = A * sum(scales)`` tokens. Positive, strictly increasing integers whose last entry equals
+            the latent length ``l = data.action_horizon / 2**len(tokenizer.channel_mult)`` (4 by default).
+        codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
+            >= 2 and at least ``policy.top_k``.
+        tasks: Tasks the pipeline runs, among lift, can and square, each at most once; the per-task stages
+            (``collect``, ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
+        device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
+            rollouts run on the CPU.
+        data: Demonstrations, ingestion and the time convention.
+        tokenizer: The action tokenizer and its training.
+        policy: The coarse-to-fine transformer, its training and its token choice.
+        eval: Simulated evaluation.
+        tracking: MLflow tracking.
+        sweep: The Optuna sweep.
+    """
 
     scales: tuple[int, ...] = (1, 2, 3, 4)
     codebook_size: int = 512

@@ -35,8 +35,8 @@ def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
         params["tokenizer"]["source"] = uri
 
     _set_params(workspace, reuse)
-    # The README's walkthrough: Square's data, then everything downstream of the registry stage; train_tokenizer
-    # is not even visited.
+    # The walkthrough of docs/pipeline.md: Square's data, then everything downstream of the registry stage;
+    # train_tokenizer is not even visited.
     data = run(dvc("repro", "collect@square", "ingest@square"), workspace)
     assert data.returncode == 0, data.stderr[-3000:]
     second = run(dvc("repro", "--downstream", "register_tokenizer"), workspace)

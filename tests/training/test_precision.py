@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import BlockCausalMask, _attention
+from carp.policy.blocks import _attention
 from carp.training import runtime
 from carp.training.policy_trainer import PolicyTrainingSettings, train_policy
 from carp.training.runtime import autocast_to, resolve_precision
@@ -33,14 +33,14 @@ def test_cpu_attention_stays_float32_under_bfloat16_autocast():
     generator = torch.Generator().manual_seed(0)
     query, key, value = (torch.randn(2, 4, 12, 8, generator=generator) for _ in range(3))
     blocks = torch.repeat_interleave(torch.arange(3), torch.tensor([2, 4, 6]))
-    mask = BlockCausalMask(blocks[:, None] >= blocks[None, :], (2, 6, 12))
+    mask = blocks[:, None] >= blocks[None, :]  # (12, 12) block-causal
     with autocast_to(torch.bfloat16, CPU):
         linear_output = F.linear(query, torch.eye(8))
         attended = _attention(query, key, value, mask, 0.0)
         unmasked = _attention(query, key, value, None, 0.0)
     assert linear_output.dtype == torch.bfloat16  # the autocast region is active
     assert attended.dtype == unmasked.dtype == torch.float32
-    expected = F.scaled_dot_product_attention(query, key, value, attn_mask=mask.dense)
+    expected = F.scaled_dot_product_attention(query, key, value, attn_mask=mask)
     torch.testing.assert_close(attended, expected, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(unmasked, F.scaled_dot_product_attention(query, key, value), rtol=1e-6, atol=1e-6)
 

@@ -20,7 +20,7 @@ site's diagonal (x + y) axis moves that singular case to the single yaw opposite
 commands: every commanded yaw stays within 135 degrees of home, where the rotation angle is at least 0.01 rad
 below pi.
 
-Square follows two lessons of an earlier probe on this machine: the nut's target yaw is chosen among the square
+Square's expert makes two choices that keep its grasps reliable: the nut's target yaw is chosen among the square
 peg's 90-degree symmetric options so the handle never points away from the robot (that side is at the edge of the
 Panda's workspace), and the grasp aims slightly above and further out along the handle so the fingertips clear the
 table and the nut ring; if the gripper closes on nothing it opens, rises and grasps again.

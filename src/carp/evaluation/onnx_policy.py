@@ -17,10 +17,10 @@ Two graphs are exported, so that prediction and decoding stay separately timed:
 The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` and the blocks' forward for batch
 1, where the AdaLN shift and scale of a chunk are plain (D,) vectors and become the LayerNorm's own bias and weight
 (one node instead of three), and attention is written out so that the exported graph has no shape arithmetic.
-Folding the gates into the output projections as well measured slower (2.83 vs 2.70 ms of prediction): ONNX
-Runtime pre-packs constant weights only. Every learned piece (condition encoder, projections, head, tokenizer) is
-the policy's own module. `tests/evaluation/test_onnx_policy.py` checks that both paths choose the same tokens and
-return the same actions, greedy and sampled (the same generator gives the same uniforms, hence the same draws).
+Folding the gates into the output projections as well is slower: ONNX Runtime pre-packs constant weights only.
+Every learned piece (condition encoder, projections, head, tokenizer) is the policy's own module.
+`tests/evaluation/test_onnx_policy.py` checks that both paths choose the same tokens and return the same actions,
+greedy and sampled (the same generator gives the same uniforms, hence the same draws).
 
 `top_k` is fixed when the graphs are exported; batches run through `CarpPolicy`.
 """
@@ -159,8 +159,8 @@ def _export(
 
     PyTorch's TorchScript-based exporter (`dynamo=False`) rather than its default `torch.export`-based one: both give
     graphs that choose the same tokens at the same ONNX Runtime latency, but tracing takes ~1 s for the default
-    policy where `torch.export` with its decompositions took ~15 s, once per evaluated task and sweep trial
-    (session 29 under "Benchmarks" in docs/measurements.md). Every shape here is static, so the tracer's warnings
+    policy where `torch.export` with its decompositions takes ~15 s, once per evaluated task and sweep trial.
+    Every shape here is static, so the tracer's warnings
     about Python values it records as constants (tensor sizes) do not apply, and its deprecation notice is not
     actionable while torch is pinned.
     """

@@ -15,69 +15,14 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
 """
 
 import math
-from contextlib import AbstractContextManager
-from pathlib import Path
-from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from carp.cpu_kernels import KernelChoice
-
 NORM_EPS = 1e-6
 MODULATIONS_PER_BLOCK = 6
 """Shift, scale and gate for the attention branch, then the same for the feed-forward branch."""
-
-
-def cpu_vendor(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The CPU's vendor string as Linux reports it ("GenuineIntel", "AuthenticAMD"), or "" where it cannot be read."""
-    try:
-        with cpuinfo.open() as lines:
-            for line in lines:
-                name, _, value = line.partition(":")
-                if name.strip() == "vendor_id":
-                    return value.strip()
-    except OSError:
-        pass
-    return ""
-
-
-def cpu_prefers_blockwise_attention(vendor: str) -> bool:
-    """Whether block-causal training attention on this CPU runs faster block by block than as one masked kernel.
-
-    Measured per machine kind (docs/measurements.md, "Benchmarks"), forward + backward of the float32 attention at
-    training size: on a 2-core AMD EPYC with AVX2 the blocks took 33 ms per layer at batch 64 against 64 ms for
-    PyTorch's flash kernel with the dense mask; on a 2-core Intel Xeon with AMX the flash kernel took 12.5 against
-    12.6 ms at batch 64 and 53 against 64 ms at batch 256, and whole bfloat16 training steps were 10% faster with it
-    at batch 64 and 11% at batch 256. Intel CPUs therefore take the flash kernel and all others the blocks, which is
-    what the AMD AVX-512 machine has run and been measured with.
-    """
-    return vendor != "GenuineIntel"
-
-
-_CPU_BLOCKWISE_ATTENTION = KernelChoice(cpu_prefers_blockwise_attention(cpu_vendor()))
-
-
-def cpu_attention_kernel(blockwise: bool | None) -> AbstractContextManager[None]:
-    """Choose the block-causal CPU attention kernel inside a `with` block: block by block (True) or one masked kernel.
-
-    None leaves the kernel as it is (outside any such block, the one `cpu_prefers_blockwise_attention` chose). Meant
-    for measuring both kernels on one machine (`benchmarks/policy_speed.py --compare-attention`).
-    """
-    return _CPU_BLOCKWISE_ATTENTION.overridden(blockwise)
-
-
-class BlockCausalMask(NamedTuple):
-    """Attention pattern of teacher-forced training: the queries of block k attend the keys of blocks 1..k.
-
-    Blocks are the scales of the token layout. Two descriptions of the same pattern, one per attention kernel.
-    """
-
-    dense: torch.Tensor
-    """(L, L) bool, True where the query (row) may attend the key (column)."""
-    block_ends: tuple[int, ...]
-    """Exclusive end of each block along the sequence, ascending, the last equal to L."""
 
 
 class KeyValueCache:
@@ -136,14 +81,15 @@ class SelfAttention(nn.Module):
     def forward(
         self,
         hidden: torch.Tensor,
-        mask: BlockCausalMask | None = None,
+        mask: torch.Tensor | None = None,
         cache: KeyValueCache | None = None,
     ) -> torch.Tensor:
         """Attend from every token to the allowed tokens.
 
         Args:
             hidden: (B, N, D) normalized and modulated tokens.
-            mask: the training pattern over all N = L tokens; None attends everywhere.
+            mask: (N, N) bool block-causal pattern of training over all N = L tokens, True where the query (row) may
+                attend the key (column); None attends everywhere.
             cache: kv-cache of the coarser scales (inference); its keys precede this call's keys.
 
         Returns:
@@ -173,47 +119,19 @@ def _attention(
     query: torch.Tensor,
     key: torch.Tensor,
     value: torch.Tensor,
-    mask: BlockCausalMask | None,
+    mask: torch.Tensor | None,
     dropout: float,
 ) -> torch.Tensor:
     """Scaled dot-product attention of (B, Nh, N, d) queries on (B, Nh, n, d) keys and values.
 
-    With a block-causal mask on a CPU that prefers it (`cpu_prefers_blockwise_attention`) the attention is computed
-    block by block (`_blockwise_attention`); elsewhere by `F.scaled_dot_product_attention` with the dense mask; both
-    agree to float rounding (tests/policy/test_blocks.py). Under CPU autocast (bfloat16 training) attention still
-    runs in float32: PyTorch's CPU flash-attention backward measured ~7x slower in bfloat16 than in float32 at
-    training size (head width 8), more than the casts cost.
+    One `F.scaled_dot_product_attention` call with the (N, N) bool mask (or none), on every device. Under CPU
+    autocast (bfloat16 training) attention still runs in float32: PyTorch's CPU flash-attention backward is several
+    times slower in bfloat16 than in float32 at this head width (8), more than the casts cost.
     """
-    on_cpu = query.device.type == "cpu"
-    if on_cpu and torch.is_autocast_enabled("cpu"):
+    if query.device.type == "cpu" and torch.is_autocast_enabled("cpu"):
         with torch.autocast("cpu", enabled=False):
             return _attention(query.float(), key.float(), value.float(), mask, dropout)
-    if on_cpu and mask is not None and _CPU_BLOCKWISE_ATTENTION.enabled:
-        return _blockwise_attention(query, key, value, mask.block_ends, dropout)
-    dense = None if mask is None else mask.dense
-    return F.scaled_dot_product_attention(query, key, value, attn_mask=dense, dropout_p=dropout)
-
-
-def _blockwise_attention(
-    query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, block_ends: tuple[int, ...], dropout: float
-) -> torch.Tensor:
-    """Block-causal attention of (B, Nh, L, d) queries, keys and values, one unmasked product per block.
-
-    The queries of block k score only the keys of blocks 1..k, so no score is masked out and none is computed in vain:
-    with scales (1, 2, 3, 4) that is 65% of the L x L scores. Which CPUs run it: `cpu_prefers_blockwise_attention`
-    (on the AMD AVX2 machine the same products over all L x L scores, masked, took 47 ms per layer against 33 ms).
-    """
-    scale = query.shape[-1] ** -0.5
-    attended = []
-    start = 0
-    for end in block_ends:
-        scores = torch.matmul(query[:, :, start:end] * scale, key[:, :, :end].transpose(-1, -2))  # (B, Nh, n_k, end)
-        weights = torch.softmax(scores, dim=-1)
-        if dropout > 0:
-            weights = F.dropout(weights, dropout)
-        attended.append(torch.matmul(weights, value[:, :, :end]))  # (B, Nh, n_k, d)
-        start = end
-    return torch.cat(attended, dim=2)  # (B, Nh, L, d)
+    return F.scaled_dot_product_attention(query, key, value, attn_mask=mask, dropout_p=dropout)
 
 
 class FeedForward(nn.Module):
@@ -263,7 +181,7 @@ class AdaptiveBlock(nn.Module):
         self,
         hidden: torch.Tensor,
         modulation: tuple[torch.Tensor, ...],
-        mask: BlockCausalMask | None = None,
+        mask: torch.Tensor | None = None,
         cache: KeyValueCache | None = None,
     ) -> torch.Tensor:
         """Apply attention and feed-forward branches.
@@ -272,7 +190,7 @@ class AdaptiveBlock(nn.Module):
             hidden: (B, N, D) tokens.
             modulation: `MODULATIONS_PER_BLOCK` tensors (B, 1, D): attention shift, scale, gate, then feed-forward
                 shift, scale, gate.
-            mask: block-causal mask or None, see :class:`SelfAttention`.
+            mask: (N, N) bool block-causal mask or None, see :class:`SelfAttention`.
             cache: kv-cache for inference, or None.
 
         Returns:

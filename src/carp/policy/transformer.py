@@ -23,7 +23,6 @@ from carp.policy.blocks import (
     MODULATIONS_PER_BLOCK,
     NORM_EPS,
     AdaptiveBlock,
-    BlockCausalMask,
     KeyValueCache,
     PerDimensionHead,
 )
@@ -189,10 +188,9 @@ class CoarseToFineTransformer(nn.Module):
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
         )  # (B, L, D)
         hidden = tokens + self.position_and_level()
-        mask = BlockCausalMask(self.attention_mask, tuple(end for _, end in self.layout.scale_bounds))
         for index, block in enumerate(self.blocks):
             start = index * MODULATIONS_PER_BLOCK
-            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], mask)
+            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
         if grouped_by_dimension:
             return self.head.grouped_logits(self._final_norm(hidden, modulations))  # (A, B * L / A, V)
         return self._logits(hidden, modulations)  # (B, L, V)
