@@ -102,10 +102,10 @@ def _process_alive(pid: int) -> bool:
 
 
 def end_orphaned_runs(tracking_uri: str, experiment_id: str, run_name: str) -> list[str]:
-    """Mark ``KILLED`` the ``RUNNING`` runs of ``run_name`` whose process on this host no longer exists.
+    """Mark ``KILLED`` the ``RUNNING`` runs of ``run_name`` whose process on the local host no longer exists.
 
     A run of the same stage still going in another live process (a parallel ``dvc exp run`` worker) is left alone,
-    and so is one started on another host, whose processes cannot be seen from here.
+    and so is one started on another host, whose processes cannot be inspected locally.
 
     Returns:
         The ids of the runs that were ended.
