@@ -10,11 +10,12 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-
-import pandas as pd
-import torch
+from typing import TYPE_CHECKING
 
 from carp.config import ConfigError, Params, flatten_params, load_params
+
+if TYPE_CHECKING:
+    import torch
 
 logger = logging.getLogger("carp.pipeline")
 
@@ -23,6 +24,9 @@ PROJECT_DIR = Path(__file__).resolve().parents[1]
 # Fixed, untimestamped artifact paths (declared in dvc.yaml).
 RAW_DIR = PROJECT_DIR / "data" / "raw"
 PROCESSED_DIR = PROJECT_DIR / "data" / "processed"
+# Data outputs are built here, then renamed into place: on their filesystem (the rename is atomic) and outside every
+# path a stage declares as a dependency, so a killed stage's leftover never enters another stage's hash in dvc.lock.
+STAGING_DIR = PROJECT_DIR / "data" / ".staging"
 TOKENIZER_DIR = PROJECT_DIR / "models" / "tokenizer"
 TOKENIZER_REF = PROJECT_DIR / "models" / "tokenizer_ref.json"
 POLICY_DIR = PROJECT_DIR / "models" / "policy"
@@ -70,8 +74,11 @@ def fail(message: str) -> None:
     sys.exit(1)
 
 
-def select_device(params: Params) -> torch.device:
+def select_device(params: Params) -> "torch.device":
     """``auto`` picks CUDA when present; an explicit ``cuda`` without a GPU is an error."""
+    # torch and pandas are imported where used: the data stages (collect, ingest) need neither and start seconds sooner.
+    import torch
+
     if params.device == "cuda" and not torch.cuda.is_available():
         fail("device=cuda but no CUDA device is available (set device: auto or cpu)")
     if params.device == "auto":
@@ -147,6 +154,8 @@ def write_history(path: Path, history: list[dict]) -> None:
     """Write per-epoch metrics as CSV atomically; no epochs (a state resumed from older code) gives just a header."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
+    import pandas as pd
+
     pd.DataFrame(history, columns=None if history else ["epoch"]).to_csv(temporary, index=False)
     os.replace(temporary, path)
 
