@@ -241,7 +241,7 @@ def _select_demos(path: Path, names: list[str], masks: dict[str, list[str]], fil
 
 def _decode_attr(value):
     if isinstance(value, bytes):
-        value = value.decode()
+        value = value.decode(errors="replace")  # informational attributes: a bad byte must not refuse the file
     if isinstance(value, np.generic):
         return value.item()
     return value
