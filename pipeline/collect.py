@@ -1,12 +1,12 @@
 """collect stage: scripted-expert demos (or the user's own robomimic file) -> data/raw/<task>.hdf5."""
 
 import json
-import shutil
 
-from stage_support import PROJECT_DIR, fail, load, mlflow_stage, parse_args, setup_logging
+from stage_support import PROJECT_DIR, STAGING_DIR, fail, load, mlflow_stage, parse_args, setup_logging
 
 from carp.config import TASK_NAMES
-from carp.data.robomimic_io import DatasetError, read_demonstrations
+from carp.data.robomimic_io import DatasetError, import_demonstrations
+from carp.data.rotation import ABSOLUTE_ACTION_DIM
 
 
 def main() -> None:
@@ -17,21 +17,29 @@ def main() -> None:
         fail(f"--task {args.task!r}: must be one of {TASK_NAMES}")
     output = PROJECT_DIR / "data" / "raw" / f"{args.task}.hdf5"
     user_file = params.data.raw_files.get(args.task)
-    with mlflow_stage(params, f"collect@{args.task}", args.task) as run:
-        if user_file:
-            source = (PROJECT_DIR / user_file).resolve()
-            try:
-                demos = read_demonstrations(source, params.data.obs_keys, action_dim=7)
-            except DatasetError as error:
-                fail(str(error))
-            temporary = output.with_name(f".{output.name}.tmp")
-            output.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(source, temporary)
-            temporary.replace(output)
+    if user_file:
+        source = (PROJECT_DIR / user_file).resolve()
+        try:
+            # The same checks as ingest (obs keys, action width, filter mask), so a file ingest would refuse is
+            # refused here, before anything is written at the output.
+            demos = import_demonstrations(
+                source,
+                output,
+                params.data.obs_keys,
+                action_dim=ABSOLUTE_ACTION_DIM,
+                filter_key=params.data.filter_key,
+                staging_dir=STAGING_DIR,
+            )
+        except DatasetError as error:
+            fail(str(error))
+        except OSError as error:
+            fail(f"{source}: cannot copy to {output} ({error.strerror or error})")
+        with mlflow_stage(params, f"collect@{args.task}", args.task) as run:
             run.log_metrics({"demos": len(demos.episodes)})
-            print(f"{args.task}: copied {len(demos.episodes)} demos from {source}")
-            return
+        print(f"{args.task}: copied {len(demos.episodes)} demos from {source}")
+        return
 
+    with mlflow_stage(params, f"collect@{args.task}", args.task) as run:
         from carp.data.collect import CollectionError, collect_demonstrations
 
         try:
@@ -42,6 +50,7 @@ def main() -> None:
                 seed=params.data.collection_seed,
                 controller=params.data.controller,
                 max_steps=params.data.collection_max_steps,
+                staging_dir=STAGING_DIR,
             )
         except CollectionError as error:
             fail(str(error))

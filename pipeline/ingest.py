@@ -2,18 +2,32 @@
 
 from dataclasses import asdict
 
-from stage_support import PROJECT_DIR, fail, load, mlflow_stage, parse_args, setup_logging
+from stage_support import (
+    PROCESSED_DIR,
+    PROJECT_DIR,
+    RAW_DIR,
+    STAGING_DIR,
+    fail,
+    load,
+    mlflow_stage,
+    parse_args,
+    setup_logging,
+)
 
 from carp.data.ingest import ingest_demonstrations
 from carp.data.robomimic_io import DatasetError
+from carp.data.staging import remove_stale_entries
 
 
 def main() -> None:
     setup_logging()
     args = parse_args(__doc__, per_task=True)
     params = load(args.params)
-    raw = PROJECT_DIR / "data" / "raw" / f"{args.task}.hdf5"
-    output = PROJECT_DIR / "data" / "processed" / args.task
+    raw = RAW_DIR / f"{args.task}.hdf5"
+    output = PROCESSED_DIR / args.task
+    # Earlier versions staged next to the output, inside train_tokenizer's dependency data/processed; a killed run's
+    # leftover there would stay in that dependency's hash.
+    remove_stale_entries(PROCESSED_DIR)
     try:
         summary = ingest_demonstrations(
             raw,
@@ -22,6 +36,7 @@ def main() -> None:
             controller=params.data.controller,
             filter_key=params.data.filter_key,
             valid_fraction=params.data.valid_fraction,
+            staging_dir=STAGING_DIR,
         )
     except DatasetError as error:
         fail(str(error))

@@ -16,7 +16,12 @@ from stage_support import (
     tracking_uri,
 )
 
-from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
+from carp.tokenizer.artifact import (
+    NonFiniteTokenizerError,
+    TokenizerMismatchError,
+    check_compatible,
+    load_tokenizer_artifact,
+)
 from carp.tracking.registry import fetch_registered_tokenizer, register_tokenizer, registered_model_name
 
 
@@ -36,7 +41,7 @@ def main() -> None:
         else:
             artifact, reference = fetch_registered_tokenizer(uri, params.tokenizer.source)
             check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-    except (LookupError, TokenizerMismatchError, FileNotFoundError) as error:
+    except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError, FileNotFoundError) as error:
         fail(str(error))
     TOKENIZER_REF.parent.mkdir(parents=True, exist_ok=True)
     reference.save(TOKENIZER_REF)

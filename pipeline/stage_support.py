@@ -1,7 +1,7 @@
 """What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run.
 
-torch and pandas are imported where they are used, so the always-run ``check_inputs`` stage starts in a fraction of
-a second.
+torch and pandas are imported where they are used, so the always-run ``check_inputs`` stage and the data stages
+(collect, ingest), which need neither, start seconds sooner.
 """
 
 import argparse
@@ -28,6 +28,9 @@ PROJECT_DIR = Path(__file__).resolve().parents[1]
 # Fixed, untimestamped artifact paths (declared in dvc.yaml).
 RAW_DIR = PROJECT_DIR / "data" / "raw"
 PROCESSED_DIR = PROJECT_DIR / "data" / "processed"
+# Data outputs are built here, then renamed into place: on their filesystem (the rename is atomic) and outside every
+# path a stage declares as a dependency, so a killed stage's leftover never enters another stage's hash in dvc.lock.
+STAGING_DIR = PROJECT_DIR / "data" / ".staging"
 TOKENIZER_DIR = PROJECT_DIR / "models" / "tokenizer"
 TOKENIZER_REF = PROJECT_DIR / "models" / "tokenizer_ref.json"
 POLICY_DIR = PROJECT_DIR / "models" / "policy"

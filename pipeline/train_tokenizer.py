@@ -24,7 +24,12 @@ from stage_support import (
 )
 
 from carp.data.dataset import load_task_windows
-from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, save_tokenizer_artifact
+from carp.tokenizer.artifact import (
+    NonFiniteTokenizerError,
+    TokenizerMismatchError,
+    check_compatible,
+    save_tokenizer_artifact,
+)
 from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tracking.registry import fetch_registered_tokenizer
@@ -69,20 +74,23 @@ def main() -> None:
                 ]
                 return torch.as_tensor(np.concatenate(values), dtype=torch.float32)
 
-            tokenizer = train_tokenizer(
-                spec,
-                normalized("train_actions"),
-                normalized("valid_actions"),
-                settings,
-                CHECKPOINT_DIR / "tokenizer",
-                on_epoch_end=log_epoch,
-            ).cpu()
+            try:
+                tokenizer = train_tokenizer(
+                    spec,
+                    normalized("train_actions"),
+                    normalized("valid_actions"),
+                    settings,
+                    CHECKPOINT_DIR / "tokenizer",
+                    on_epoch_end=log_epoch,
+                ).cpu()
+            except NonFiniteTokenizerError as error:
+                fail(str(error))
             trained_with = own_normalizers
         else:
             try:
                 artifact, reference = fetch_registered_tokenizer(tracking_uri(params), config.source)
                 check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-            except (LookupError, TokenizerMismatchError) as error:
+            except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError) as error:
                 fail(str(error))
             tokenizer, trained_with = artifact.tokenizer, artifact.action_normalizers
             run.set_tags({"carp.tokenizer_version": reference.version})
@@ -93,7 +101,11 @@ def main() -> None:
         figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
         figure_episode = (tasks[0], buffer.episode(episode)[1])
         metrics = evaluate_tokenizer(tokenizer.eval(), held_out, own_normalizers, figure_episode, figure)
-        sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, trained_with, params.action_space)
+        try:
+            sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, trained_with, params.action_space, metrics)
+        except NonFiniteTokenizerError as error:
+            figure.unlink(missing_ok=True)
+            fail(str(error))
         run.log_metrics({key.replace("/", "."): value for key, value in metrics.items()})
         run.log_artifact(figure)
         run.set_tags({"carp.tokenizer_sha256": sha256})

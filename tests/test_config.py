@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+from dvc.utils.serialize import parse_yaml
 
 from carp.config import ConfigError, Params, flatten_params, load_params, params_from_dict
 
@@ -123,3 +124,23 @@ def test_policy_top_k_per_task_overrides_the_common_token_choice():
     )
     assert [params.policy.top_k_for(task) for task in params.tasks] == [3, 5, 1]
     assert flatten_params(params)["policy.top_k_per_task.can"] == "5"
+
+
+@pytest.mark.parametrize("text, expected", [("1e-3", 0.001), ("1E5", 100000.0), ("+1e-3", 0.001), ("2.5E-2", 0.025)])
+def test_numbers_read_as_dvc_reads_them(tmp_path, text, expected):
+    path = tmp_path / "params.yaml"
+    path.write_text(f"policy:\n  learning_rate: {text}\n")
+    assert load_params(path).policy.learning_rate == expected
+    dvc_value = parse_yaml(path.read_text(), str(path))["policy"]["learning_rate"]
+    assert dvc_value == expected
+
+
+def test_values_dvc_reads_as_strings_or_refuses_are_refused(tmp_path):
+    path = tmp_path / "params.yaml"
+    # YAML 1.2 (DVC) reads `yes` as a string; YAML 1.1 would have made it true.
+    path.write_text("policy:\n  use_ema: yes\n")
+    with pytest.raises(ConfigError, match=r"policy.use_ema='yes': expected true or false"):
+        load_params(path)
+    path.write_text("codebook_size: 64\ncodebook_size: 128\n")
+    with pytest.raises(ConfigError, match=r"params.yaml: not valid YAML \(found duplicate key \"codebook_size\""):
+        load_params(path)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from ruamel.yaml import YAML, YAMLError
 
 TASK_NAMES = ("lift", "can", "square")
 CONTROLLERS = ("absolute", "delta")
@@ -518,13 +518,28 @@ def load_params(path: Path | str = "params.yaml") -> Params:
     if not path.exists():
         raise ConfigError(f"{path}: params file not found")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML ({str(error).splitlines()[0]})") from None
+        raw = _read_yaml(path.read_text()) or {}
+    except YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(error)})") from None
     try:
         return params_from_dict(raw)
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
+
+
+def _read_yaml(text: str) -> Any:
+    # DVC parses params.yaml with ruamel.yaml's YAML 1.2 safe loader. Reading it with the same loader makes every
+    # value mean here what DVC hashed and `dvc exp run -S` wrote: `1e-3` is a float (PyYAML's YAML 1.1 reads a
+    # string), `yes` is a string (YAML 1.1: true), and a repeated key is an error (PyYAML keeps the last one).
+    return YAML(typ="safe").load(text)
+
+
+def _yaml_problem(error: YAMLError) -> str:
+    problem = getattr(error, "problem", None)
+    mark = getattr(error, "problem_mark", None)
+    if problem and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return str(error).strip().splitlines()[0]
 
 
 def params_to_dict(params: Params) -> dict[str, Any]:

@@ -1,4 +1,7 @@
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -12,6 +15,7 @@ from carp.data.robomimic_io import DatasetError
 from carp.data.rotation import rot6d_to_absolute_actions
 from carp.data.windows import make_windows
 from tests.conftest import OBS_KEYS, OBS_WIDTHS, write_synthetic_file
+from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expected_message
 
 
 def test_ingest_builds_buffer_with_episode_boundaries_and_exact_actions(tmp_path):
@@ -63,61 +67,33 @@ def _mutate(path: Path, change) -> None:
         change(handle)
 
 
-def _replace(handle, key, values):
-    del handle[key]
-    handle.create_dataset(key, data=values)
-
-
-BAD_INPUTS = {
-    "missing file": (None, "missing.hdf5: file not found"),
-    "not hdf5": ("text", "not an HDF5 file"),
-    "no data group": (lambda h: h.move("data", "stuff"), "missing group 'data'"),
-    "missing obs key": (lambda h: h.__delitem__("data/demo_1/obs/object"), "demo 'demo_1': missing obs key 'object'"),
-    "length mismatch": (
-        lambda h: _replace(h, "data/demo_2/obs/robot0_eef_pos", np.zeros((39, 3))),
-        "demo 'demo_2': obs key 'robot0_eef_pos' has 39 steps but 'actions' has 40",
-    ),
-    "empty demo": (
-        lambda h: _replace(h, "data/demo_0/actions", np.zeros((0, 7))),
-        "demo 'demo_0': key 'actions' is empty",
-    ),
-    "nan action": (
-        lambda h: h["data/demo_3/actions"].__setitem__((4, 2), np.nan),
-        "demo 'demo_3': key 'actions' holds NaN or inf (first at step 4)",
-    ),
-    "inf obs": (
-        lambda h: h["data/demo_0/obs/robot0_eef_quat"].__setitem__((7, 0), np.inf),
-        "demo 'demo_0': obs key 'robot0_eef_quat' holds NaN or inf (first at step 7)",
-    ),
-    "wrong action width": (
-        lambda h: _replace(h, "data/demo_1/actions", np.zeros((25, 6))),
-        "demo 'demo_1': key 'actions' has width 6, expected 7",
-    ),
-    "filter names missing demo": (
-        lambda h: _replace(h, "mask/train", np.array([b"demo_0", b"demo_9"])),
-        "filter key 'mask/train' names demo 'demo_9', which does not exist",
-    ),
-}
-
-
-@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
-def test_bad_input_names_file_demo_and_key_and_writes_nothing(tmp_path, case):
+@pytest.mark.parametrize("name", sorted(CORRUPT_FILES))
+def test_bad_input_names_file_demo_and_key_and_writes_nothing(tmp_path, name):
     raw = tmp_path / "raw.hdf5"
-    write_synthetic_file(raw)
-    change, message = BAD_INPUTS[case]
-    if change is None:
-        raw = tmp_path / "missing.hdf5"
-    elif change == "text":
-        raw.write_text("not a dataset")
-    else:
-        _mutate(raw, change)
     output = tmp_path / "processed"
-    with pytest.raises(DatasetError) as error:
-        ingest_demonstrations(raw, output, OBS_KEYS, filter_key="train" if "filter" in case else None)
+    with corrupt_file(name, raw) as case, pytest.raises(DatasetError) as error:
+        ingest_demonstrations(raw, output, OBS_KEYS, staging_dir=tmp_path / "staging")
     text = str(error.value)
-    assert message in text and str(raw) in text and "\n" not in text
-    assert not output.exists()
+    assert text.startswith(expected_message(case, raw)) and case.problem in text and "\n" not in text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.hdf5"]
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(DatasetError, match=r"missing.hdf5: file not found"):
+        ingest_demonstrations(tmp_path / "missing.hdf5", tmp_path / "processed", OBS_KEYS)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_staging_stays_outside_the_output_folder_and_clears_dead_leftovers(tmp_path, synthetic_file):
+    processed, staging = tmp_path / "processed", tmp_path / "staging"
+    finished = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(finished.stdout)
+    staging.mkdir()
+    (staging / f".can.{dead_pid}.tmp").mkdir()
+    (staging / f".lift.{os.getppid()}.tmp").mkdir()  # a live process's: kept
+    ingest_demonstrations(synthetic_file, processed / "lift", OBS_KEYS, staging_dir=staging)
+    assert sorted(p.name for p in processed.iterdir()) == ["lift"]
+    assert sorted(p.name for p in staging.iterdir()) == [f".lift.{os.getppid()}.tmp"]
 
 
 def test_failed_ingest_keeps_previous_output_intact(tmp_path, synthetic_file):

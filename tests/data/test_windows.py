@@ -70,3 +70,17 @@ def test_normalizer_works_on_tensors_with_dtype_kept():
     assert normalized.dtype == torch.float32
     torch.testing.assert_close(normalized, torch.tensor([[0.0, 0.5], [1.0, -1.0]]))
     torch.testing.assert_close(normalizer.unnormalize(normalized), values)
+
+
+@pytest.mark.parametrize(
+    "column, message",
+    [
+        ([0.0, np.inf], r"feature 1: minimum=.*maximum=inf"),
+        ([-3e38, 3e38], r"feature 1: minimum=-3e\+38, maximum=3e\+38: the statistics or their range are not finite"),
+        ([0.0, 1e39], r"feature 1: minimum=0.0, maximum=1e\+39"),
+    ],
+)
+def test_normalizer_refuses_statistics_not_finite_in_float32(column, message):
+    values = np.stack([np.zeros(2), np.asarray(column)], axis=1)  # (2, 2): feature 1 holds the bad column
+    with pytest.raises(ValueError, match=message):
+        MinMaxNormalizer.fit(values)

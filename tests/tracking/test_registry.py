@@ -10,6 +10,7 @@ import torch
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.tokenizer.artifact import (
+    NonFiniteTokenizerError,
     TokenizerMismatchError,
     check_compatible,
     load_tokenizer_artifact,
@@ -138,6 +139,56 @@ def test_an_artifact_with_one_normalization_for_all_tasks_is_refused(tmp_path):
     torch.save(payload, path)
     with pytest.raises(TokenizerMismatchError, match="one action normalization for all its tasks"):
         load_tokenizer_artifact(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "broken, message",
+    [
+        ("weight", r"weight encoder\..*: holds NaN or inf"),
+        ("metric", r"metric rmse_percent_range/mean=inf: not finite"),
+        ("statistics", r"action statistics of lift: maximum=\[1.0, 1e\+39\]: not finite"),
+    ],
+)
+def test_a_non_finite_tokenizer_is_neither_saved_nor_loaded_nor_registered(tmp_path, broken, message):
+    torch.manual_seed(0)
+    tokenizer = MultiScaleActionTokenizer(SPEC)
+    normalizers = {"lift": LIFT_BOUNDS}
+    metrics = {"rmse_percent_range/mean": 1.5}
+    if broken == "weight":
+        next(p for name, p in tokenizer.named_parameters() if name.startswith("encoder")).data[0] = float("nan")
+    elif broken == "metric":
+        metrics["rmse_percent_range/mean"] = float("inf")
+    else:
+        normalizers = {"lift": MinMaxNormalizer(minimum=np.array([-1.0, 0.0]), maximum=np.array([1.0, 1e39]))}
+    with pytest.raises(NonFiniteTokenizerError, match=message):
+        save_tokenizer_artifact(tmp_path / "refused", tokenizer, normalizers, "panda-test2", metrics)
+    assert not (tmp_path / "refused").exists()
+
+    # An artifact written before these checks existed: refused on load, so never registered or aliased.
+    directory = tmp_path / "tokenizer"
+    sha = save_tokenizer_artifact(directory, MultiScaleActionTokenizer(SPEC), {"lift": LIFT_BOUNDS}, "panda-test2")
+    payload = torch.load(directory / "tokenizer.pt", weights_only=False)
+    if broken == "weight":
+        payload["state_dict"] = tokenizer.state_dict()
+    elif broken == "metric":
+        payload["metrics"] = metrics
+    else:
+        payload["action_normalizers"] = {task: n.to_dict() for task, n in normalizers.items()}
+    torch.save(payload, directory / "tokenizer.pt")
+    with pytest.raises(NonFiniteTokenizerError, match=message):
+        load_tokenizer_artifact(directory)
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    with pytest.raises(NonFiniteTokenizerError, match=message):
+        register_tokenizer(uri, directory, "carp-tokenizer-panda-test2", "default", "no-run", sha)
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_metrics_are_stored_with_the_tokenizer(tmp_path):
+    torch.manual_seed(0)
+    metrics = {"rmse_percent_range/mean": 1.5, "perplexity/mean": 6.0}
+    save_tokenizer_artifact(tmp_path, MultiScaleActionTokenizer(SPEC), {"lift": LIFT_BOUNDS}, "panda-test2", metrics)
+    assert load_tokenizer_artifact(tmp_path).metrics == metrics
+    assert json.loads((tmp_path / "tokenizer.json").read_text())["metrics"] == metrics
 
 
 def test_reference_file_round_trip(tmp_path):

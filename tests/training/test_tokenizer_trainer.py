@@ -3,6 +3,7 @@ import logging
 import pytest
 import torch
 
+from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import reconstruction_metrics
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
@@ -145,6 +146,22 @@ def test_codebook_starts_from_data_and_restarts_dead_codes(tmp_path, windows):
         on_epoch_end=lambda epoch, metrics: no_restart.append(metrics["restarted_codes"]),
     )
     assert no_restart == [0.0] * 4
+
+
+@pytest.mark.parametrize("source", ["nan window", "learning rate 1e10"])
+def test_a_diverging_run_is_refused_before_its_state_is_saved(tmp_path, windows, source):
+    train, valid = (window.clone() for window in windows)
+    settings = tiny_settings(checkpoint_every=1)
+    if source == "nan window":
+        train[5, 3, 1] = float("nan")
+    else:
+        settings = tiny_settings(checkpoint_every=1, learning_rate=1e10)
+    epochs_run = []
+    with pytest.raises(NonFiniteTokenizerError, match=r"tokenizer training epoch 1/4: train_loss=nan: not finite"):
+        train_tokenizer(
+            TINY_SPEC, train, valid, settings, tmp_path, on_epoch_end=lambda epoch, _: epochs_run.append(epoch)
+        )
+    assert epochs_run == [] and not (tmp_path / CHECKPOINT_NAME).exists()
 
 
 def augmentation_input() -> torch.Tensor:

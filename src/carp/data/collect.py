@@ -89,6 +89,7 @@ def collect_demonstrations(
     controller: str = "absolute",
     max_steps: int = 400,
     max_attempts: int | None = None,
+    staging_dir: Path | None = None,
 ) -> CollectionSummary:
     """Run the task's scripted expert until ``num_demos`` episodes succeed and write them to ``output_path``.
 
@@ -100,6 +101,8 @@ def collect_demonstrations(
         controller: ``"absolute"`` or ``"delta"`` arm input.
         max_steps: step limit per episode.
         max_attempts: episode budget; defaults to ``3 * num_demos``.
+        staging_dir: where the file is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
+            ``output_path``'s folder.
 
     Raises:
         ValueError: unknown task or controller, or non-positive counts.
@@ -157,7 +160,7 @@ def collect_demonstrations(
         "robosuite_version": robosuite.__version__,
         "mujoco_version": mujoco.__version__,
     }
-    write_demonstrations(output_path, episodes, env_args, file_attrs)
+    write_demonstrations(output_path, episodes, env_args, file_attrs, staging_dir=staging_dir)
     seconds = time.perf_counter() - started
     logger.info(
         "%s: kept %d of %d episodes (%.0f%%), mean %.1f steps, %.1f s -> %s",

@@ -2,7 +2,9 @@
 
 Absolute 7-D actions (pos, axis-angle, gripper) are stored as 10-D (pos, 6-D rotation, gripper) and converted back
 exactly when executed; delta actions are kept as they are. The output directory is built under a temporary name and
-renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path.
+renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path. Every
+check of the input file lives in :mod:`carp.data.robomimic_schema`, shared with the collect stage's import of a user's
+file.
 """
 
 import json
@@ -18,6 +20,7 @@ from carp.data.normalizer import MinMaxNormalizer, save_normalizers
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.robomimic_io import DatasetError, read_demonstrations
 from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
+from carp.data.staging import staged
 
 BUFFER_DIRNAME = "replay.zarr"
 NORMALIZATION_FILENAME = "normalization.json"
@@ -44,6 +47,7 @@ def ingest_demonstrations(
     controller: str = "absolute",
     filter_key: str | None = None,
     valid_fraction: float = 0.1,
+    staging_dir: Path | None = None,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
@@ -54,6 +58,9 @@ def ingest_demonstrations(
         controller: ``absolute`` converts actions to 10-D; ``delta`` keeps 7-D.
         filter_key: optional ``mask/<filter_key>`` restricting the demos.
         valid_fraction: share of episodes held out when the file has no ``mask/valid``.
+        staging_dir: where the output is built before its rename (see :mod:`carp.data.staging`): outside every
+            folder a pipeline declares as a dependency, on the output's filesystem. ``None`` uses ``output_dir``'s
+            parent.
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
@@ -98,22 +105,16 @@ def ingest_demonstrations(
         mean_episode_steps=float(total / buffer.num_episodes),
     )
 
+    normalizers = {"obs": MinMaxNormalizer.fit(obs), "action": MinMaxNormalizer.fit(action)}
     output_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = output_dir.with_name(f".{output_dir.name}.{os.getpid()}.tmp")
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
+    with staged(staging_dir or output_dir.parent, output_dir.name) as staging:
         staging.mkdir()
         buffer.save(staging / BUFFER_DIRNAME)
-        save_normalizers(
-            staging / NORMALIZATION_FILENAME,
-            {"obs": MinMaxNormalizer.fit(obs), "action": MinMaxNormalizer.fit(action)},
-        )
+        save_normalizers(staging / NORMALIZATION_FILENAME, normalizers)
         (staging / SUMMARY_FILENAME).write_text(json.dumps(asdict(summary), indent=2))
         if output_dir.exists():
             shutil.rmtree(output_dir)
         os.replace(staging, output_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return summary
 
 

@@ -7,9 +7,13 @@ dividing by zero. Statistics are saved as JSON next to the replay buffer and cop
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    # Imported where a tensor is normalized, so that the data stages (collect, ingest) start without loading torch.
+    import torch
 
 # Below this range a feature counts as constant: float32 noise in a recorded constant would otherwise be blown up.
 CONSTANT_RANGE = 1e-6
@@ -29,9 +33,24 @@ class MinMaxNormalizer:
 
     @classmethod
     def fit(cls, values: np.ndarray) -> "MinMaxNormalizer":
-        """Fit on (N, F) values (features along the last axis)."""
+        """Fit on (N, F) values (features along the last axis).
+
+        Raises:
+            ValueError: a feature's minimum, maximum or range is not finite in float32, the dtype of the data it
+                normalizes (the replay buffer's); the message names the feature.
+        """
         flat = np.asarray(values, dtype=np.float64).reshape(-1, values.shape[-1])
-        return cls(minimum=flat.min(axis=0), maximum=flat.max(axis=0))
+        minimum, maximum = flat.min(axis=0), flat.max(axis=0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            low, high = minimum.astype(np.float32), maximum.astype(np.float32)
+            finite = np.isfinite(low) & np.isfinite(high) & np.isfinite(high - low)
+        if not finite.all():
+            feature = int(np.flatnonzero(~finite)[0])
+            raise ValueError(
+                f"feature {feature}: minimum={minimum[feature]!r}, maximum={maximum[feature]!r}: the statistics or "
+                "their range are not finite in float32"
+            )
+        return cls(minimum=minimum, maximum=maximum)
 
     @property
     def num_features(self) -> int:
@@ -51,12 +70,12 @@ class MinMaxNormalizer:
         offset = np.where(constant, -self.minimum, -1.0 - self.minimum * scale)
         return scale, offset
 
-    def normalize(self, values: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    def normalize(self, values: "np.ndarray | torch.Tensor") -> "np.ndarray | torch.Tensor":
         """(..., F) raw -> (..., F) in [-1, 1]; keeps the input's array type, dtype and device."""
         scale, offset = self._scale_offset()
         return values * self._like(scale, values) + self._like(offset, values)
 
-    def unnormalize(self, values: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    def unnormalize(self, values: "np.ndarray | torch.Tensor") -> "np.ndarray | torch.Tensor":
         """(..., F) in [-1, 1] -> (..., F) raw; inverse of :meth:`normalize`.
 
         Constant features come back as their constant whatever the input, so a model's stray output on a dimension
@@ -70,10 +89,12 @@ class MinMaxNormalizer:
         return values * self._like(scale_back, values) + self._like(offset_back, values)
 
     @staticmethod
-    def _like(array: np.ndarray, reference: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-        if isinstance(reference, torch.Tensor):
-            return torch.as_tensor(array, dtype=reference.dtype, device=reference.device)
-        return array.astype(reference.dtype if np.issubdtype(reference.dtype, np.floating) else np.float64)
+    def _like(array: np.ndarray, reference: "np.ndarray | torch.Tensor") -> "np.ndarray | torch.Tensor":
+        if isinstance(reference, np.ndarray | np.generic):
+            return array.astype(reference.dtype if np.issubdtype(reference.dtype, np.floating) else np.float64)
+        import torch
+
+        return torch.as_tensor(array, dtype=reference.dtype, device=reference.device)
 
     def to_dict(self) -> dict[str, list[float]]:
         """JSON-ready form."""

@@ -11,13 +11,15 @@ Schema (robomimic's ``dataset_states_to_obs`` output)::
     data/demo_<i>/dones       (T,)
     mask/<filter>             list of demo names (bytes), e.g. mask/train, mask/valid
 
-Any file in this schema is accepted, ours (scripted experts) or a user's robomimic download. Validation raises
-:class:`DatasetError` with a one-line message naming the file, the demo and the key.
+Any file in this schema is accepted, ours (scripted experts) or a user's robomimic download. Validation
+(:mod:`carp.data.robomimic_schema`) raises :class:`DatasetError` with a one-line message naming the file, the demo
+and the key.
 """
 
 import json
 import os
 import re
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,9 +27,19 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-
-class DatasetError(ValueError):
-    """A demonstration file that does not follow the schema or holds unusable values."""
+from carp.data.robomimic_schema import (
+    OPTIONAL_KEYS,
+    DatasetError,
+    check_demo_layout,
+    check_same_widths,
+    check_stored_ranges,
+    hdf5_errors,
+    open_hdf5,
+    read_masks,
+    read_values,
+    require_group,
+)
+from carp.data.staging import staged
 
 
 @dataclass
@@ -79,6 +91,7 @@ def write_demonstrations(
     env_args: dict,
     file_attrs: dict | None = None,
     valid_fraction: float = 0.1,
+    staging_dir: Path | None = None,
 ) -> None:
     """Write episodes as a robomimic-schema file, atomically (temp file, then rename).
 
@@ -89,13 +102,14 @@ def write_demonstrations(
         file_attrs: extra attributes stored on the ``data`` group (JSON-encoded when not scalar).
         valid_fraction: share of demos (the last ones, at least one when N >= 2) listed in ``mask/valid``;
             the rest go to ``mask/train``.
+        staging_dir: where the file is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
+            ``path``'s folder.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     names = [f"demo_{index}" for index in range(len(episodes))]
     num_valid = 0 if len(names) < 2 else max(1, int(round(valid_fraction * len(names))))
-    try:
+    with staged(staging_dir or path.parent, path.name) as temporary:
         with h5py.File(temporary, "w") as handle:
             data = handle.create_group("data")
             data.attrs["env_args"] = json.dumps(env_args)
@@ -124,8 +138,6 @@ def write_demonstrations(
             handle.create_dataset("mask/train", data=np.array(names[:split], dtype="S"))
             handle.create_dataset("mask/valid", data=np.array(names[split:], dtype="S"))
         os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
 
 
 def read_demonstrations(
@@ -134,7 +146,7 @@ def read_demonstrations(
     action_dim: int | None = None,
     filter_key: str | None = None,
 ) -> Demonstrations:
-    """Read and validate the demos of a robomimic-schema file.
+    """Read and validate the demos of a robomimic-schema file (checks in :mod:`carp.data.robomimic_schema`).
 
     Args:
         path: the ``.hdf5`` file.
@@ -146,83 +158,103 @@ def read_demonstrations(
         DatasetError: one line naming the file, demo and key for every schema or value problem.
     """
     path = Path(path)
-    if not path.exists():
-        raise DatasetError(f"{path}: file not found")
-    if not h5py.is_hdf5(path):
-        raise DatasetError(f"{path}: not an HDF5 file")
-    with h5py.File(path, "r") as handle:
-        if "data" not in handle:
-            raise DatasetError(f"{path}: missing group 'data'")
-        data = handle["data"]
-        if "env_args" not in data.attrs:
-            raise DatasetError(f"{path}: group 'data' has no attribute 'env_args'")
-        try:
-            env_args = json.loads(data.attrs["env_args"])
-        except json.JSONDecodeError as error:
-            raise DatasetError(f"{path}: data.attrs['env_args'] is not JSON ({error})") from None
-        names = sorted((name for name in data.keys() if name.startswith("demo")), key=_demo_sort_key)
-        if filter_key is not None:
-            mask_path = f"mask/{filter_key}"
-            if mask_path not in handle:
-                raise DatasetError(f"{path}: filter key '{mask_path}' not found")
-            selected = _mask_names(handle[mask_path])
-            for name in selected:
-                if name not in data:
-                    raise DatasetError(f"{path}: filter key '{mask_path}' names demo '{name}', which does not exist")
-            names = sorted(selected, key=_demo_sort_key)
-        if not names:
-            raise DatasetError(f"{path}: no demos under 'data'")
-        episodes = [_read_episode(path, data[name], name, obs_keys, action_dim) for name in names]
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        data = require_group(handle, "data", f"{path}: group 'data'")
+        env_args = _read_env_args(path, data)
+        all_names = sorted((name for name in data.keys() if name.startswith("demo")), key=_demo_sort_key)
+        masks = read_masks(handle, path, all_names)
+        names = _select_demos(path, all_names, masks, filter_key)
+        groups = [require_group(data, name, f"{path}: demo '{name}'") for name in names]
+        layouts = [
+            check_demo_layout(group, f"{path}: demo '{name}'", obs_keys, action_dim)
+            for name, group in zip(names, groups, strict=True)
+        ]
+        check_same_widths(path, names, layouts)
+        episodes = [_read_episode(group, f"{path}: demo '{name}'", obs_keys) for name, group in zip(names, groups)]
+        check_stored_ranges(path, names, "key 'actions'", [episode.actions for episode in episodes])
+        for key in obs_keys:
+            check_stored_ranges(path, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
         attrs = {key: _decode_attr(value) for key, value in data.attrs.items() if key != "env_args"}
-        masks = {key: _mask_names(handle[f"mask/{key}"]) for key in handle.get("mask", {}).keys()}
     return Demonstrations(path=path, env_args=env_args, names=names, episodes=episodes, attrs=attrs, masks=masks)
 
 
-def _mask_names(dataset: h5py.Dataset) -> list[str]:
-    return [name.decode() if isinstance(name, bytes) else str(name) for name in dataset[()]]
+def import_demonstrations(
+    source: Path,
+    destination: Path,
+    obs_keys: Sequence[str],
+    action_dim: int | None = None,
+    filter_key: str | None = None,
+    staging_dir: Path | None = None,
+) -> Demonstrations:
+    """Validate a user's file as :func:`read_demonstrations` does, then copy it to ``destination`` atomically.
+
+    Args:
+        source: the user's robomimic-schema file; every message names it.
+        destination: replaced only once ``source`` passed every check and was copied completely.
+        obs_keys: observation keys every demo must have.
+        action_dim: expected action width; ``None`` accepts any.
+        filter_key: ``mask/<filter_key>`` the file must hold; ``None`` checks all demos.
+        staging_dir: where the copy is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
+            ``destination``'s folder.
+
+    Raises:
+        DatasetError: ``source`` breaks the schema; ``destination`` is left as it was.
+        OSError: the copy failed (e.g. a full disk); ``destination`` is left as it was.
+    """
+    demos = read_demonstrations(source, obs_keys, action_dim=action_dim, filter_key=filter_key)
+    destination = Path(destination)
+    with staged(staging_dir or destination.parent, destination.name) as temporary:
+        shutil.copyfile(source, temporary)
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(temporary, destination)
+    return demos
+
+
+def _read_env_args(path: Path, data: h5py.Group) -> dict:
+    if "env_args" not in data.attrs:
+        raise DatasetError(f"{path}: group 'data' has no attribute 'env_args'")
+    raw = data.attrs["env_args"]
+    try:
+        env_args = json.loads(raw)
+    except (json.JSONDecodeError, TypeError, UnicodeDecodeError) as error:
+        raise DatasetError(f"{path}: data.attrs['env_args']={_short(raw)}: not JSON ({error})") from None
+    if not isinstance(env_args, dict):
+        raise DatasetError(f"{path}: data.attrs['env_args']={_short(raw)}: expected a JSON object")
+    return env_args
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else f"{text[:57]}..."
+
+
+def _select_demos(path: Path, names: list[str], masks: dict[str, list[str]], filter_key: str | None) -> list[str]:
+    if filter_key is not None:
+        if filter_key not in masks:
+            raise DatasetError(f"{path}: filter key 'mask/{filter_key}' not found (masks: {sorted(masks)})")
+        names = sorted(masks[filter_key], key=_demo_sort_key)
+    if not names:
+        where = f"filter key 'mask/{filter_key}' lists" if filter_key is not None else "group 'data' holds"
+        raise DatasetError(f"{path}: {where} no demos")
+    return names
 
 
 def _decode_attr(value):
     if isinstance(value, bytes):
-        value = value.decode()
+        value = value.decode(errors="replace")  # informational attributes: a bad byte must not refuse the file
     if isinstance(value, np.generic):
         return value.item()
     return value
 
 
-def _read_episode(path: Path, group: h5py.Group, name: str, obs_keys: Sequence[str], action_dim: int | None) -> Episode:
-    where = f"{path}: demo '{name}'"
-    if "actions" not in group:
-        raise DatasetError(f"{where}: missing key 'actions'")
-    actions = np.asarray(group["actions"][()], dtype=np.float64)
-    if actions.ndim != 2 or actions.shape[0] == 0:
-        raise DatasetError(f"{where}: key 'actions' is empty or not 2-D (shape {actions.shape})")
-    if action_dim is not None and actions.shape[1] != action_dim:
-        raise DatasetError(f"{where}: key 'actions' has width {actions.shape[1]}, expected {action_dim}")
-    _check_finite(actions, f"{where}: key 'actions'")
+def _read_episode(group: h5py.Group, where: str, obs_keys: Sequence[str]) -> Episode:
+    """Values of a demo whose layout :func:`check_demo_layout` accepted."""
+    actions = read_values(group["actions"], f"{where}: key 'actions'")
     obs = {}
     for key in obs_keys:
-        dataset_path = f"obs/{key}"
-        if dataset_path not in group:
-            raise DatasetError(f"{where}: missing obs key '{key}'")
-        values = np.asarray(group[dataset_path][()], dtype=np.float64)
-        if values.shape[0] != actions.shape[0]:
-            raise DatasetError(
-                f"{where}: obs key '{key}' has {values.shape[0]} steps but 'actions' has {actions.shape[0]}"
-            )
-        _check_finite(values, f"{where}: obs key '{key}'")
+        values = read_values(group[f"obs/{key}"], f"{where}: obs key '{key}'")
         obs[key] = values.reshape(values.shape[0], -1)
-    return Episode(
-        obs=obs,
-        actions=actions,
-        states=group["states"][()] if "states" in group else None,
-        rewards=group["rewards"][()] if "rewards" in group else None,
-        dones=group["dones"][()] if "dones" in group else None,
-        attrs={key: _decode_attr(value) for key, value in group.attrs.items()},
-    )
-
-
-def _check_finite(values: np.ndarray, where: str) -> None:
-    if not np.all(np.isfinite(values)):
-        step = int(np.argwhere(~np.isfinite(values))[0][0])
-        raise DatasetError(f"{where} holds NaN or inf (first at step {step})")
+    with hdf5_errors(where):
+        optional = {key: group[key][()] if key in group else None for key in OPTIONAL_KEYS}
+        attrs = {key: _decode_attr(value) for key, value in group.attrs.items()}
+    return Episode(obs=obs, actions=actions, attrs=attrs, **optional)

@@ -16,9 +16,10 @@ per-task statistics and 83 for Square's own tokenizer.
 
 import hashlib
 import json
+import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,10 @@ class TokenizerMismatchError(ValueError):
     """A tokenizer that does not fit the policy's params, or whose weights are not the ones referenced."""
 
 
+class NonFiniteTokenizerError(ValueError):
+    """A tokenizer whose training loss, weights, action statistics or held-out metrics are not all finite."""
+
+
 @dataclass
 class TokenizerArtifact:
     """A loaded tokenizer with what is needed to use it on raw actions."""
@@ -43,6 +48,7 @@ class TokenizerArtifact:
     action_normalizers: dict[str, MinMaxNormalizer]  # task -> the statistics its windows were normalized with
     action_space: str
     sha256: str
+    metrics: dict[str, float] = field(default_factory=dict)  # held-out metrics measured when it was saved
 
     @property
     def tasks(self) -> list[str]:
@@ -81,11 +87,43 @@ def weights_sha256(tokenizer: MultiScaleActionTokenizer, action_normalizers: Map
     return digest.hexdigest()
 
 
+def require_finite(
+    tokenizer: MultiScaleActionTokenizer,
+    action_normalizers: Mapping[str, MinMaxNormalizer],
+    metrics: Mapping[str, float],
+    where: str,
+) -> None:
+    """Refuse a tokenizer with a NaN or infinite weight, action statistic (in float32) or metric.
+
+    Raises:
+        NonFiniteTokenizerError: one line naming ``where`` and the first weight, statistic or metric that is not
+            finite.
+    """
+    for name, tensor in tokenizer.state_dict().items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise NonFiniteTokenizerError(f"{where}: weight {name}: holds NaN or inf (training diverged)")
+    for task, normalizer in action_normalizers.items():
+        # Float32 is the dtype the statistics are applied in (replay buffer, ONNX graphs).
+        for label, values in (("minimum", normalizer.minimum), ("maximum", normalizer.maximum)):
+            with np.errstate(over="ignore"):
+                finite = np.isfinite(np.asarray(values, dtype=np.float64).astype(np.float32))
+            if not finite.all():
+                raise NonFiniteTokenizerError(
+                    f"{where}: action statistics of {task}: {label}={np.asarray(values).tolist()}: not finite"
+                )
+    for key, value in metrics.items():
+        if not math.isfinite(value):
+            raise NonFiniteTokenizerError(
+                f"{where}: metric {key}={value!r}: not finite (training diverged, or the data's range is too wide)"
+            )
+
+
 def save_tokenizer_artifact(
     directory: Path,
     tokenizer: MultiScaleActionTokenizer,
     action_normalizers: Mapping[str, MinMaxNormalizer],
     action_space: str,
+    metrics: Mapping[str, float] | None = None,
 ) -> str:
     """Write the artifact into ``directory`` (files replaced atomically); returns the weights' sha256.
 
@@ -94,9 +132,15 @@ def save_tokenizer_artifact(
         tokenizer: the trained tokenizer.
         action_normalizers: training task -> the statistics its windows were normalized with, in training order.
         action_space: e.g. ``panda-abs10``; a policy refuses a tokenizer of another action space.
+        metrics: held-out metrics, stored with the tokenizer so that the registry can check them.
+
+    Raises:
+        NonFiniteTokenizerError: a weight, statistic or metric is not finite; nothing is written.
     """
     if not action_normalizers:
         raise ValueError("a tokenizer artifact needs the action statistics of at least one training task")
+    metrics = {key: float(value) for key, value in (metrics or {}).items()}
+    require_finite(tokenizer, action_normalizers, metrics, str(directory))
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     sha256 = weights_sha256(tokenizer, action_normalizers)
@@ -104,12 +148,14 @@ def save_tokenizer_artifact(
         **tokenizer.to_checkpoint(),
         "action_normalizers": {task: normalizer.to_dict() for task, normalizer in action_normalizers.items()},
         "action_space": action_space,
+        "metrics": metrics,
     }
     metadata = {
         "spec": tokenizer.spec.to_dict(),
         "action_space": action_space,
         "tasks": list(action_normalizers),
         "sha256": sha256,
+        "metrics": metrics,
     }
     for filename, write in (
         (WEIGHTS_FILENAME, lambda path: torch.save(payload, path)),
@@ -130,6 +176,7 @@ def load_tokenizer_artifact(
         FileNotFoundError: no artifact in ``directory``.
         TokenizerMismatchError: the weights' hash differs from ``expected_sha256``, or the artifact predates
             per-task normalization (one set of statistics for all tasks).
+        NonFiniteTokenizerError: a weight, statistic or stored metric is not finite.
     """
     path = Path(directory) / WEIGHTS_FILENAME
     if not path.exists():
@@ -147,7 +194,9 @@ def load_tokenizer_artifact(
         raise TokenizerMismatchError(
             f"{path}: weights sha256 {sha256[:12]}... differs from the referenced {expected_sha256[:12]}..."
         )
-    return TokenizerArtifact(tokenizer, normalizers, payload["action_space"], sha256)
+    metrics = payload.get("metrics", {})
+    require_finite(tokenizer, normalizers, metrics, str(path))
+    return TokenizerArtifact(tokenizer, normalizers, payload["action_space"], sha256, metrics)
 
 
 def check_compatible(

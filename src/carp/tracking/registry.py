@@ -88,6 +88,8 @@ def register_tokenizer(
     """Log and register the tokenizer in ``directory`` under ``name`` and point ``alias`` at it.
 
     Idempotent: if a version of ``name`` already carries ``sha256``, that version is reused (alias moved to it).
+    The artifact is loaded first, so a tokenizer with a NaN or infinite weight, statistic or stored metric is never
+    registered nor aliased.
 
     Args:
         tracking_uri: absolute MLflow tracking URI (the registry lives in the same store).
@@ -96,7 +98,11 @@ def register_tokenizer(
         alias: alias to set on the version.
         run_id: the active MLflow run that logs the model.
         sha256: the weights' hash (tag of the version).
+
+    Raises:
+        carp.tokenizer.artifact.NonFiniteTokenizerError: the artifact holds a value that is not finite.
     """
+    load_tokenizer_artifact(directory)
     client = MlflowClient(tracking_uri=tracking_uri)
     existing = [v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256]
     if existing:
@@ -144,6 +150,8 @@ def fetch_registered_tokenizer(
     Raises:
         LookupError: no such registered model or alias.
         carp.tokenizer.artifact.TokenizerMismatchError: the downloaded weights do not hash to the version's sha256.
+        carp.tokenizer.artifact.NonFiniteTokenizerError: the version holds a value that is not finite (registered
+            before the registry refused such tokenizers).
     """
     name, alias = parse_registry_uri(uri)
     client = MlflowClient(tracking_uri=tracking_uri)

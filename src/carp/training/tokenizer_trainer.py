@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
+from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -49,6 +50,8 @@ from carp.training.runtime import resolve_device, seed_everything
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "tokenizer_training_state.pt"
+# Metrics that must stay finite: once one is NaN or inf the weights are too, and every later epoch stays so.
+LOSS_METRICS = ("train_loss", "train_reconstruction_mse", "train_vq_loss", "valid_reconstruction_mse")
 # Windows whose residuals seed the codebook; enough candidates for V = 512 codes at every scale.
 RESTART_CANDIDATE_WINDOWS = 1024
 EVALUATION_BATCH_SIZE = 2048
@@ -268,6 +271,15 @@ def _resume_or_initialize(
     return 0
 
 
+def _require_finite_losses(metrics: dict[str, float], epoch: int, epochs: int) -> None:
+    for key in LOSS_METRICS:
+        if key in metrics and not math.isfinite(metrics[key]):
+            raise NonFiniteTokenizerError(
+                f"tokenizer training epoch {epoch + 1}/{epochs}: {key}={metrics[key]!r}: not finite (training "
+                "diverged: lower the learning rate, or check the actions' ranges)"
+            )
+
+
 def train_tokenizer(
     spec: TokenizerSpec,
     train_windows: torch.Tensor,
@@ -292,6 +304,10 @@ def train_tokenizer(
 
     Returns:
         The trained tokenizer in eval mode, on the training device.
+
+    Raises:
+        carp.tokenizer.artifact.NonFiniteTokenizerError: an epoch's loss or held-out error is NaN or inf; raised
+            before that epoch's training state is saved.
     """
     _check_windows("train_windows", train_windows, spec)
     _check_windows("valid_windows", valid_windows, spec)
@@ -343,6 +359,7 @@ def train_tokenizer(
         metrics["learning_rate"] = optimizer.param_groups[0]["lr"]
         metrics["restarted_codes"] = float(restarted)
         metrics["epoch_seconds"] = time.perf_counter() - started
+        _require_finite_losses(metrics, epoch, settings.epochs)
         history.append(metrics)
         if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
             save_training_state(checkpoint_path, tokenizer, optimizer, scheduler, epoch + 1, metadata, history)
