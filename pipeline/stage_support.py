@@ -144,7 +144,7 @@ def write_json(path: Path, payload: dict) -> None:
 
 
 def write_history(path: Path, history: list[dict]) -> None:
-    """Write per-epoch metrics as CSV atomically; no epochs (a state resumed from older code) gives just a header."""
+    """Write per-epoch metrics as CSV atomically; no epochs (a tokenizer fetched, not trained) gives just a header."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     pd.DataFrame(history, columns=None if history else ["epoch"]).to_csv(temporary, index=False)

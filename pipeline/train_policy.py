@@ -88,17 +88,11 @@ def main() -> None:
         report_dir = POLICY_REPORT_DIR / args.task
         report_dir.mkdir(parents=True, exist_ok=True)
         write_history(report_dir / "history.csv", history)
-        # A training state written before states kept their history resumes with none.
-        final = (
-            {"final_loss": history[-1]["loss"], "final_token_accuracy": history[-1]["token_accuracy"]}
-            if history
-            else {}
-        )
+        final = {"final_loss": history[-1]["loss"], "final_token_accuracy": history[-1]["token_accuracy"]}
         write_json(report_dir / "metrics.json", {**held_out, **final})
         run.log_artifact(checkpoint, "checkpoint")
     print(
-        f"{args.task}: final loss {final.get('final_loss', float('nan')):.4f}, token accuracy "
-        f"{final.get('final_token_accuracy', float('nan')):.3f}, "
+        f"{args.task}: final loss {final['final_loss']:.4f}, token accuracy {final['final_token_accuracy']:.3f}, "
         f"held-out action RMSE {held_out.get('valid_action_rmse', float('nan')):.4f}"
     )
 
