@@ -37,9 +37,8 @@ class CheckpointFormatError(CheckpointError):
 
 
 def one_line(error: BaseException) -> str:
-    """`Type: message` of an exception on one line (PyTorch's load errors span several)."""
-    text = " ".join(str(error).split())
-    return f"{type(error).__name__}: {text}" if text else type(error).__name__
+    """The message of an exception on one line (PyTorch's load errors span several); its type when it has none."""
+    return " ".join(str(error).split()) or type(error).__name__
 
 
 def read_checkpoint(path: Path, weights_only: bool) -> Any:
@@ -62,7 +61,9 @@ def read_checkpoint(path: Path, weights_only: bool) -> Any:
     except Exception as error:  # noqa: BLE001 - torch.load reports a damaged archive as RuntimeError, EOFError,
         # KeyError or UnpicklingError depending on where the damage is; all of them mean the same to the user.
         reason = one_line(error).split(". ")[0]  # PyTorch appends advice on its own internals after the first sentence
-        raise CheckpointError(f"{path}: not a readable checkpoint, truncated or corrupt ({reason})") from error
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint, truncated or corrupt ({type(error).__name__}: {reason})"
+        ) from error
 
 
 def atomic_torch_save(payload: Any, path: Path) -> None:
