@@ -4,6 +4,8 @@ One tiny workspace for the module: `dvc repro evaluate@lift` gives the uninterru
 started again by hand (its dvc.yaml command), its whole process group is killed with SIGKILL once it has written
 something a rerun could pick up (the first training state, the exported ONNX graphs), and it is run once more.
 
+A training state truncated by hand is discarded with one warning, and its stage trains from the first epoch.
+
 What a rerun repeats exactly: weights, metrics and per-epoch losses of both training stages, and every episode of the
 evaluation. What it cannot: wall-clock columns (`epoch_seconds`, `samples_per_second`, episode `seconds`, latency
 percentiles) and the MLflow run id stored in the policy's metadata (the rerun is another run). Training resumes from
@@ -144,6 +146,22 @@ def test_train_tokenizer_killed_mid_way_resumes_to_the_uninterrupted_result(pipe
         assert json.loads((workspace / name).read_text()) == json.loads((reference / name).read_text()), name
     _assert_same_table(reference / "reports/tokenizer/history.csv", workspace / "reports/tokenizer/history.csv")
     _assert_no_leftover_temporaries(workspace / "checkpoints")
+
+
+@pytest.mark.slow
+def test_a_truncated_training_state_is_discarded_with_one_warning_and_the_stage_starts_over(pipeline):
+    workspace, reference = pipeline["workspace"], pipeline["reference"]
+    state = workspace / "checkpoints/tokenizer/tokenizer_training_state.pt"
+    state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])
+
+    log = _rerun(pipeline, "pipeline/train_tokenizer.py")
+    warnings = [line for line in log.splitlines() if "training state" in line]
+    assert len(warnings) == 1 and f"discarding training state {state}: not a readable checkpoint" in warnings[0]
+    assert warnings[0].endswith("training starts over") and "Traceback" not in log
+    assert f"tokenizer epoch 1/{TOKENIZER_EPOCHS}" in log
+    assert _training_epochs(state) == TOKENIZER_EPOCHS
+    name = "models/tokenizer/tokenizer.json"
+    assert json.loads((workspace / name).read_text()) == json.loads((reference / name).read_text())
 
 
 @pytest.mark.slow
