@@ -30,6 +30,7 @@ from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer, teacher_forced_loss
@@ -52,11 +53,12 @@ def make_policy() -> CarpPolicy:
         latent_channels=tokenizer_spec.latent_channels,
         codebook_size=tokenizer_spec.codebook_size,
     )
+    action_normalizer = MinMaxNormalizer(np.full(10, -1.0), np.full(10, 1.0))
     return CarpPolicy(
-        MultiScaleActionTokenizer(tokenizer_spec),
+        TokenizerArtifact.build(MultiScaleActionTokenizer(tokenizer_spec), {"lift": action_normalizer}, "panda-abs10"),
         CoarseToFineTransformer(spec),
         MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0)),
-        MinMaxNormalizer(np.full(10, -1.0), np.full(10, 1.0)),
+        action_normalizer,
     )
 
 

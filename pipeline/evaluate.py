@@ -6,6 +6,7 @@ from stage_support import (
     EVAL_REPORT_DIR,
     POLICY_DIR,
     PROCESSED_DIR,
+    fail,
     load,
     mlflow_stage,
     parse_args,
@@ -16,6 +17,7 @@ from stage_support import (
 from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import batched_latency, episodes_table, evaluate_policy, save_gif
 from carp.policy.policy import CarpPolicy
+from carp.training.checkpoint import CheckpointError
 
 
 def main() -> None:
@@ -28,10 +30,13 @@ def main() -> None:
         # Worker processes are spawned after this point and inherit it.
         os.environ.setdefault("MUJOCO_GL", "egl")
     checkpoint = POLICY_DIR / args.task / "policy.pt"
+    try:
+        policy = CarpPolicy.load(checkpoint)
+    except (CheckpointError, FileNotFoundError) as error:
+        fail(str(error))
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
     seeds = [config.seed + index for index in range(config.episodes)]
     workers = config.workers or os.cpu_count() or 1
-    policy = CarpPolicy.load(checkpoint)
     top_k = params.policy.top_k_for(args.task)
     with mlflow_stage(
         params, f"evaluate@{args.task}", args.task, {"carp.policy_run_id": policy.metadata.get("mlflow_run_id", "")}

@@ -23,6 +23,7 @@ from carp.tokenizer.artifact import (
     load_tokenizer_artifact,
 )
 from carp.tracking.registry import fetch_registered_tokenizer, register_tokenizer, registered_model_name
+from carp.training.checkpoint import CheckpointError
 
 
 def main() -> None:
@@ -41,7 +42,7 @@ def main() -> None:
         else:
             artifact, reference = fetch_registered_tokenizer(uri, params.tokenizer.source)
             check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-    except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError, FileNotFoundError) as error:
+    except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError, CheckpointError, FileNotFoundError) as error:
         fail(str(error))
     TOKENIZER_REF.parent.mkdir(parents=True, exist_ok=True)
     reference.save(TOKENIZER_REF)

@@ -154,7 +154,7 @@ def write_json(path: Path, payload: dict) -> None:
 
 
 def write_history(path: Path, history: list[dict]) -> None:
-    """Write per-epoch metrics as CSV atomically; no epochs (a state resumed from older code) gives just a header."""
+    """Write per-epoch metrics as CSV atomically; no epochs (a tokenizer fetched, not trained) gives just a header."""
     import pandas as pd
 
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
+from carp.training.checkpoint import CheckpointError
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
 from carp.training.runtime import precision_name, resolve_precision
 
@@ -39,9 +40,9 @@ def main() -> None:
     reference = TokenizerReference.load(TOKENIZER_REF)
     try:
         # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
-        artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256)
+        artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256, recorded_in=TOKENIZER_REF)
         check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-    except (TokenizerMismatchError, FileNotFoundError) as error:
+    except (CheckpointError, TokenizerMismatchError, FileNotFoundError) as error:
         fail(str(error))
     tokenizer = artifact.tokenizer
 
@@ -77,7 +78,8 @@ def main() -> None:
             spec, tokenizer, train_data, settings, CHECKPOINT_DIR / "policy" / args.task, on_epoch_end=log_epoch
         )
         metadata = {"task": args.task, "tokenizer": asdict(reference), "mlflow_run_id": run.run_id}
-        policy = CarpPolicy(tokenizer.cpu(), transformer.cpu(), obs_normalizer, action_normalizer, metadata).eval()
+        tokenizer.cpu()
+        policy = CarpPolicy(artifact, transformer.cpu(), obs_normalizer, action_normalizer, metadata).eval()
         held_out = held_out_action_errors(
             policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
         )
@@ -88,17 +90,11 @@ def main() -> None:
         report_dir = POLICY_REPORT_DIR / args.task
         report_dir.mkdir(parents=True, exist_ok=True)
         write_history(report_dir / "history.csv", history)
-        # A training state written before states kept their history resumes with none.
-        final = (
-            {"final_loss": history[-1]["loss"], "final_token_accuracy": history[-1]["token_accuracy"]}
-            if history
-            else {}
-        )
+        final = {"final_loss": history[-1]["loss"], "final_token_accuracy": history[-1]["token_accuracy"]}
         write_json(report_dir / "metrics.json", {**held_out, **final})
         run.log_artifact(checkpoint, "checkpoint")
     print(
-        f"{args.task}: final loss {final.get('final_loss', float('nan')):.4f}, token accuracy "
-        f"{final.get('final_token_accuracy', float('nan')):.3f}, "
+        f"{args.task}: final loss {final['final_loss']:.4f}, token accuracy {final['final_token_accuracy']:.3f}, "
         f"held-out action RMSE {held_out.get('valid_action_rmse', float('nan')):.4f}"
     )
 

@@ -7,6 +7,7 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
@@ -45,6 +46,12 @@ def tiny_tokenizer(scales: tuple[int, ...] = (1, 2), seed: int = 0) -> MultiScal
     return tokenizer.eval()
 
 
+def tiny_artifact(tokenizer: MultiScaleActionTokenizer) -> TokenizerArtifact:
+    """`tokenizer` with the statistics of one training task (A = 2) and a test action space."""
+    normalizer = MinMaxNormalizer(np.array([-2.0, 0.5]), np.array([3.0, 0.5]))
+    return TokenizerArtifact.build(tokenizer, {"task": normalizer}, "test-abs2")
+
+
 def scrambled_transformer(spec: PolicySpec, seed: int = 0) -> CoarseToFineTransformer:
     """A transformer with large random weights, so logits differ clearly between tokens and inputs matter.
 
@@ -65,7 +72,7 @@ def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, **overrides) ->
     obs_min = rng.normal(size=OBS_DIM)
     action_min = np.array([-2.0, 0.5])
     return CarpPolicy(
-        tiny_tokenizer(scales, seed),
+        tiny_artifact(tiny_tokenizer(scales, seed)),
         scrambled_transformer(tiny_policy_spec(scales, **overrides), seed),
         MinMaxNormalizer(obs_min, obs_min + rng.uniform(0.5, 2.0, size=OBS_DIM)),
         MinMaxNormalizer(action_min, np.array([3.0, 0.5])),

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -5,13 +7,17 @@ import torch
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policy.policy import CarpPolicy
 from carp.policy.sampling import generate_chunk
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.checkpoint import CheckpointError
 from tests.policy.factories import (
     OBS_DIM,
     OBS_STEPS,
     scrambled_transformer,
+    tiny_artifact,
     tiny_policy,
     tiny_policy_spec,
     tiny_tokenizer,
+    tiny_tokenizer_spec,
 )
 
 
@@ -70,6 +76,89 @@ def test_loading_is_strict(tmp_path):
         CarpPolicy.from_checkpoint(policy.to_checkpoint() | {"format_version": 99})
 
 
+def _save_changed(policy: CarpPolicy, path, change) -> None:
+    checkpoint = policy.to_checkpoint()
+    change(checkpoint)
+    torch.save(checkpoint, path)
+
+
+def test_a_tokenizer_of_the_same_shape_that_is_not_the_recorded_one_is_refused(tmp_path):
+    policy = tiny_policy()
+    other = tiny_artifact(tiny_tokenizer(seed=1))
+    assert other.tokenizer.spec == policy.tokenizer.spec and other.sha256 != policy.tokenizer_artifact.sha256
+    path = tmp_path / "policy.pt"
+    _save_changed(policy, path, lambda checkpoint: checkpoint.update(tokenizer=other.to_payload()))
+    with pytest.raises(CheckpointError) as raised:
+        CarpPolicy.load(path)
+    assert str(raised.value) == (
+        f"{path}: tokenizer weights have sha256 {other.sha256[:12]}..., not the sha256 "
+        f"{policy.tokenizer_artifact.sha256[:12]}... recorded in the policy (the tokenizer it was trained with)"
+    )
+    # Changed statistics of a training task change the tokenizer's identity as well.
+    changed = policy.to_checkpoint()
+    changed["tokenizer"]["action_normalizers"]["task"]["maximum"][0] = 4.0
+    torch.save(changed, path)
+    with pytest.raises(CheckpointError, match="recorded in the policy"):
+        CarpPolicy.load(path)
+
+
+def test_the_recorded_tokenizer_round_trips(tmp_path):
+    policy = tiny_policy()
+    policy.save(tmp_path / "policy.pt")
+    loaded = CarpPolicy.load(tmp_path / "policy.pt")
+    assert loaded.tokenizer_artifact.sha256 == policy.tokenizer_artifact.sha256
+    assert loaded.tokenizer_artifact.tasks == ["task"] and loaded.tokenizer_artifact.action_space == "test-abs2"
+    assert loaded.tokenizer_artifact.tokenizer is loaded.tokenizer
+
+
+def _truncate(path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _other_codebook(checkpoint: dict) -> None:
+    bigger = tiny_artifact(MultiScaleActionTokenizer(replace(tiny_tokenizer_spec(), codebook_size=16)))
+    checkpoint.update(tokenizer=bigger.to_payload(), tokenizer_sha256=bigger.sha256)
+
+
+DAMAGED_POLICIES = {
+    "truncated": (_truncate, "not a readable checkpoint, truncated or corrupt ("),
+    "tokenizer with another codebook size": (
+        lambda path: _save_changed(tiny_policy(), path, _other_codebook),
+        "policy spec does not match the tokenizer spec (codebook_size: policy 8 vs tokenizer 16)",
+    ),
+    "tokenizer weights of another size": (
+        lambda path: _save_changed(
+            tiny_policy(),
+            path,
+            lambda checkpoint: checkpoint["tokenizer"]["state_dict"].update(
+                {"quantizer.codebook": torch.zeros(2, 16, 4)}
+            ),
+        ),
+        "size mismatch for quantizer.codebook",
+    ),
+    "missing entry": (
+        lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.pop("tokenizer_sha256")),
+        "policy checkpoint lacks the entry 'tokenizer_sha256'",
+    ),
+    "another format version": (
+        lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.update(format_version=1)),
+        "policy checkpoint has format_version 1, this code reads version 2",
+    ),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGED_POLICIES))
+def test_a_damaged_checkpoint_is_one_clear_error_naming_the_file(tmp_path, damage):
+    path = tmp_path / "policy.pt"
+    tiny_policy().save(path)
+    change, expected = DAMAGED_POLICIES[damage]
+    change(path)
+    with pytest.raises(CheckpointError) as raised:
+        CarpPolicy.load(path)
+    message = str(raised.value)
+    assert message.startswith(f"{path}: ") and expected in message and "\n" not in message, message
+
+
 def test_task_index_broadcasts_and_is_checked():
     policy = tiny_policy(num_tasks=3)
     obs = _raw_obs(policy, 2)
@@ -88,7 +177,7 @@ def test_bad_observations_are_rejected():
 
 
 def test_parts_must_fit_together():
-    tokenizer = tiny_tokenizer((1, 2))
+    tokenizer = tiny_artifact(tiny_tokenizer((1, 2)))
     normalizers = (MinMaxNormalizer(np.zeros(OBS_DIM), np.ones(OBS_DIM)), MinMaxNormalizer(np.zeros(2), np.ones(2)))
     with pytest.raises(ValueError, match="codebook_size: policy 16 vs tokenizer 8"):
         CarpPolicy(tokenizer, scrambled_transformer(tiny_policy_spec(codebook_size=16)), *normalizers)

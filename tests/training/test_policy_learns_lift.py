@@ -11,6 +11,7 @@ from carp.evaluation.offline import held_out_action_errors
 from carp.policy.policy import CarpPolicy
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
@@ -57,7 +58,12 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
     untrained = CoarseToFineTransformer(policy_spec)
     errors = {
         name: held_out_action_errors(
-            CarpPolicy(tokenizer, transformer, obs_normalizer, action_normalizer),
+            CarpPolicy(
+                TokenizerArtifact.build(tokenizer, {"lift": action_normalizer}, "panda-abs10"),
+                transformer,
+                obs_normalizer,
+                action_normalizer,
+            ),
             windows.valid_obs,
             windows.valid_actions,
             obs_steps=2,

@@ -129,7 +129,22 @@ def test_checkpoint_of_another_setup_is_ignored(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         train_policy(spec, tokenizer, _data(8, seed=1), SETTINGS, tmp_path, lambda e, m: epochs.append(e))
     assert epochs == [0, 1, 2, 3]
-    assert "written for another spec, settings, tokenizer or data" in caplog.text
+    assert "written for another setup (different data_and_tokenizer_sha256)" in caplog.text
+
+
+def test_a_truncated_state_is_discarded_and_training_starts_over(tmp_path, caplog):
+    spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(8)
+    fresh = _weights(train_policy(spec, tokenizer, data, SETTINGS, tmp_path / "fresh"))
+    train_policy(spec, tokenizer, data, SETTINGS, tmp_path / "damaged")
+    state = tmp_path / "damaged" / CHECKPOINT_NAME
+    state.write_bytes(state.read_bytes()[:100])
+    epochs = []
+    with caplog.at_level(logging.WARNING):
+        retrained = train_policy(spec, tokenizer, data, SETTINGS, tmp_path / "damaged", lambda e, m: epochs.append(e))
+    assert epochs == [0, 1, 2, 3]
+    assert f"discarding training state {state}: not a readable checkpoint" in caplog.text
+    for name, value in _weights(retrained).items():
+        assert torch.equal(value, fresh[name]), name
 
 
 def test_non_finite_loss_names_epoch_and_step(tmp_path):

@@ -7,7 +7,7 @@ from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import reconstruction_metrics
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
-from carp.training.checkpoint import read_training_metadata
+from carp.training.checkpoint import read_training_state
 from carp.training.tokenizer_trainer import (
     CHECKPOINT_NAME,
     TokenizerTrainingSettings,
@@ -62,7 +62,7 @@ def test_training_reports_metrics_and_saves_a_checkpoint(tmp_path, windows):
     assert all(set(metrics) == expected_keys for _, metrics in reported)
     assert reported[-1][1]["train_loss"] < reported[0][1]["train_loss"]
     assert not tokenizer.training
-    metadata = read_training_metadata(tmp_path / CHECKPOINT_NAME)
+    metadata = read_training_state(tmp_path / CHECKPOINT_NAME)["metadata"]
     assert metadata["spec"] == TINY_SPEC.to_dict()
 
 
@@ -122,8 +122,25 @@ def test_a_checkpoint_of_another_setup_is_ignored(tmp_path, windows, caplog):
             on_epoch_end=lambda epoch, metrics: epochs_run.append(epoch),
         )
     assert epochs_run == [0, 1]
-    assert "written for another spec, settings or data" in caplog.text
-    assert read_training_metadata(tmp_path / CHECKPOINT_NAME)["settings"]["seed"] == 4
+    assert "written for another setup (different settings)" in caplog.text
+    assert read_training_state(tmp_path / CHECKPOINT_NAME)["metadata"]["settings"]["seed"] == 4
+
+
+def test_a_truncated_state_is_discarded_and_training_starts_over(tmp_path, windows, caplog):
+    fresh = train_tokenizer(TINY_SPEC, *windows, tiny_settings(epochs=2), tmp_path / "fresh")
+    state = tmp_path / "damaged" / CHECKPOINT_NAME
+    train_tokenizer(TINY_SPEC, *windows, tiny_settings(epochs=2), state.parent)
+    state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])
+    epochs_run = []
+    with caplog.at_level(logging.WARNING):
+        retrained = train_tokenizer(
+            TINY_SPEC, *windows, tiny_settings(epochs=2), state.parent, lambda epoch, _: epochs_run.append(epoch)
+        )
+    assert epochs_run == [0, 1]
+    assert f"discarding training state {state}: not a readable checkpoint" in caplog.text
+    for name, value in parameters_of(fresh).items():
+        assert torch.equal(value, parameters_of(retrained)[name]), name
+    assert read_training_state(state)["epoch"] == 2
 
 
 def test_codebook_starts_from_data_and_restarts_dead_codes(tmp_path, windows):

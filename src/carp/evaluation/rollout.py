@@ -3,17 +3,20 @@
 Time convention (DESIGN.md section 1): at each decision the source sees the last ``To`` observations (the first one
 repeated after a reset) and returns the actions to execute before the next decision (``Ta`` for the policy, one for
 the expert). Episodes run in worker processes, one env per process; a crash inside an episode is recorded as a
-failure with its reason and the evaluation goes on.
+failure with its reason and the evaluation goes on. That holds for a worker process that dies as well (a native crash
+in the simulator or in ONNX Runtime, the out-of-memory killer): the episode it was running is run once more on a
+fresh worker and, if that worker dies too, recorded as crashed with the way it died (``worker killed by SIGKILL``).
 """
 
 import logging
 import multiprocessing
+import signal
 import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
+from multiprocessing.connection import wait
 from typing import Protocol
 
 import numpy as np
@@ -129,6 +132,11 @@ class EpisodeJob:
     record_video: bool
 
 
+# How often an episode is started before a worker death while running it counts as the episode's crash. Twice:
+# a death caused by something else (the out-of-memory killer picking the worker) does not cost the episode, while an
+# episode that kills its worker every time (it is seeded, so it will) ends after one retry instead of looping.
+EPISODE_ATTEMPTS = 2
+
 # Per-process state of a worker: its env and action source, built once by the initializer.
 _worker_state: dict = {}
 
@@ -156,6 +164,151 @@ def _run_job(job: EpisodeJob) -> EpisodeResult:
     )
 
 
+class WorkerStartError(RuntimeError):
+    """An evaluation worker could not build its env or action source; no episode can run."""
+
+
+def _worker_main(connection, env_args: dict, source_factory: Callable[[], ActionSource], settings: dict) -> None:
+    """A worker process: build env and source, say so, then run each job received until told to stop (None)."""
+    try:
+        _init_worker(env_args, source_factory, settings)
+    except Exception as error:  # noqa: BLE001 - reported to the parent, which stops the evaluation with it
+        connection.send(("failed", f"{type(error).__name__}: {error}"))
+        return
+    connection.send(("ready", None))
+    while (job := connection.recv()) is not None:
+        connection.send(("result", _run_job(job)))
+
+
+def exit_reason(exit_code: int | None) -> str:
+    """How a worker process ended, from its exit code (negative: the signal that killed it)."""
+    if exit_code is not None and exit_code < 0:
+        try:
+            return f"killed by {signal.Signals(-exit_code).name}"
+        except ValueError:
+            return f"killed by signal {-exit_code}"
+    return f"exited with code {exit_code}"
+
+
+class _Worker:
+    """One spawned worker process, the pipe to it and the job it is running."""
+
+    def __init__(self, context, env_args: dict, source_factory: Callable[[], ActionSource], settings: dict) -> None:
+        self.connection, child_end = context.Pipe()
+        self.process = context.Process(
+            target=_worker_main, args=(child_end, env_args, source_factory, settings), daemon=True
+        )
+        self.process.start()
+        child_end.close()  # only the child holds its end, so the parent reads EOF when the child dies
+        self.ready = False
+        self.job: EpisodeJob | None = None
+        self.job_started = 0.0
+
+    def receive(self) -> tuple[str, object] | None:
+        """The worker's next message, or None when it died (its pipe closed)."""
+        try:
+            return self.connection.recv()
+        except (EOFError, OSError):
+            return None
+
+    def start_job(self, job: EpisodeJob) -> None:
+        self.job, self.job_started = job, time.perf_counter()
+        self.connection.send(job)
+
+    def death_reason(self) -> str:
+        self.process.join()
+        return f"worker {exit_reason(self.process.exitcode)}"
+
+    def stop(self) -> None:
+        """Ask an idle worker to exit; kill one that is still busy (the evaluation is being abandoned)."""
+        if self.process.is_alive() and self.job is None and self.ready:
+            try:
+                self.connection.send(None)
+            except OSError:
+                pass
+            self.process.join(timeout=10)
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join()
+        self.connection.close()
+
+
+def _run_in_workers(
+    jobs: Sequence[EpisodeJob],
+    env_args: dict,
+    source_factory: Callable[[], ActionSource],
+    settings: dict,
+    workers: int,
+    on_result: Callable[[EpisodeResult], None],
+) -> None:
+    """Run `jobs` on up to `workers` spawned processes, replacing any that dies; each result goes to `on_result`.
+
+    A job whose worker dies is started again (`EPISODE_ATTEMPTS` starts in all), then reported as a crashed episode.
+
+    Raises:
+        WorkerStartError: a worker failed or died while building its env and action source.
+    """
+    # spawn: each worker builds its own MuJoCo context and torch runtime instead of inheriting this process's.
+    context = multiprocessing.get_context("spawn")
+    pending = deque(jobs)
+    attempts = dict.fromkeys((job.seed for job in jobs), 0)
+    remaining = len(jobs)
+    pool: list[_Worker] = []
+
+    def dispatch() -> None:
+        for worker in pool:
+            if worker.ready and worker.job is None and pending:
+                job = pending.popleft()
+                attempts[job.seed] += 1
+                worker.start_job(job)
+        starting = sum(not worker.ready for worker in pool)
+        for _ in range(min(len(pending) - starting, workers - len(pool))):
+            pool.append(_Worker(context, env_args, source_factory, settings))
+
+    def bury(worker: _Worker) -> None:
+        nonlocal remaining
+        reason = worker.death_reason()
+        pool.remove(worker)
+        worker.connection.close()
+        if not worker.ready:
+            raise WorkerStartError(f"an evaluation worker {reason.removeprefix('worker ')} while starting")
+        job = worker.job
+        if job is None:
+            return
+        if attempts[job.seed] < EPISODE_ATTEMPTS:
+            logger.warning("episode with seed %d: %s; running it again in another worker", job.seed, reason)
+            pending.appendleft(job)
+            return
+        logger.warning("episode with seed %d: %s, %d times; recorded as crashed", job.seed, reason, attempts[job.seed])
+        seconds = time.perf_counter() - worker.job_started
+        on_result(EpisodeResult(job.seed, False, 0, seconds, error=f"{reason} ({attempts[job.seed]} attempts)"))
+        remaining -= 1
+
+    try:
+        dispatch()
+        while remaining > 0:
+            wait([worker.connection for worker in pool] + [worker.process.sentinel for worker in pool])
+            for worker in list(pool):
+                # A message a worker sent before dying is read before its death is handled.
+                message = worker.receive() if worker.connection.poll() else None
+                if message is None:
+                    if not worker.process.is_alive():
+                        bury(worker)
+                    continue
+                kind, payload = message
+                if kind == "failed":
+                    raise WorkerStartError(f"an evaluation worker could not start: {payload}")
+                worker.ready = True
+                if kind == "result":
+                    worker.job = None
+                    on_result(payload)
+                    remaining -= 1
+            dispatch()
+    finally:
+        for worker in pool:
+            worker.stop()
+
+
 def evaluate_episodes(
     env_args: dict,
     source_factory: Callable[[], ActionSource],
@@ -177,10 +330,15 @@ def evaluate_episodes(
         obs_keys: observation keys in training order.
         obs_steps: ``To``.
         max_steps: step limit per episode.
-        workers: processes; 1 runs in this process.
+        workers: processes; 1 runs in this process (where a native crash ends the evaluation itself). With more,
+            an episode whose worker dies is run again on a fresh worker, then recorded as crashed (a failure whose
+            `error` says how the worker died); see `EPISODE_ATTEMPTS`.
         video_episodes: the first this many seeds keep rendered frames.
         video_camera: camera used for videos.
         description: progress bar label.
+
+    Raises:
+        WorkerStartError: a worker process could not build its env or action source.
     """
     settings = {
         "obs_keys": list(obs_keys),
@@ -198,20 +356,13 @@ def evaluate_episodes(
             progress.update()
             progress.set_postfix(success=_rate(results))
     else:
-        # spawn: each worker builds its own MuJoCo context and torch runtime instead of inheriting this process's.
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=context,
-            initializer=_init_worker,
-            initargs=(env_args, source_factory, settings),
-        ) as pool:
-            futures = {pool.submit(_run_job, job): job for job in jobs}
-            for future in as_completed(futures):
-                job = futures[future]
-                results[job.seed] = future.result()
-                progress.update()
-                progress.set_postfix(success=_rate(results))
+
+        def record(result: EpisodeResult) -> None:
+            results[result.seed] = result
+            progress.update()
+            progress.set_postfix(success=_rate(results))
+
+        _run_in_workers(jobs, env_args, source_factory, settings, workers, record)
     progress.close()
     return [results[job.seed] for job in jobs]
 

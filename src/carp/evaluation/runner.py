@@ -2,7 +2,6 @@
 
 import functools
 import logging
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -15,6 +14,7 @@ from carp.config import EVAL_BACKENDS
 from carp.evaluation.metrics import latency_summary, summarize_episodes
 from carp.evaluation.onnx_policy import export_policy_graphs
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
+from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
 from carp.policy.policy import CarpPolicy
 
@@ -47,13 +47,13 @@ def evaluate_policy(
     With `backend` "onnxruntime" the checkpoint is exported once (greedy or top-k, as `top_k` says) to ONNX graphs in
     a temporary directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise the
     workers run the PyTorch policy. Both choose the same tokens: top-k draws come from a generator seeded with the
-    episode's seed either way.
+    episode's seed either way. The directory does not outlive a killed evaluation (`carp.evaluation.scratch`).
 
     With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
     calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
-    with tempfile.TemporaryDirectory(prefix="carp-onnx-") as scratch:
-        onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, Path(scratch))
+    with scratch_directory() as scratch:
+        onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, scratch)
         factory = functools.partial(
             PolicySource,
             checkpoint_path=Path(checkpoint_path),

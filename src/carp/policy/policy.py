@@ -3,7 +3,9 @@
 `predict_action` maps raw observations to raw action chunks: normalize, predict the K scales of tokens, decode
 f_hat, un-normalize. Rotation conversion (10-D -> 7-D) and choosing the executed slice `[To-1 : To-1+Ta]` stay with the
 caller (`carp.evaluation`), so the policy is independent of the action space. A checkpoint is one self-contained file
-(specs, weights, normalizer statistics, metadata) that loads strictly.
+(specs, weights, normalizer statistics, metadata) that loads strictly. It embeds the tokenizer artifact the policy was
+trained with together with that artifact's sha256; loading recomputes the hash and refuses a tokenizer of the same
+shape that is not the one the policy learned its tokens from.
 """
 
 import time
@@ -18,11 +20,11 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policy.sampling import generate_chunk
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
+from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
-from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import atomic_torch_save
+from carp.training.checkpoint import CheckpointError, atomic_torch_save, one_line, read_checkpoint
 
-POLICY_FORMAT_VERSION = 1
+POLICY_FORMAT_VERSION = 2
 
 
 class TimedPrediction(NamedTuple):
@@ -59,22 +61,25 @@ class CarpPolicy(nn.Module):
     """Normalizers + frozen tokenizer + coarse-to-fine transformer.
 
     Args:
-        tokenizer: trained tokenizer; frozen here (eval mode, no gradients).
+        tokenizer_artifact: the trained tokenizer with its training statistics and sha256; its tokenizer is frozen
+            here (eval mode, no gradients) and becomes :attr:`tokenizer`.
         transformer: trained coarse-to-fine transformer.
         obs_normalizer: per-feature min-max statistics of the `Do` observation features.
-        action_normalizer: per-feature min-max statistics of the `A` action dimensions.
+        action_normalizer: per-feature min-max statistics of the `A` action dimensions of the policy's task (the
+            task's own, also for a task the tokenizer was not trained on).
         metadata: plain values stored in the checkpoint (e.g. the tokenizer's registry reference, the task names).
     """
 
     def __init__(
         self,
-        tokenizer: MultiScaleActionTokenizer,
+        tokenizer_artifact: TokenizerArtifact,
         transformer: CoarseToFineTransformer,
         obs_normalizer: MinMaxNormalizer,
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        tokenizer = tokenizer_artifact.tokenizer
         check_specs_match(transformer.spec, tokenizer.spec)
         if obs_normalizer.num_features != transformer.spec.obs_dim:
             raise ValueError(
@@ -87,6 +92,7 @@ class CarpPolicy(nn.Module):
                 f"{tokenizer.spec.action_dim}"
             )
         self.tokenizer = tokenizer.eval().requires_grad_(False)
+        self.tokenizer_artifact = tokenizer_artifact
         self.transformer = transformer.eval()
         self.obs_normalizer = obs_normalizer
         self.action_normalizer = action_normalizer
@@ -173,13 +179,13 @@ class CarpPolicy(nn.Module):
         return self.predict_action_timed(obs, task_index, top_k, generator).actions
 
     def to_checkpoint(self) -> dict[str, Any]:
-        """Self-contained state: format version, both specs, both weights, normalizer statistics, metadata."""
+        """Self-contained state: spec, weights, the tokenizer artifact and its sha256, statistics, metadata."""
         return {
             "format_version": POLICY_FORMAT_VERSION,
             "policy_spec": self.spec.to_dict(),
-            "tokenizer_spec": self.tokenizer.spec.to_dict(),
-            "tokenizer_state": self.tokenizer.state_dict(),
             "transformer_state": self.transformer.state_dict(),
+            "tokenizer": self.tokenizer_artifact.to_payload(),
+            "tokenizer_sha256": self.tokenizer_artifact.sha256,
             "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
             "metadata": self.metadata,
         }
@@ -190,19 +196,28 @@ class CarpPolicy(nn.Module):
 
     @classmethod
     def from_checkpoint(cls, checkpoint: dict[str, Any]) -> "CarpPolicy":
-        """Rebuild a policy from :meth:`to_checkpoint` output, loading weights strictly."""
+        """Rebuild a policy from :meth:`to_checkpoint` output, loading weights strictly.
+
+        Raises:
+            TokenizerMismatchError: the embedded tokenizer does not hash to the sha256 recorded with it.
+            ValueError: another format version, or specs that do not fit together.
+            KeyError, RuntimeError: an entry is missing, or weights do not fit their spec.
+        """
         version = checkpoint.get("format_version") if isinstance(checkpoint, dict) else None
         if version != POLICY_FORMAT_VERSION:
             raise ValueError(
                 f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
             )
-        tokenizer = MultiScaleActionTokenizer(TokenizerSpec.from_dict(checkpoint["tokenizer_spec"]))
-        tokenizer.load_state_dict(checkpoint["tokenizer_state"], strict=True)
         transformer = CoarseToFineTransformer(PolicySpec.from_dict(checkpoint["policy_spec"]))
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
+        # The specs first: a tokenizer of another shape is named as such rather than as a hash difference.
+        check_specs_match(transformer.spec, TokenizerSpec.from_dict(checkpoint["tokenizer"]["spec"]))
+        tokenizer_artifact = TokenizerArtifact.from_payload(
+            checkpoint["tokenizer"], checkpoint["tokenizer_sha256"], "the policy (the tokenizer it was trained with)"
+        )
         normalizers = checkpoint["normalizers"]
         return cls(
-            tokenizer,
+            tokenizer_artifact,
             transformer,
             MinMaxNormalizer.from_dict(normalizers["obs"]),
             MinMaxNormalizer.from_dict(normalizers["action"]),
@@ -211,6 +226,18 @@ class CarpPolicy(nn.Module):
 
     @classmethod
     def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":
-        """Read a checkpoint written by :meth:`save` onto `map_location`."""
-        checkpoint = torch.load(Path(path), map_location=map_location, weights_only=True)
-        return cls.from_checkpoint(checkpoint).to(map_location)
+        """Read a checkpoint written by :meth:`save` onto `map_location`.
+
+        Raises:
+            FileNotFoundError: no file at `path`.
+            CheckpointError: the file is truncated or corrupt, of another format version, incomplete, or its parts
+                do not fit together (e.g. a tokenizer that is not the one the policy was trained with); the
+                message is one line that starts with `path`.
+        """
+        checkpoint = read_checkpoint(Path(path), weights_only=True)
+        try:
+            return cls.from_checkpoint(checkpoint).to(map_location)
+        except KeyError as error:
+            raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
+        except (AttributeError, RuntimeError, TypeError, ValueError) as error:
+            raise CheckpointError(f"{path}: {one_line(error)}") from error

@@ -21,12 +21,14 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
 
 WEIGHTS_FILENAME = "tokenizer.pt"
 METADATA_FILENAME = "tokenizer.json"
@@ -49,6 +51,71 @@ class TokenizerArtifact:
     action_space: str
     sha256: str
     metrics: dict[str, float] = field(default_factory=dict)  # held-out metrics measured when it was saved
+
+    @classmethod
+    def build(
+        cls,
+        tokenizer: MultiScaleActionTokenizer,
+        action_normalizers: Mapping[str, MinMaxNormalizer],
+        action_space: str,
+        metrics: Mapping[str, float] | None = None,
+    ) -> "TokenizerArtifact":
+        """An artifact of a trained tokenizer, its training tasks' statistics, action space and held-out metrics.
+
+        The sha256 covers the weights and statistics, not the metrics.
+        """
+        if not action_normalizers:
+            raise ValueError("a tokenizer artifact needs the action statistics of at least one training task")
+        normalizers = dict(action_normalizers)
+        measured = {key: float(value) for key, value in (metrics or {}).items()}
+        return cls(tokenizer, normalizers, action_space, weights_sha256(tokenizer, normalizers), measured)
+
+    def to_payload(self) -> dict[str, Any]:
+        """What ``tokenizer.pt`` holds, and a policy checkpoint embeds: spec, weights, statistics, space, metrics."""
+        return {
+            **self.tokenizer.to_checkpoint(),
+            "action_normalizers": {task: normalizer.to_dict() for task, normalizer in self.action_normalizers.items()},
+            "action_space": self.action_space,
+            "metrics": dict(self.metrics),
+        }
+
+    @classmethod
+    def from_payload(
+        cls,
+        payload: dict[str, Any],
+        expected_sha256: str | None = None,
+        recorded_in: str = "the reference",
+        map_location: str | torch.device = "cpu",
+    ) -> "TokenizerArtifact":
+        """Rebuild an artifact from :meth:`to_payload` output, loading the weights strictly.
+
+        Args:
+            payload: the stored dict.
+            expected_sha256: when given, the weights and statistics must hash to it.
+            recorded_in: where ``expected_sha256`` comes from, for the error message (e.g. a reference file).
+            map_location: device of the weights.
+
+        Raises:
+            TokenizerMismatchError: the hash differs from ``expected_sha256`` (both hashes named), or the payload
+                predates per-task normalization (one set of statistics for all tasks).
+            KeyError, RuntimeError, ValueError: the payload is incomplete or its weights do not fit its spec.
+        """
+        if not isinstance(payload, dict):
+            raise ValueError(f"not a tokenizer: the file holds a {type(payload).__name__}, not a dict")
+        if "action_normalizers" not in payload:
+            raise TokenizerMismatchError(
+                "tokenizer saved with one action normalization for all its tasks (carp before per-task "
+                "normalization); train it again"
+            )
+        tokenizer = MultiScaleActionTokenizer.from_checkpoint(payload).to(map_location).eval()
+        normalizers = {task: MinMaxNormalizer.from_dict(state) for task, state in payload["action_normalizers"].items()}
+        artifact = cls.build(tokenizer, normalizers, payload["action_space"], payload.get("metrics"))
+        if expected_sha256 is not None and artifact.sha256 != expected_sha256:
+            raise TokenizerMismatchError(
+                f"tokenizer weights have sha256 {artifact.sha256[:12]}..., not the sha256 {expected_sha256[:12]}... "
+                f"recorded in {recorded_in}"
+            )
+        return artifact
 
     @property
     def tasks(self) -> list[str]:
@@ -137,25 +204,17 @@ def save_tokenizer_artifact(
     Raises:
         NonFiniteTokenizerError: a weight, statistic or metric is not finite; nothing is written.
     """
-    if not action_normalizers:
-        raise ValueError("a tokenizer artifact needs the action statistics of at least one training task")
-    metrics = {key: float(value) for key, value in (metrics or {}).items()}
-    require_finite(tokenizer, action_normalizers, metrics, str(directory))
+    artifact = TokenizerArtifact.build(tokenizer, action_normalizers, action_space, metrics)
+    require_finite(tokenizer, artifact.action_normalizers, artifact.metrics, str(directory))
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    sha256 = weights_sha256(tokenizer, action_normalizers)
-    payload = {
-        **tokenizer.to_checkpoint(),
-        "action_normalizers": {task: normalizer.to_dict() for task, normalizer in action_normalizers.items()},
-        "action_space": action_space,
-        "metrics": metrics,
-    }
+    payload = artifact.to_payload()
     metadata = {
         "spec": tokenizer.spec.to_dict(),
         "action_space": action_space,
-        "tasks": list(action_normalizers),
-        "sha256": sha256,
-        "metrics": metrics,
+        "tasks": artifact.tasks,
+        "sha256": artifact.sha256,
+        "metrics": artifact.metrics,
     }
     for filename, write in (
         (WEIGHTS_FILENAME, lambda path: torch.save(payload, path)),
@@ -164,16 +223,28 @@ def save_tokenizer_artifact(
         temporary = directory / f".{filename}.tmp"
         write(temporary)
         os.replace(temporary, directory / filename)
-    return sha256
+    return artifact.sha256
 
 
 def load_tokenizer_artifact(
-    directory: Path, expected_sha256: str | None = None, map_location: str | torch.device = "cpu"
+    directory: Path,
+    expected_sha256: str | None = None,
+    map_location: str | torch.device = "cpu",
+    recorded_in: str = "the reference",
 ) -> TokenizerArtifact:
     """Load an artifact directory; with ``expected_sha256``, refuse weights that hash differently.
 
+    Every error message is one line that starts with the weights file's path.
+
+    Args:
+        directory: the artifact directory.
+        expected_sha256: the hash the weights must have, or None.
+        map_location: device of the weights.
+        recorded_in: where ``expected_sha256`` comes from (e.g. ``models/tokenizer_ref.json``), for the message.
+
     Raises:
         FileNotFoundError: no artifact in ``directory``.
+        CheckpointError: the weights file is truncated or corrupt, incomplete, or its weights do not fit its spec.
         TokenizerMismatchError: the weights' hash differs from ``expected_sha256``, or the artifact predates
             per-task normalization (one set of statistics for all tasks).
         NonFiniteTokenizerError: a weight, statistic or stored metric is not finite.
@@ -181,22 +252,17 @@ def load_tokenizer_artifact(
     path = Path(directory) / WEIGHTS_FILENAME
     if not path.exists():
         raise FileNotFoundError(f"{path}: tokenizer weights not found")
-    payload = torch.load(path, map_location=map_location, weights_only=False)
-    if "action_normalizers" not in payload:
-        raise TokenizerMismatchError(
-            f"{path}: tokenizer saved with one action normalization for all its tasks (carp before per-task "
-            "normalization); train it again"
-        )
-    tokenizer = MultiScaleActionTokenizer.from_checkpoint(payload).to(map_location).eval()
-    normalizers = {task: MinMaxNormalizer.from_dict(state) for task, state in payload["action_normalizers"].items()}
-    sha256 = weights_sha256(tokenizer, normalizers)
-    if expected_sha256 is not None and sha256 != expected_sha256:
-        raise TokenizerMismatchError(
-            f"{path}: weights sha256 {sha256[:12]}... differs from the referenced {expected_sha256[:12]}..."
-        )
-    metrics = payload.get("metrics", {})
-    require_finite(tokenizer, normalizers, metrics, str(path))
-    return TokenizerArtifact(tokenizer, normalizers, payload["action_space"], sha256, metrics)
+    payload = read_checkpoint(path, weights_only=True)
+    try:
+        artifact = TokenizerArtifact.from_payload(payload, expected_sha256, recorded_in, map_location)
+    except TokenizerMismatchError as error:
+        raise TokenizerMismatchError(f"{path}: {error}") from error
+    except KeyError as error:
+        raise CheckpointError(f"{path}: tokenizer file lacks the entry {error}") from error
+    except (AttributeError, RuntimeError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: {one_line(error)}") from error
+    require_finite(artifact.tokenizer, artifact.action_normalizers, artifact.metrics, str(path))
+    return artifact
 
 
 def check_compatible(

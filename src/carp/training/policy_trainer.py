@@ -35,12 +35,7 @@ from carp.policy.policy import check_specs_match
 from carp.policy.spec import PolicySpec
 from carp.policy.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import (
-    load_training_state,
-    read_training_metadata,
-    replay_history,
-    save_training_state,
-)
+from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.cross_entropy import blockwise_cross_entropy
 from carp.training.runtime import (
     autocast_to,
@@ -286,7 +281,8 @@ def train_policy(
         data: normalized training windows.
         settings: optimization settings.
         checkpoint_dir: directory for the training state (`policy_training_state.pt`); created if missing. A state
-            from another spec, settings, tokenizer or data is ignored (with a warning) and overwritten.
+            from another spec, settings, tokenizer or data is ignored and overwritten, an unusable one (truncated,
+            another format version) deleted; either way with a warning, and training starts over.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based index) with loss (mean
             cross entropy per token), token_accuracy, token_accuracy_scale_<k> (k = 1..K), learning_rate,
             epoch_seconds and samples_per_second. Epochs restored from a training state are
@@ -323,15 +319,9 @@ def train_policy(
     precision = resolve_precision(settings.precision, device)
     logger.info("policy training on %s in %s", device, precision_name(precision))
     metadata = _run_metadata(spec, settings, tokenizer, data, precision)
-    start_epoch = 0
-    history: list[dict[str, float]] = []
-    if checkpoint_path.exists():
-        if read_training_metadata(checkpoint_path) == metadata:
-            start_epoch = load_training_state(checkpoint_path, trained, optimizer, scheduler)
-            logger.info("resuming policy training from %s at epoch %d", checkpoint_path, start_epoch)
-            history = replay_history(checkpoint_path, on_epoch_end)
-        else:
-            logger.warning("ignoring %s: it was written for another spec, settings, tokenizer or data", checkpoint_path)
+    start_epoch, history = resume_training_state(checkpoint_path, metadata, trained, optimizer, scheduler, on_epoch_end)
+    if start_epoch > 0:
+        logger.info("resuming policy training from %s at epoch %d", checkpoint_path, start_epoch)
 
     for epoch in range(start_epoch, settings.epochs):
         transformer.train()

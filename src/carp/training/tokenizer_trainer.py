@@ -39,12 +39,7 @@ from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import (
-    load_training_state,
-    read_training_metadata,
-    replay_history,
-    save_training_state,
-)
+from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.runtime import resolve_device, seed_everything
 
 logger = logging.getLogger(__name__)
@@ -257,18 +252,23 @@ def _resume_or_initialize(
     metadata: dict,
     train_windows: torch.Tensor,
     seed: int,
-) -> int:
-    """Load a matching training state and return its epoch, or seed the whole codebook from data and return 0."""
-    if checkpoint_path.exists():
-        if read_training_metadata(checkpoint_path) == metadata:
-            start_epoch = load_training_state(checkpoint_path, tokenizer, optimizer, scheduler)
-            logger.info("resuming tokenizer training from %s at epoch %d", checkpoint_path, start_epoch)
-            return start_epoch
-        logger.warning("ignoring %s: it was written for another spec, settings or data", checkpoint_path)
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None,
+) -> tuple[int, list[dict[str, float]]]:
+    """Resume a matching training state (its epochs reported again), or seed the whole codebook from data.
+
+    Returns:
+        The epoch to continue from and the metrics of the epochs before it.
+    """
+    start_epoch, history = resume_training_state(
+        checkpoint_path, metadata, tokenizer, optimizer, scheduler, on_epoch_end
+    )
+    if start_epoch > 0:
+        logger.info("resuming tokenizer training from %s at epoch %d", checkpoint_path, start_epoch)
+        return start_epoch, history
     spec = tokenizer.spec
     all_codes = torch.ones(spec.action_dim, spec.codebook_size, dtype=torch.bool)
     _restart_unused_codes(tokenizer, train_windows, all_codes, _epoch_generator(seed, -1, 0))
-    return 0
+    return 0, []
 
 
 def _require_finite_losses(metrics: dict[str, float], epoch: int, epochs: int) -> None:
@@ -296,7 +296,8 @@ def train_tokenizer(
         valid_windows: (M, H, A) float normalized held-out windows (M may be 0).
         settings: optimization settings.
         checkpoint_dir: directory for the training state (`tokenizer_training_state.pt`); created if missing. A state
-            from a different spec, settings or training data is ignored (with a warning) and overwritten.
+            from a different spec, settings or training data is ignored and overwritten, an unusable one (truncated,
+            another format version) deleted; either way with a warning, and training starts over.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based epoch index) with
             train_loss, train_reconstruction_mse, train_vq_loss, valid_reconstruction_mse (if M > 0),
             learning_rate, restarted_codes and epoch_seconds. Epochs restored from a training state are
@@ -326,10 +327,9 @@ def train_tokenizer(
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
     metadata = _run_metadata(spec, settings, train_windows)
-    start_epoch = _resume_or_initialize(
-        tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, settings.seed
+    start_epoch, history = _resume_or_initialize(
+        tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, settings.seed, on_epoch_end
     )
-    history = replay_history(checkpoint_path, on_epoch_end) if start_epoch > 0 else []
 
     restart_epochs = math.floor(settings.epochs * settings.restart_fraction)
     tokenizer.train()
