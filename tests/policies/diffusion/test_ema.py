@@ -2,7 +2,9 @@ import pytest
 import torch
 from torch import nn
 
+from carp.policies.diffusion.config import DiffusionUNetConfig
 from carp.policies.diffusion.ema import exponential_moving_average, warmup_decay
+from carp.policies.diffusion.unet import ConditionalUNet1D
 
 
 def test_decay_warms_up_and_is_capped():
@@ -34,3 +36,30 @@ def test_average_is_a_separate_copy_of_the_model():
     average = exponential_moving_average(model)
     model.weight.data.add_(1.0)
     assert not torch.equal(average.module.weight, model.weight)
+
+
+def test_restored_average_resumes_its_warmup():
+    model = nn.Linear(1, 1, bias=False)
+    average = exponential_moving_average(model)
+    for value in (1.0, 2.0, 3.0):
+        model.weight.data.fill_(value)
+        average.update_parameters(model)
+    restored = exponential_moving_average(model)
+    restored.load_state_dict(average.state_dict())
+    model.weight.data.fill_(7.0)
+    average.update_parameters(model)
+    restored.update_parameters(model)
+    assert restored.module.weight.item() == pytest.approx(average.module.weight.item())
+    assert restored.module.weight.item() != pytest.approx(7.0)
+
+
+def test_averaged_unet_uses_its_own_blocks():
+    unet = ConditionalUNet1D(DiffusionUNetConfig(down_dims=(8, 16), num_groups=4, step_embedding_dim=8), 2, 3, 2)
+    average = exponential_moving_average(unet)
+    average.update_parameters(unet)
+    copy = average.module
+    assert copy._film_blocks[0] is copy.down_levels[0].first
+    unet.down_levels[0].first.film.bias.data.add_(5.0)
+    noisy, steps, obs = torch.randn(1, 4, 2), torch.tensor([3]), torch.randn(1, 2, 3)
+    with torch.no_grad():
+        assert not torch.allclose(copy(noisy, steps, obs), unet(noisy, steps, obs))

@@ -33,6 +33,8 @@ def exponential_moving_average(model: nn.Module, power: float = 0.75, max_decay:
         The averaged model (its `n_averaged` buffer counts the updates).
     """
 
+    # The count comes from AveragedModel's `n_averaged` buffer, which its state dict saves, so an average restored
+    # from a checkpoint resumes its warmup where it stopped.
     def average(averaged: list[torch.Tensor], current: list[torch.Tensor], num_averaged: torch.Tensor) -> None:
         get_ema_multi_avg_fn(warmup_decay(int(num_averaged), power, max_decay))(averaged, current, num_averaged)
 
