@@ -1,0 +1,182 @@
+"""Configs of the two Diffusion Policy families, one frozen dataclass each, validated at construction.
+
+Each config is the family's params section (`diffusion_unet`, `diffusion_transformer`) and what its checkpoint
+stores: the denoiser's shape, the noise schedule and sampler, and DP's optimizer and EMA recipe. Shapes that come
+from the data (`Do`, `To`, `H`, `A`) are passed to the models separately. Loop settings shared by every family (epochs,
+batch size, checkpoints, seed) are left to the training loop's section. Defaults are those of the official lowdim
+configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transformer_lowdim_workspace.yaml`).
+"""
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from carp.config import _require
+
+SAMPLERS = ("ddpm", "ddim")
+
+
+def _require_positive_int(section: str, name: str, value: Any) -> None:
+    _require(
+        isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+        f"{section}.{name}",
+        value,
+        "must be an integer >= 1",
+    )
+
+
+@dataclass(frozen=True)
+class DenoisingConfig:
+    """Noise schedule, sampler, optimizer and EMA fields shared by both Diffusion Policy families.
+
+    The schedule itself is fixed to DP's: squared-cosine betas (`squaredcos_cap_v2`), epsilon prediction, denoised
+    estimates clipped to [-1, 1] (actions are min-max normalized to that range). See `carp.policies.diffusion.sampler`.
+
+    Attributes:
+        num_train_steps: diffusion steps of the training noise schedule (DP: 100); integer >= 1.
+        sampler: inference sampler, `ddpm` (DP's protocol: ancestral sampling) or `ddim` (deterministic given the
+            initial noise, fewer steps).
+        num_inference_steps: denoiser calls per action chunk, integer in [1, num_train_steps]; DDPM with fewer
+            steps than training strides the schedule.
+        learning_rate: peak AdamW learning rate, > 0.
+        weight_decay: AdamW weight decay, >= 0.
+        warmup_steps: optimizer steps of linear learning-rate warmup before the cosine decay, integer >= 0.
+        use_ema: evaluate an exponential moving average of the weights (DP does), see `carp.policies.diffusion.ema`.
+        ema_power: exponent of the EMA warmup: the decay after n updates is `1 - n ** -ema_power`, capped at
+            `ema_max_decay`; in (0, 1].
+        ema_max_decay: largest EMA decay, in [0, 1).
+    """
+
+    SECTION: ClassVar[str] = "diffusion"
+
+    num_train_steps: int = 100
+    sampler: str = "ddpm"
+    num_inference_steps: int = 100
+    learning_rate: float = 1e-4
+    weight_decay: float = 1e-6
+    warmup_steps: int = 500
+    use_ema: bool = True
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+
+    def __post_init__(self) -> None:
+        section = self.SECTION
+        _require_positive_int(section, "num_train_steps", self.num_train_steps)
+        _require(self.sampler in SAMPLERS, f"{section}.sampler", self.sampler, f"must be one of {SAMPLERS}")
+        _require_positive_int(section, "num_inference_steps", self.num_inference_steps)
+        _require(
+            self.num_inference_steps <= self.num_train_steps,
+            f"{section}.num_inference_steps",
+            self.num_inference_steps,
+            f"must be at most num_train_steps={self.num_train_steps}",
+        )
+        _require(self.learning_rate > 0, f"{section}.learning_rate", self.learning_rate, "must be > 0")
+        _require(self.weight_decay >= 0, f"{section}.weight_decay", self.weight_decay, "must be >= 0")
+        _require(
+            isinstance(self.warmup_steps, int) and self.warmup_steps >= 0,
+            f"{section}.warmup_steps",
+            self.warmup_steps,
+            "must be an integer >= 0",
+        )
+        _require(isinstance(self.use_ema, bool), f"{section}.use_ema", self.use_ema, "must be true or false")
+        _require(0.0 < self.ema_power <= 1.0, f"{section}.ema_power", self.ema_power, "must be in (0, 1]")
+        _require(0.0 <= self.ema_max_decay < 1.0, f"{section}.ema_max_decay", self.ema_max_decay, "must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class DiffusionUNetConfig(DenoisingConfig):
+    """DP-C: the 1-D temporal convolutional U-Net with FiLM conditioning (`carp.policies.diffusion.unet`).
+
+    At the defaults and Can's shapes (Do = 23, To = 2, A = 10) it has 65.9 M parameters (65,883,658); `down_dims`
+    (64, 128, 256) gives a CPU-sized variant of 5.4 M. The count does not depend on the horizon.
+
+    Attributes:
+        down_dims: channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
+            divisible by `num_groups`. The horizon must be divisible by `2 ** (len(down_dims) - 1)`.
+        kernel_size: temporal kernel of the residual blocks' convolutions, odd integer >= 1 (odd keeps the
+            horizon unchanged with symmetric padding).
+        num_groups: GroupNorm groups of every convolution block, integer >= 1.
+        step_embedding_dim: width of the sinusoidal diffusion-step embedding and of the MLP that follows it,
+            even integer >= 4.
+        (and the fields of :class:`DenoisingConfig`, DP-C's defaults: weight decay 1e-6, 500 warmup steps.)
+    """
+
+    SECTION: ClassVar[str] = "diffusion_unet"
+
+    down_dims: tuple[int, ...] = (256, 512, 1024)
+    kernel_size: int = 5
+    num_groups: int = 8
+    step_embedding_dim: int = 256
+
+    def __post_init__(self) -> None:
+        # Lists arrive from YAML; the frozen config keeps a hashable tuple.
+        object.__setattr__(self, "down_dims", tuple(self.down_dims))
+        super().__post_init__()
+        section = self.SECTION
+        _require(len(self.down_dims) >= 1, f"{section}.down_dims", self.down_dims, "must name at least one level")
+        for channels in self.down_dims:
+            _require_positive_int(section, "down_dims", channels)
+        _require_positive_int(section, "num_groups", self.num_groups)
+        _require(
+            all(channels % self.num_groups == 0 for channels in self.down_dims),
+            f"{section}.num_groups",
+            self.num_groups,
+            f"must divide every entry of down_dims={list(self.down_dims)}",
+        )
+        _require_positive_int(section, "kernel_size", self.kernel_size)
+        _require(self.kernel_size % 2 == 1, f"{section}.kernel_size", self.kernel_size, "must be odd")
+        _require_positive_int(section, "step_embedding_dim", self.step_embedding_dim)
+        _require(
+            self.step_embedding_dim >= 4 and self.step_embedding_dim % 2 == 0,
+            f"{section}.step_embedding_dim",
+            self.step_embedding_dim,
+            "must be an even integer >= 4",
+        )
+
+    @property
+    def horizon_multiple(self) -> int:
+        """The horizon must be a multiple of this: each level but the last halves it."""
+        return 2 ** (len(self.down_dims) - 1)
+
+
+@dataclass(frozen=True)
+class DiffusionTransformerConfig(DenoisingConfig):
+    """DP-T: the transformer denoiser with causal self-attention (`carp.policies.diffusion.transformer`).
+
+    At the defaults and Can's shapes (Do = 23, To = 2, A = 10) it has 8,968,458 parameters (9.0 M) at DP's robomimic
+    horizon H = 10 and 8,969,994 at H = 16: only the action position embedding grows, by `width` per action.
+
+    Attributes:
+        num_layers: decoder layers, integer >= 1.
+        num_heads: attention heads, integer >= 1 dividing `width`.
+        width: token width, integer >= 1.
+        embedding_dropout: dropout on the token and condition embeddings in training, in [0, 1).
+        attention_dropout: dropout inside every decoder layer (attention weights, residual branches) in training,
+            in [0, 1).
+        (and the fields of :class:`DenoisingConfig`, DP-T's defaults: weight decay 1e-3, 1000 warmup steps.)
+    """
+
+    SECTION: ClassVar[str] = "diffusion_transformer"
+
+    weight_decay: float = 1e-3
+    warmup_steps: int = 1000
+    num_layers: int = 8
+    num_heads: int = 4
+    width: int = 256
+    embedding_dropout: float = 0.0
+    attention_dropout: float = 0.3
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        section = self.SECTION
+        _require_positive_int(section, "num_layers", self.num_layers)
+        _require_positive_int(section, "num_heads", self.num_heads)
+        _require_positive_int(section, "width", self.width)
+        _require(
+            self.width % self.num_heads == 0,
+            f"{section}.num_heads",
+            self.num_heads,
+            f"must divide width={self.width}",
+        )
+        for name in ("embedding_dropout", "attention_dropout"):
+            value = getattr(self, name)
+            _require(0.0 <= value < 1.0, f"{section}.{name}", value, "must be in [0, 1)")

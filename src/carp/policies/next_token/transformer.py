@@ -1,0 +1,280 @@
+"""Next-token autoregressive transformer: CARP's tokens and network, predicted one token at a time.
+
+The conventional next-token baseline of the CARP paper (supplementary, section E): the same registered tokenizer,
+the same transformer size and conditioning as CARP (`carp.policy.transformer`), but a causal mask over single tokens
+and L sequential steps per chunk instead of K scale steps.
+
+Token order: CARP's own flattened sequence (`carp.policy.layout.TokenLayout`): coarse-to-fine scale by scale, within
+a scale position by position, within a position dimension by dimension. Keeping CARP's order and token ids isolates
+the one difference the comparison is about, the number of tokens per step: the coarse scales still come first, so
+the baseline also keeps CARP's coarse-to-fine prior, and every token id still belongs to dimension `i % A`'s
+vocabulary, so CARP's per-dimension head applies unchanged.
+
+Inputs: a GPT-style shifted sequence. Position 0 reads the condition plus a learned start embedding (CARP's first
+scale input); position i > 0 reads a learned embedding of token i - 1, one table row per (dimension, id) pair, since
+ids of different dimensions index different codebooks. Each position adds CARP's learned position embedding and
+the level (scale) embedding of its scale. The condition (flattened `To` observation steps, plus a task embedding
+for multi-task policies) is projected to `D` and modulates every block through AdaLN, as in CARP. Token embeddings
+replace CARP's projected, area-downsampled tokenizer latents because the latent of a partly predicted scale is not
+defined one token at a time.
+
+Blocks, the kv-cache, the mask type and the head are CARP's, imported from `carp.policy.blocks`.
+"""
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from carp.policies.next_token.config import NextTokenConfig
+from carp.policy.blocks import (
+    MODULATIONS_PER_BLOCK,
+    AdaptiveBlock,
+    BlockCausalMask,
+    KeyValueCache,
+    PerDimensionHead,
+    cpu_attention_kernel,
+    modulate,
+)
+from carp.policy.layout import TokenLayout
+from carp.policy.spec import TASK_EMBEDDING_DIM
+
+EMBEDDING_INIT_STD = 0.02
+GATE_INIT_GAIN = 1e-5
+"""Gates start near zero so every block starts close to the identity, as CARP's do."""
+HEAD_INIT_GAIN = 0.02
+"""Near-uniform initial logits, as CARP's."""
+
+
+@dataclass
+class GenerationState:
+    """What token-by-token inference carries from one step to the next.
+
+    Attributes:
+        condition: (B, D) condition vector.
+        modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
+        position_and_level: (1, L, D) position plus level embedding of every token.
+        cache: keys and values of the tokens processed so far.
+        next_position: index of the token the next call predicts.
+    """
+
+    condition: torch.Tensor
+    modulations: tuple[torch.Tensor, ...]
+    position_and_level: torch.Tensor
+    cache: KeyValueCache
+    next_position: int = 0
+
+
+class NextTokenTransformer(nn.Module):
+    """Predicts the L token ids of an action chunk one at a time given observation features.
+
+    Args:
+        config: the family's config (depth, width, heads, mlp ratio, dropout).
+        obs_dim: `Do`, observation features per step.
+        obs_steps: `To`, observation steps conditioned on.
+        action_dim: `A`, the tokenizer's action dimensions.
+        scales: `(s_1, ..., s_K)`, the tokenizer's scales.
+        codebook_size: `V`, the tokenizer's vocabulary per dimension.
+        num_tasks: 0 for a single-task policy, else the number of task indices (each with a learned embedding).
+    """
+
+    def __init__(
+        self,
+        config: NextTokenConfig,
+        obs_dim: int,
+        obs_steps: int,
+        action_dim: int,
+        scales: tuple[int, ...],
+        codebook_size: int,
+        num_tasks: int = 0,
+    ) -> None:
+        super().__init__()
+        for name, value in (("obs_dim", obs_dim), ("obs_steps", obs_steps), ("action_dim", action_dim)):
+            if value < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        if codebook_size < 2:
+            raise ValueError(f"codebook_size must be >= 2, got {codebook_size}")
+        if num_tasks < 0:
+            raise ValueError(f"num_tasks must be >= 0, got {num_tasks}")
+        self.config = config
+        self.obs_dim = obs_dim
+        self.obs_steps = obs_steps
+        self.action_dim = action_dim
+        self.codebook_size = codebook_size
+        self.num_tasks = num_tasks
+        self.layout = TokenLayout(action_dim, tuple(scales))
+        width, length = config.width, self.layout.sequence_length
+
+        self.task_embedding = nn.Embedding(num_tasks, TASK_EMBEDDING_DIM) if num_tasks > 0 else None
+        condition_features = obs_steps * obs_dim + (TASK_EMBEDDING_DIM if num_tasks > 0 else 0)
+        self.condition_projection = nn.Linear(condition_features, width)
+        self.start_embedding = nn.Parameter(torch.empty(1, 1, width))
+        self.token_embedding = nn.Embedding(action_dim * codebook_size, width)
+        self.position_embedding = nn.Parameter(torch.empty(1, length, width))
+        self.level_embedding = nn.Parameter(torch.empty(self.layout.num_scales, width))
+
+        self.num_modulations = MODULATIONS_PER_BLOCK * config.depth + 2
+        self.modulation = nn.Linear(width, self.num_modulations * width)
+        # Scales are applied as (1 + scale): the offset adds the one once per chunk.
+        scale_rows = torch.zeros(self.num_modulations, 1)
+        scale_rows[1 : MODULATIONS_PER_BLOCK * config.depth : 3] = 1.0
+        scale_rows[-1] = 1.0
+        self.register_buffer("modulation_offset", scale_rows.expand(-1, width).reshape(-1), persistent=False)
+
+        self.blocks = nn.ModuleList(
+            AdaptiveBlock(width, config.num_heads, config.hidden_width, config.dropout, index)
+            for index in range(config.depth)
+        )
+        self.head = PerDimensionHead(action_dim, width, codebook_size)
+
+        dimension_ids = self.layout.dimension_ids()  # (L,)
+        self.register_buffer("dimension_ids", dimension_ids, persistent=False)
+        # Row of token i's (dimension, id) pair in the embedding table is id + vocabulary_offsets[i].
+        self.register_buffer("vocabulary_offsets", dimension_ids * codebook_size, persistent=False)
+        self.register_buffer("level_ids", self.layout.level_ids(), persistent=False)
+        causal = torch.ones(length, length, dtype=torch.bool).tril()  # (L, L), True where attending is allowed
+        self.register_buffer("causal_mask", causal, persistent=False)
+        self._initialize_weights()
+
+    @property
+    def sequence_length(self) -> int:
+        """`L`, tokens per chunk (and sequential model calls per chunk at inference)."""
+        return self.layout.sequence_length
+
+    def _initialize_weights(self) -> None:
+        for module in self.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+                nn.init.zeros_(module.bias)
+            elif isinstance(module, nn.Embedding):
+                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+        for parameter in (self.start_embedding, self.position_embedding, self.level_embedding):
+            nn.init.trunc_normal_(parameter, std=EMBEDDING_INIT_STD)
+        # GPT-2: residual branch outputs shrink with depth so the residual stream's variance stays bounded.
+        residual_gain = 1.0 / math.sqrt(2 * self.config.depth)
+        for block in self.blocks:
+            block.attention.output.weight.data.mul_(residual_gain)
+            block.feed_forward.contract.weight.data.mul_(residual_gain)
+        width = self.config.width
+        weight = self.modulation.weight.data.view(self.num_modulations, width, width)
+        weight[2 : MODULATIONS_PER_BLOCK * self.config.depth : 3].mul_(GATE_INIT_GAIN)
+        self.head.weight.data.mul_(HEAD_INIT_GAIN)
+
+    def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Project observations (and task) to the condition vector.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            task_ids: (B,) long task indices; required exactly when `num_tasks > 0`.
+
+        Returns:
+            (B, D) condition.
+        """
+        if obs_features.dim() != 3 or tuple(obs_features.shape[1:]) != (self.obs_steps, self.obs_dim):
+            raise ValueError(
+                f"obs_features must have shape (B, To, Do) = (B, {self.obs_steps}, {self.obs_dim}), got "
+                f"{tuple(obs_features.shape)}"
+            )
+        features = obs_features.flatten(1)  # (B, To * Do)
+        if self.task_embedding is not None:
+            if task_ids is None:
+                raise ValueError(f"this policy is multi-task ({self.num_tasks} tasks): pass task ids")
+            features = torch.cat((features, self.task_embedding(task_ids)), dim=1)  # (B, To * Do + 3)
+        elif task_ids is not None:
+            raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
+        return self.condition_projection(features)  # (B, D)
+
+    def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
+        modulation = self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
+        return modulation.view(condition.shape[0], self.num_modulations, 1, self.config.width).unbind(1)
+
+    def position_and_level(self) -> torch.Tensor:
+        """Position plus level embedding of every token, (1, L, D)."""
+        return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
+
+    def _run_blocks(
+        self,
+        hidden: torch.Tensor,
+        modulations: tuple[torch.Tensor, ...],
+        mask: BlockCausalMask | None,
+        cache: KeyValueCache | None,
+    ) -> torch.Tensor:
+        for index, block in enumerate(self.blocks):
+            start = index * MODULATIONS_PER_BLOCK
+            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], mask, cache)
+        shift, scale = modulations[-2:]
+        return modulate(hidden, shift, scale)  # (B, N, D)
+
+    def forward(
+        self, obs_features: torch.Tensor, token_ids: torch.Tensor, task_ids: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Teacher-forced logits of all L tokens, each from the condition and the tokens before it.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            token_ids: (B, L) long ground-truth ids in sequence order; the last one is never read.
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            (B, L, V) logits; row i scores token i against dimension `i % A`'s vocabulary.
+        """
+        length = self.sequence_length
+        if token_ids.dim() != 2 or token_ids.shape[1] != length:
+            raise ValueError(f"token_ids must have shape (B, L) = (B, {length}), got {tuple(token_ids.shape)}")
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        modulations = self.modulations(condition)
+        previous = self.token_embedding(token_ids[:, :-1] + self.vocabulary_offsets[:-1])  # (B, L - 1, D)
+        start = condition.unsqueeze(1) + self.start_embedding  # (B, 1, D)
+        hidden = torch.cat((start, previous), dim=1) + self.position_and_level()  # (B, L, D)
+        # Every token is its own block of the causal pattern; the per-block CPU kernel would loop over L
+        # one-query products, so the dense masked kernel runs instead.
+        mask = BlockCausalMask(self.causal_mask, tuple(range(1, length + 1)))
+        with cpu_attention_kernel(False):
+            hidden = self._run_blocks(hidden, modulations, mask, None)  # (B, L, D)
+        return self.head(hidden)  # (B, L, V)
+
+    def start_generation(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> GenerationState:
+        """Encode the condition and open an empty kv-cache for L-step inference.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            State to pass to :meth:`next_token_logits` L times.
+        """
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        return GenerationState(
+            condition,
+            self.modulations(condition),
+            self.position_and_level(),
+            KeyValueCache(self.config.depth, self.sequence_length),
+        )
+
+    def next_token_logits(self, state: GenerationState, previous_ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits of the next token, extending the kv-cache (no mask: every cached key precedes the query).
+
+        Args:
+            state: from :meth:`start_generation`, advanced by one token per call.
+            previous_ids: None for the first token; afterwards (B,) long, the id chosen at the previous position.
+
+        Returns:
+            (B, V) logits of token i = `state.next_position`, over dimension `i % A`'s vocabulary.
+        """
+        position = state.next_position
+        if position >= self.sequence_length:
+            raise RuntimeError(f"all {self.sequence_length} tokens were already predicted")
+        if position == 0:
+            tokens = state.condition.unsqueeze(1) + self.start_embedding  # (B, 1, D)
+        else:
+            if previous_ids is None:
+                raise ValueError(f"token {position} needs the id chosen for token {position - 1}")
+            tokens = self.token_embedding(previous_ids + self.vocabulary_offsets[position - 1]).unsqueeze(1)
+        hidden = tokens + state.position_and_level[:, position : position + 1]  # (B, 1, D)
+        hidden = self._run_blocks(hidden, state.modulations, None, state.cache)  # (B, 1, D)
+        state.next_position += 1
+        dimension = position % self.action_dim
+        return torch.addmm(self.head.bias[dimension, 0], hidden[:, 0], self.head.weight[dimension])  # (B, V)

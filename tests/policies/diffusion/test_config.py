@@ -1,0 +1,51 @@
+import pytest
+
+from carp.config import ConfigError
+from carp.policies.diffusion.config import DiffusionTransformerConfig, DiffusionUNetConfig
+
+
+def test_defaults_are_diffusion_policys_lowdim_recipes():
+    unet = DiffusionUNetConfig()
+    assert unet.down_dims == (256, 512, 1024)
+    assert (unet.kernel_size, unet.num_groups, unet.step_embedding_dim) == (5, 8, 256)
+    assert (unet.num_train_steps, unet.sampler, unet.num_inference_steps) == (100, "ddpm", 100)
+    assert unet.horizon_multiple == 4
+    transformer = DiffusionTransformerConfig()
+    assert (transformer.num_layers, transformer.num_heads, transformer.width) == (8, 4, 256)
+    assert (transformer.weight_decay, transformer.warmup_steps) == (1e-3, 1000)
+
+
+def test_down_dims_from_yaml_list_become_a_tuple():
+    config = DiffusionUNetConfig(down_dims=[64, 128, 256])
+    assert config.down_dims == (64, 128, 256)
+    assert hash(config)
+
+
+@pytest.mark.parametrize(
+    ("factory", "overrides", "message"),
+    [
+        (DiffusionUNetConfig, {"num_groups": 7}, "diffusion_unet.num_groups=7: must divide every entry of down_dims"),
+        (DiffusionUNetConfig, {"kernel_size": 4}, "diffusion_unet.kernel_size=4: must be odd"),
+        (DiffusionUNetConfig, {"down_dims": ()}, "diffusion_unet.down_dims=(): must name at least one level"),
+        (DiffusionUNetConfig, {"step_embedding_dim": 6.0}, "diffusion_unet.step_embedding_dim=6.0: must be an integer"),
+        (DiffusionUNetConfig, {"sampler": "euler"}, "diffusion_unet.sampler='euler': must be one of ('ddpm', 'ddim')"),
+        (
+            DiffusionUNetConfig,
+            {"num_inference_steps": 101},
+            "diffusion_unet.num_inference_steps=101: must be at most num_train_steps=100",
+        ),
+        (DiffusionUNetConfig, {"ema_max_decay": 1.0}, "diffusion_unet.ema_max_decay=1.0: must be in [0, 1)"),
+        (DiffusionUNetConfig, {"use_ema": "yes"}, "diffusion_unet.use_ema='yes': must be true or false"),
+        (DiffusionTransformerConfig, {"num_heads": 3}, "diffusion_transformer.num_heads=3: must divide width=256"),
+        (
+            DiffusionTransformerConfig,
+            {"attention_dropout": 1.0},
+            "diffusion_transformer.attention_dropout=1.0: must be in [0, 1)",
+        ),
+        (DiffusionTransformerConfig, {"learning_rate": 0.0}, "diffusion_transformer.learning_rate=0.0: must be > 0"),
+    ],
+)
+def test_bad_values_are_refused_with_the_dotted_key(factory, overrides, message):
+    with pytest.raises(ConfigError) as error:
+        factory(**overrides)
+    assert str(error.value).startswith(message)
