@@ -8,7 +8,6 @@ from carp.config import ConfigError
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.generation import generate_actions, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policy.blocks import cpu_attention_kernel
 from carp.policy.transformer import CoarseToFineTransformer
 from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
 
@@ -83,17 +82,6 @@ def test_last_token_is_never_read():
     changed[:, -1] = (changed[:, -1] + 3) % V
     with torch.no_grad():
         torch.testing.assert_close(model(_obs(2), changed), model(_obs(2), token_ids), rtol=0, atol=0)
-
-
-def test_teacher_forcing_is_the_same_with_either_cpu_attention_kernel_preference():
-    model = _model()
-    obs, token_ids = _obs(2), torch.randint(0, V, (2, L))
-    with torch.no_grad():
-        with cpu_attention_kernel(True):
-            blockwise_preferred = model(obs, token_ids)
-        with cpu_attention_kernel(False):
-            dense = model(obs, token_ids)
-    torch.testing.assert_close(blockwise_preferred, dense, rtol=0, atol=0)
 
 
 def test_top_k_generation_is_seeded_and_stays_within_the_k_best_tokens():

@@ -32,10 +32,8 @@ from carp.policies.next_token.config import NextTokenConfig
 from carp.policy.blocks import (
     MODULATIONS_PER_BLOCK,
     AdaptiveBlock,
-    BlockCausalMask,
     KeyValueCache,
     PerDimensionHead,
-    cpu_attention_kernel,
     modulate,
 )
 from carp.policy.layout import TokenLayout
@@ -199,7 +197,7 @@ class NextTokenTransformer(nn.Module):
         self,
         hidden: torch.Tensor,
         modulations: tuple[torch.Tensor, ...],
-        mask: BlockCausalMask | None,
+        mask: torch.Tensor | None,
         cache: KeyValueCache | None,
     ) -> torch.Tensor:
         for index, block in enumerate(self.blocks):
@@ -229,11 +227,7 @@ class NextTokenTransformer(nn.Module):
         previous = self.token_embedding(token_ids[:, :-1] + self.vocabulary_offsets[:-1])  # (B, L - 1, D)
         start = condition.unsqueeze(1) + self.start_embedding  # (B, 1, D)
         hidden = torch.cat((start, previous), dim=1) + self.position_and_level()  # (B, L, D)
-        # Every token is its own block of the causal pattern; the per-block CPU kernel would loop over L
-        # one-query products, so the dense masked kernel runs instead.
-        mask = BlockCausalMask(self.causal_mask, tuple(range(1, length + 1)))
-        with cpu_attention_kernel(False):
-            hidden = self._run_blocks(hidden, modulations, mask, None)  # (B, L, D)
+        hidden = self._run_blocks(hidden, modulations, self.causal_mask, None)  # (B, L, D)
         return self.head(hidden)  # (B, L, V)
 
     def start_generation(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> GenerationState:
