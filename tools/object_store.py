@@ -111,16 +111,19 @@ def running(state: dict) -> bool:
 
 def start(arguments: argparse.Namespace) -> None:
     """Start the store unless it already answers; create credentials and the bucket on the first start."""
-    directory = prepare_directory(arguments.dir, "--dir")
-    state_path = directory / "object_store.json"
+    if not arguments.dir:
+        fail("--dir is empty: name the directory that keeps the stored objects, e.g. DIR=/srv/carp-s3")
+    state_path = Path(arguments.dir).expanduser().absolute() / "object_store.json"
     state = read_state(state_path)
     if state and running(state):
         print(f"object store already running at {state['endpoint']} (bucket {state['bucket']})")
         return
+    weed = weed_binary()
     port = arguments.port if arguments.port is not None else state.get("port", 8333)
     if port == 0:
         port = free_port(arguments.host)
     require_free_port(port, arguments.host, "the S3 gateway", "--port (PORT=...)")
+    directory = prepare_directory(arguments.dir, "--dir")
     access_key = state.get("access_key_id") or f"carp{secrets.token_hex(8)}"
     secret_key = state.get("secret_access_key") or secrets.token_hex(24)
     identities = directory / "s3.json"
@@ -140,7 +143,7 @@ def start(arguments: argparse.Namespace) -> None:
     identities.chmod(0o600)
     (directory / "data").mkdir(exist_ok=True)
     command = [
-        str(weed_binary()), "mini",
+        str(weed), "mini",
         f"-dir={directory / 'data'}",
         f"-ip={arguments.host if arguments.host != '0.0.0.0' else LOOPBACK}",
         f"-ip.bind={arguments.host}",

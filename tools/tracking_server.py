@@ -114,10 +114,14 @@ def run_checked(command: list[str], what: str, cwd: Path, env: dict | None = Non
 
 
 def check_reachable(directory: Path, account: pwd.struct_passwd | None) -> None:
-    """Fail when the database account cannot enter ``directory`` (a private parent such as ``/root``)."""
+    """Fail when the database account cannot enter ``directory`` (a private parent such as ``/root``).
+
+    A directory not created yet is judged by its nearest existing parent (it is created open to others).
+    """
     if account is None:
         return
-    probe = subprocess.run(as_account(["test", "-x", str(directory)], account), cwd="/", capture_output=True)
+    existing = next(path for path in (directory, *directory.parents) if path.exists())
+    probe = subprocess.run(as_account(["test", "-x", str(existing)], account), cwd="/", capture_output=True)
     if probe.returncode != 0:
         fail(
             f"DIR={directory}: user {account.pw_name}, who runs the database (PostgreSQL refuses root), cannot reach "
@@ -170,7 +174,6 @@ def postgres_running(binaries: Path, data: Path, account, directory: Path) -> bo
 
 def start_postgres(binaries: Path, data: Path, account, port: int, directory: Path) -> None:
     """Start the cluster on 127.0.0.1:``port`` (TCP only: no Unix socket) and wait until it accepts connections."""
-    require_free_port(port, LOOPBACK, "PostgreSQL", "--db-port")
     options = f"-c listen_addresses={LOOPBACK} -c port={port} -c unix_socket_directories=''"
     run_checked(
         as_account(
@@ -236,12 +239,13 @@ def client_host(host: str) -> str:
 
 def start(arguments: argparse.Namespace) -> None:
     """Bring up whatever of PostgreSQL, the database and the MLflow server is not running."""
-    directory = prepare_directory(arguments.dir, "--dir")
+    if not arguments.dir:
+        fail("--dir is empty: name the directory that keeps the database and artifacts, e.g. DIR=/srv/carp-tracking")
+    directory = Path(arguments.dir).expanduser().absolute()
     state_path = directory / "tracking.json"
     state = read_state(state_path)
     binaries = find_postgres_binaries(arguments.pg_bin)
     account = database_account(arguments.db_user or state.get("db_user"))
-    check_reachable(directory, account)
     data = directory / "postgres"
     password_file = directory / "pgpass"
     destination = arguments.artifacts_destination or state.get("artifacts_destination")
@@ -257,6 +261,19 @@ def start(arguments: argparse.Namespace) -> None:
         print(f"MLflow tracking server already running at {state['url']}")
         return
 
+    # Everything that can refuse is checked before anything is created.
+    if port == 0:
+        port = free_port(client_host(arguments.host))
+    require_free_port(port, arguments.host, "the MLflow server", "--port (PORT=...)")
+    db_port = arguments.db_port or state.get("db_port") or free_port()
+    database_up = (data / "PG_VERSION").exists() and postgres_running(binaries, data, account, directory)
+    if database_up and arguments.db_port and arguments.db_port != state.get("db_port"):
+        fail(f"PostgreSQL in {data} already runs on port {state.get('db_port')}: stop it first to change --db-port")
+    if not database_up:
+        require_free_port(db_port, LOOPBACK, "PostgreSQL", "--db-port")
+    check_reachable(directory, account)
+    directory = prepare_directory(arguments.dir, "--dir")
+
     if not (data / "PG_VERSION").exists():
         if data.exists() and any(data.iterdir()):
             fail(f"{data}: exists but holds no PostgreSQL cluster; remove it or choose another --dir")
@@ -265,16 +282,10 @@ def start(arguments: argparse.Namespace) -> None:
         password_file.write_text(f"{LOOPBACK}:*:*:{DATABASE_ROLE}:{secrets.token_hex(24)}\n")
         password_file.chmod(0o600)
         initialize_cluster(binaries, data, account, password_file, directory)
-    db_port = arguments.db_port or state.get("db_port") or free_port()
-    if not postgres_running(binaries, data, account, directory):
+    if not database_up:
         start_postgres(binaries, data, account, db_port, directory)
-    elif arguments.db_port and arguments.db_port != state.get("db_port"):
-        fail(f"PostgreSQL in {data} already runs on port {state.get('db_port')}: stop it first to change --db-port")
     create_database(db_port, password_file)
 
-    if port == 0:
-        port = free_port(client_host(arguments.host))
-    require_free_port(port, arguments.host or LOOPBACK, "the MLflow server", "--port (PORT=...)")
     url = f"http://{client_host(arguments.host)}:{port}"
     command = [
         sys.executable, "-m", "mlflow", "server",
