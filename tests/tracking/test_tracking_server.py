@@ -1,6 +1,7 @@
 """`tools/tracking_server.py`: an MLflow server on PostgreSQL with served artifacts, real and on loopback.
 
-Stage runs from several processes at once, the tokenizer registry and a restart work against it; what it refuses
+Stage runs from several processes at once (and, for comparison, into a SQLite file), the tokenizer registry and a
+restart work against it; what it refuses
 (a taken port, missing PostgreSQL programs, a directory the database account cannot enter) is one `error:` line,
 before anything is created.
 """
@@ -18,7 +19,6 @@ from carp.tracking.runs import find_runs, stage_run
 from tests.services import service_directory, tool, tracking_server
 from tests.tracking.test_registry import make_artifact, register
 
-WRITERS = 2
 RUNS_PER_WRITER = 6
 
 
@@ -28,48 +28,61 @@ def server():
         yield directory, url
 
 
-def _write_runs(url: str, writer: int, barrier, results) -> None:
+def _write_runs(uri: str, writer: int, barrier, results) -> None:
     barrier.wait()
     run_ids = []
     try:
         for index in range(RUNS_PER_WRITER):
             params = {"writer": str(writer), "index": str(index), "value": f"{writer}:{index}"}
-            with stage_run(url, "carp-writers", f"writer-{writer}", params, {"carp.dvc_stage": "bench"}) as run:
-                run.log_metrics({"value": 100 * writer + index}, step=index)
+            with stage_run(uri, "carp-writers", f"writer-{writer}", params, {"carp.dvc_stage": "bench"}) as run:
+                for step in range(3):
+                    run.log_metrics({"value": 100 * writer + index, "step": step}, step=step)
             run_ids.append(run.run_id)
         results.put((writer, run_ids))
     except Exception as error:  # reported to the test, which names it
         results.put((writer, f"{type(error).__name__}: {error}"))
 
 
-@pytest.mark.slow
-def test_runs_logged_by_two_processes_at_once_are_all_kept_with_their_own_params(server):
-    # The experiment does not exist yet: both processes also race to create it.
-    _, url = server
+def check_runs_logged_at_once(uri: str, writers: int) -> None:
+    """``writers`` processes log runs into one new experiment at once; every run is kept with its own values."""
     context = multiprocessing.get_context("spawn")
-    barrier, results = context.Barrier(WRITERS), context.Queue()
-    writers = [context.Process(target=_write_runs, args=(url, writer, barrier, results)) for writer in range(WRITERS)]
-    for writer in writers:
-        writer.start()
-    reported = dict(results.get(timeout=600) for _ in writers)
-    for writer in writers:
-        writer.join(timeout=60)
+    barrier, results = context.Barrier(writers), context.Queue()
+    processes = [context.Process(target=_write_runs, args=(uri, writer, barrier, results)) for writer in range(writers)]
+    for process in processes:
+        process.start()
+    reported = dict(results.get(timeout=600) for _ in processes)
+    for process in processes:
+        process.join(timeout=60)
     assert all(isinstance(ids, list) for ids in reported.values()), reported
 
-    client = MlflowClient(tracking_uri=url)
+    client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("carp-writers")
     runs = client.search_runs([experiment.experiment_id], max_results=1000)
-    assert len(runs) == WRITERS * RUNS_PER_WRITER
+    assert len(runs) == writers * RUNS_PER_WRITER
     assert {run.info.run_id for run in runs} == {run_id for ids in reported.values() for run_id in ids}
     seen = set()
     for run in runs:
         params = run.data.params
         writer, index = int(params["writer"]), int(params["index"])
         assert params["value"] == f"{writer}:{index}" and run.info.run_name == f"writer-{writer}"
-        assert run.data.metrics == {"value": 100 * writer + index}
+        assert run.data.metrics == {"value": 100 * writer + index, "step": 2}
         assert run.info.status == "FINISHED" and run.info.run_id in reported[writer]
         seen.add((writer, index))
-    assert seen == {(writer, index) for writer in range(WRITERS) for index in range(RUNS_PER_WRITER)}
+    assert seen == {(writer, index) for writer in range(writers) for index in range(RUNS_PER_WRITER)}
+
+
+@pytest.mark.slow
+def test_runs_logged_by_two_processes_at_once_are_all_kept_with_their_own_params(server):
+    # The experiment does not exist yet: both processes also race to create it.
+    check_runs_logged_at_once(server[1], writers=2)
+
+
+@pytest.mark.slow
+def test_runs_logged_by_four_processes_at_once_into_sqlite_are_all_kept(tmp_path):
+    # Two `dvc exp run --jobs 2` workers on the default store. Writers wait for each other's write locks through the
+    # busy timeout MLflow sets on every SQLite session; without one, half the writes of two processes fail with
+    # "database is locked".
+    check_runs_logged_at_once(f"sqlite:///{tmp_path / 'mlflow.db'}", writers=4)
 
 
 @pytest.mark.slow
