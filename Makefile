@@ -57,11 +57,13 @@ exps: setup
 	$(BIN)/dvc exp show --drop '.*' --keep '$(EXP_COLUMNS)'
 
 # Running on several machines (README). A shared MLflow tracking server on PostgreSQL, everything kept in DIR:
-# `make tracking-server DIR=/srv/carp-tracking [PORT=5000] [HOST=0.0.0.0] [ARTIFACTS=s3://bucket/mlflow]`, then the
-# param `tracking.uri: http://<host>:<port>`. Re-running it restarts whatever is down; `make tracking-server-stop DIR=...`.
+# `make tracking-server DIR=/srv/carp-tracking [PORT=5000] [HOST=0.0.0.0] [ALLOWED_HOSTS=tracking.lab]
+# [ARTIFACTS=s3://bucket/mlflow]`, then the param `tracking.uri: http://<host>:<port>`. Re-running it restarts
+# whatever is down; `make tracking-server-stop DIR=...`.
 tracking-server: setup
 	$(BIN)/python tools/tracking_server.py start --dir "$(DIR)" $(if $(PORT),--port $(PORT)) \
-		$(if $(HOST),--host $(HOST)) $(if $(ARTIFACTS),--artifacts-destination $(ARTIFACTS))
+		$(if $(HOST),--host $(HOST)) $(if $(ALLOWED_HOSTS),--allowed-hosts $(ALLOWED_HOSTS)) \
+		$(if $(ARTIFACTS),--artifacts-destination $(ARTIFACTS))
 
 tracking-server-stop: setup
 	$(BIN)/python tools/tracking_server.py stop --dir "$(DIR)"
