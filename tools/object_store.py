@@ -106,7 +106,7 @@ def bucket_ready(state: dict) -> bool:
 def running(state: dict) -> bool:
     """Whether the store recorded in ``state`` is alive and serves its bucket."""
     pid = state.get("pid")
-    return bool(pid) and process_alive(pid) and bucket_ready(state)
+    return process_alive(pid, f"-s3.port={state.get('port')} ") and bucket_ready(state)
 
 
 def start(arguments: argparse.Namespace) -> None:
@@ -184,7 +184,7 @@ def stop(arguments: argparse.Namespace) -> None:
     if not state:
         fail(f"--dir={arguments.dir}: no object store was started there (no {state_path.name})")
     pid = state.get("pid")
-    stopped = bool(pid) and process_alive(pid) and stop_group(pid)
+    stopped = process_alive(pid, f"-s3.port={state.get('port')} ") and stop_group(pid)
     state["pid"] = None
     write_state(state_path, state)
     print(f"object store {'stopped' if stopped else 'was not running'}")

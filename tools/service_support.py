@@ -64,14 +64,19 @@ def answers(url: str, timeout: float = 5.0) -> bool:
         return False
 
 
-def process_alive(pid: int) -> bool:
-    """Whether a process with this pid exists (zombies of our own children count as gone)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+def process_alive(pid: int | None, marker: str) -> bool:
+    """Whether ``pid`` is still the service recorded: a live process whose command line contains ``marker``.
+
+    A pid saved before a reboot may belong to an unrelated process by now; it must never be signalled.
+    """
+    if not pid:
         return False
-    except PermissionError:
-        return True
+    try:
+        command_line = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False
+    if marker not in command_line:
+        return False
     try:
         finished, _ = os.waitpid(pid, os.WNOHANG)
     except ChildProcessError:

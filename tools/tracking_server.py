@@ -34,7 +34,6 @@ from service_support import (
     answers,
     fail,
     free_port,
-    log_tail,
     prepare_directory,
     process_alive,
     read_state,
@@ -226,10 +225,15 @@ def backend_store_uri(port: int) -> str:
     return f"postgresql://{DATABASE_ROLE}@{LOOPBACK}:{port}/{DATABASE}"
 
 
+def server_marker(state: dict) -> str:
+    """What the MLflow server's command line contains: its port option."""
+    return f"--port {state.get('port')} "
+
+
 def mlflow_running(state: dict) -> bool:
     """Whether the server recorded in ``state`` is alive and answers ``/health``."""
     pid = state.get("mlflow_pid")
-    return bool(pid) and process_alive(pid) and answers(f"{state['url']}/health")
+    return process_alive(pid, server_marker(state)) and answers(f"{state['url']}/health")
 
 
 def client_host(host: str) -> str:
@@ -330,7 +334,7 @@ def stop(arguments: argparse.Namespace) -> None:
     if not state:
         fail(f"--dir={arguments.dir}: no tracking server was started there (no {state_path.name})")
     pid = state.get("mlflow_pid")
-    stopped_server = bool(pid) and process_alive(pid) and stop_group(pid)
+    stopped_server = process_alive(pid, server_marker(state)) and stop_group(pid)
     state["mlflow_pid"] = None
     write_state(state_path, state)
     binaries = Path(state["pg_bin"])
@@ -343,13 +347,13 @@ def stop(arguments: argparse.Namespace) -> None:
 
 
 def status(arguments: argparse.Namespace) -> None:
-    """Print the server's URL and exit 0 when it answers, else say what is down and exit 3."""
+    """Print the server's URL and exit 0 when it answers, else say so and exit 3."""
     directory = Path(arguments.dir).expanduser().absolute()
     state = read_state(directory / "tracking.json")
     if state and mlflow_running(state):
         print(state["url"])
         return
-    print(f"no tracking server running in {directory}{': ' + log_tail(directory / 'mlflow.log', 500) if state else ''}")
+    print(f"no tracking server answers in {directory} (its log: {directory / 'mlflow.log'})")
     sys.exit(3)
 
 
