@@ -45,7 +45,7 @@ def run(command: list[str], cwd: Path, env: dict | None = None) -> subprocess.Co
 def services():
     with service_directory("carp-services-") as directory, object_store(directory / "s3") as s3:
         with tracking_server(directory / "tracking", "--artifacts-destination", "s3://carp/mlflow", env=s3) as url:
-            yield SimpleNamespace(url=url, s3=s3)
+            yield SimpleNamespace(url=url, s3=s3, directory=directory)
 
 
 @pytest.fixture(scope="module")
@@ -129,6 +129,13 @@ def test_two_queued_experiments_run_at_once_log_every_run_into_the_server(pipeli
         assert stages == sorted({"train_tokenizer", "register_tokenizer", "train_policy@lift", "evaluate@lift"}), name
         assert {r.info.status for r in tagged} == {"FINISHED"}, name
         assert {r.data.params["codebook_size"] for r in tagged} == {str(size)}, name
+
+
+@pytest.mark.slow
+def test_object_store_start_again_changes_nothing(services):
+    again = tool("object_store.py", "start", "--dir", str(services.directory / "s3"), timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert again.stdout.strip() == f"object store already running at {services.s3['AWS_ENDPOINT_URL_S3']} (bucket carp)"
 
 
 def push_then_pull_into_a_fresh_clone(workspace: Path, clone: Path, env: dict | None = None) -> None:

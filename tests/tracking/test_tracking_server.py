@@ -20,8 +20,6 @@ from carp.tracking.runs import find_runs, stage_run
 from tests.services import service_directory, tool, tracking_server
 from tests.tracking.test_registry import make_artifact, register
 
-RUNS_PER_WRITER = 6
-
 
 @pytest.fixture(scope="module")
 def server():
@@ -29,11 +27,11 @@ def server():
         yield directory, url
 
 
-def _write_runs(uri: str, writer: int, barrier, results) -> None:
+def _write_runs(uri: str, writer: int, runs: int, barrier, results) -> None:
     barrier.wait()
     run_ids = []
     try:
-        for index in range(RUNS_PER_WRITER):
+        for index in range(runs):
             params = {"writer": str(writer), "index": str(index), "value": f"{writer}:{index}"}
             with stage_run(uri, "carp-writers", f"writer-{writer}", params, {"carp.dvc_stage": "bench"}) as run:
                 for step in range(3):
@@ -44,11 +42,14 @@ def _write_runs(uri: str, writer: int, barrier, results) -> None:
         results.put((writer, f"{type(error).__name__}: {error}"))
 
 
-def check_runs_logged_at_once(uri: str, writers: int) -> None:
+def check_runs_logged_at_once(uri: str, writers: int, runs_per_writer: int) -> None:
     """``writers`` processes log runs into one new experiment at once; every run is kept with its own values."""
     context = multiprocessing.get_context("spawn")
     barrier, results = context.Barrier(writers), context.Queue()
-    processes = [context.Process(target=_write_runs, args=(uri, writer, barrier, results)) for writer in range(writers)]
+    processes = [
+        context.Process(target=_write_runs, args=(uri, writer, runs_per_writer, barrier, results))
+        for writer in range(writers)
+    ]
     for process in processes:
         process.start()
     reported = dict(results.get(timeout=600) for _ in processes)
@@ -59,7 +60,7 @@ def check_runs_logged_at_once(uri: str, writers: int) -> None:
     client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("carp-writers")
     runs = client.search_runs([experiment.experiment_id], max_results=1000)
-    assert len(runs) == writers * RUNS_PER_WRITER
+    assert len(runs) == writers * runs_per_writer
     assert {run.info.run_id for run in runs} == {run_id for ids in reported.values() for run_id in ids}
     seen = set()
     for run in runs:
@@ -69,13 +70,13 @@ def check_runs_logged_at_once(uri: str, writers: int) -> None:
         assert run.data.metrics == {"value": 100 * writer + index, "step": 2}
         assert run.info.status == "FINISHED" and run.info.run_id in reported[writer]
         seen.add((writer, index))
-    assert seen == {(writer, index) for writer in range(writers) for index in range(RUNS_PER_WRITER)}
+    assert seen == {(writer, index) for writer in range(writers) for index in range(runs_per_writer)}
 
 
 @pytest.mark.slow
 def test_runs_logged_by_two_processes_at_once_are_all_kept_with_their_own_params(server):
     # The experiment does not exist yet: both processes also race to create it.
-    check_runs_logged_at_once(server[1], writers=2)
+    check_runs_logged_at_once(server[1], writers=2, runs_per_writer=6)
 
 
 @pytest.mark.slow
@@ -83,7 +84,7 @@ def test_runs_logged_by_two_processes_at_once_into_sqlite_are_all_kept(tmp_path)
     # Two `dvc exp run --jobs 2` workers on the default store. Writers wait for each other's write locks through the
     # busy timeout MLflow sets on every SQLite session; without one, half the writes of two processes fail with
     # "database is locked".
-    check_runs_logged_at_once(f"sqlite:///{tmp_path / 'mlflow.db'}", writers=2)
+    check_runs_logged_at_once(f"sqlite:///{tmp_path / 'mlflow.db'}", writers=2, runs_per_writer=15)
 
 
 @pytest.mark.slow
