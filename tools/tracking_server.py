@@ -254,6 +254,8 @@ def start(arguments: argparse.Namespace) -> None:
     password_file = directory / "pgpass"
     destination = arguments.artifacts_destination or state.get("artifacts_destination")
     destination = destination or (directory / "artifacts").as_uri()
+    if "://" not in destination:  # a plain path: absolute, so that a restart from elsewhere finds the same one
+        destination = Path(destination).expanduser().absolute().as_uri()
     port = arguments.port if arguments.port is not None else state.get("port", 5000)
 
     if mlflow_running(state):
@@ -286,6 +288,17 @@ def start(arguments: argparse.Namespace) -> None:
         password_file.write_text(f"{LOOPBACK}:*:*:{DATABASE_ROLE}:{secrets.token_hex(24)}\n")
         password_file.chmod(0o600)
         initialize_cluster(binaries, data, account, password_file, directory)
+    elif not password_file.exists():
+        fail(f"{password_file}: missing, so the database's password is lost; remove {data} to start a new cluster")
+    # Saved before the database starts, so that `stop` finds it even when a later step fails.
+    state = {
+        **state,
+        "db_port": db_port,
+        "db_user": account.pw_name if account else None,
+        "pg_bin": str(binaries),
+        "mlflow_pid": None,
+    }
+    write_state(state_path, state)
     if not database_up:
         start_postgres(binaries, data, account, db_port, directory)
     create_database(db_port, password_file)
@@ -306,16 +319,7 @@ def start(arguments: argparse.Namespace) -> None:
     log_path = directory / "mlflow.log"
     environment = {**os.environ, "PGPASSFILE": str(password_file)}
     server = start_detached(command, log_path, env=environment, cwd=directory)
-    state = {
-        "url": url,
-        "host": arguments.host,
-        "port": port,
-        "db_port": db_port,
-        "db_user": account.pw_name if account else None,
-        "pg_bin": str(binaries),
-        "artifacts_destination": destination,
-        "mlflow_pid": server.pid,
-    }
+    state.update(url=url, host=arguments.host, port=port, artifacts_destination=destination, mlflow_pid=server.pid)
     write_state(state_path, state)
     try:
         wait_until(lambda: answers(f"{url}/health"), STARTUP_SECONDS, server, log_path, "the MLflow server")
