@@ -56,6 +56,8 @@ def main() -> None:
         fail(f"--project={project}: not a DVC project (no .dvc directory)")
     if not url:
         fail("URL is empty: name a shared directory (URL=/mnt/share/carp-dvc) or a bucket (URL=s3://bucket/carp)")
+    if arguments.endpoint_url and not url.startswith("s3://"):
+        fail(f"--endpoint-url={arguments.endpoint_url}: only an s3:// remote takes an endpoint")
     if url.startswith("s3://"):
         if len(url.removeprefix("s3://").strip("/")) == 0:
             fail(f"URL={url}: names no bucket")
@@ -63,20 +65,9 @@ def main() -> None:
         fail(f"URL={url}: only a directory path or s3:// is set up here; see `dvc remote add --help` for others")
     else:
         check_directory(url)
-    if arguments.endpoint_url and not url.startswith("s3://"):
-        fail(f"--endpoint-url={arguments.endpoint_url}: only an s3:// remote takes an endpoint")
 
-    # `--force` replaces the URL of an existing remote of this name but keeps its other options; a new URL must not
-    # inherit the endpoint of the old one.
+    # `--force` rewrites the remote's whole section, so an endpoint set for an earlier URL goes with it.
     run_dvc(["remote", "add", "--default", "--force", arguments.name, url], project)
-    config = subprocess.run(
-        [sys.executable, "-m", "dvc", "config", f"remote.{arguments.name}.endpointurl"],
-        cwd=project,
-        capture_output=True,
-        text=True,
-    )
-    if config.returncode == 0 and config.stdout.strip():
-        run_dvc(["remote", "modify", "--unset", arguments.name, "endpointurl"], project)
     if arguments.endpoint_url:
         run_dvc(["remote", "modify", arguments.name, "endpointurl", arguments.endpoint_url], project)
     where = f" at {arguments.endpoint_url}" if arguments.endpoint_url else ""
