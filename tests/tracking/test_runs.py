@@ -72,3 +72,20 @@ def test_run_of_a_killed_stage_is_marked_killed_when_the_stage_runs_again(tmp_pa
 
 def orphan_experiment_id(uri: str) -> str:
     return MlflowClient(tracking_uri=uri).get_experiment_by_name("carp-lift").experiment_id
+
+
+def test_experiment_created_by_another_client_after_our_lookup_is_used(tmp_path, monkeypatch):
+    # A tracking server takes no creation lock: two stages starting at once on a fresh server both find no
+    # experiment, both create it, and the server refuses the second. The lookup here answers as it did for the loser.
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    theirs = MlflowClient(tracking_uri=uri).create_experiment("carp-lift")
+    lookups = []
+    original = MlflowClient.get_experiment_by_name
+
+    def first_lookup_misses(self, name):
+        lookups.append(name)
+        return None if len(lookups) == 1 else original(self, name)
+
+    monkeypatch.setattr(MlflowClient, "get_experiment_by_name", first_lookup_misses)
+    assert ensure_experiment(uri, "carp-lift") == theirs
+    assert len(lookups) == 2

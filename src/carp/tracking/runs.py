@@ -18,6 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import mlflow
+from mlflow.exceptions import MlflowException
+from mlflow.protos.databricks_pb2 import RESOURCE_ALREADY_EXISTS, ErrorCode
 from mlflow.tracking import MlflowClient
 
 logger = logging.getLogger(__name__)
@@ -80,6 +82,8 @@ def ensure_experiment(tracking_uri: str, experiment_name: str) -> str:
     """Id of the named experiment, created (with its artifact root beside the store) when missing.
 
     The first call on a new SQLite store also creates its schema; both happen under :func:`store_creation_lock`.
+    A tracking server takes no lock: when another client creates the experiment between our lookup and our
+    creation (two stages starting at once on a fresh server), the server refuses the duplicate and we use theirs.
     """
     with store_creation_lock(tracking_uri):
         client = MlflowClient(tracking_uri=tracking_uri)
@@ -88,7 +92,12 @@ def ensure_experiment(tracking_uri: str, experiment_name: str) -> str:
             return experiment.experiment_id
         root = artifact_root(tracking_uri)
         location = f"{root}/{experiment_name}" if root else None
-        return client.create_experiment(experiment_name, artifact_location=location)
+        try:
+            return client.create_experiment(experiment_name, artifact_location=location)
+        except MlflowException as error:
+            if error.error_code != ErrorCode.Name(RESOURCE_ALREADY_EXISTS):
+                raise
+            return client.get_experiment_by_name(experiment_name).experiment_id
 
 
 def _process_alive(pid: int) -> bool:
