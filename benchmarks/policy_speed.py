@@ -3,7 +3,7 @@
 Measures, with randomly initialized weights (speed does not depend on the values):
 - per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
   decoding (tokenizer decoder + un-normalization), median and p90, for the PyTorch policy and for the ONNX Runtime
-  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~1-2 s each), greedy
+  graphs that evaluation runs by default (`carp.policies.carp.onnx_policy`, exported here first, ~1-2 s each), greedy
   and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
@@ -26,10 +26,10 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -70,7 +70,7 @@ def time_chunks(policy: CarpPolicy | OnnxPolicy, batch_size: int, calls: int) ->
     timings = {"total": [], "prediction": [], "decoding": [], "cpu": []}
     for _ in range(calls):
         cpu_started = time.thread_time()
-        _, prediction, decoding = policy.predict_action_timed(obs)
+        _, prediction, decoding, _ = policy.predict_action_timed(obs)
         timings["cpu"].append((time.thread_time() - cpu_started) * 1e3)
         timings["prediction"].append(prediction * 1e3)
         timings["decoding"].append(decoding * 1e3)

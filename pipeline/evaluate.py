@@ -16,7 +16,7 @@ from stage_support import (
 
 from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import batched_latency, episodes_table, evaluate_policy, save_gif
-from carp.policy.policy import CarpPolicy
+from carp.policies.registry import load_policy
 from carp.training.checkpoint import CheckpointError
 
 
@@ -31,7 +31,7 @@ def main() -> None:
         os.environ.setdefault("MUJOCO_GL", "egl")
     checkpoint = POLICY_DIR / args.task / "policy.pt"
     try:
-        policy = CarpPolicy.load(checkpoint)
+        policy = load_policy(checkpoint)
     except (CheckpointError, FileNotFoundError) as error:
         fail(str(error))
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
@@ -51,7 +51,7 @@ def main() -> None:
             seeds=seeds,
             max_steps=config.max_steps[args.task],
             workers=min(workers, len(seeds)),
-            top_k=top_k,
+            inference={"top_k": top_k},
             video_episodes=config.video_episodes if config.video else 0,
             backend=config.backend,
         )

@@ -23,8 +23,8 @@ from stage_support import (
 
 from carp.data.dataset import load_task_windows
 from carp.evaluation.offline import held_out_action_errors
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
 from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.checkpoint import CheckpointError

@@ -310,7 +310,7 @@ class EvalConfig:
             (needs offscreen rendering through EGL); true or false.
         video_episodes: Episodes recorded per task when ``video`` is true; an integer >= 0.
         backend: ``onnxruntime`` runs batch-1 inference as exported ONNX graphs, several times faster per chunk than
-            the eager modules (see ``carp.evaluation.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
+            the eager modules (see ``carp.policies.carp.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
             the same tokens.
     """
 

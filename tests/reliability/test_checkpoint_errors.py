@@ -14,7 +14,7 @@ import torch
 
 from carp.tracking.registry import TokenizerReference
 from tests.pipeline.workspace import make_workspace, run
-from tests.policy.factories import tiny_artifact, tiny_policy, tiny_tokenizer
+from tests.policies.carp.factories import tiny_artifact, tiny_policy, tiny_tokenizer
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ from carp.data.collect import collect_demonstrations
 from carp.data.dataset import load_task_windows
 from carp.data.ingest import ingest_demonstrations
 from carp.evaluation.offline import held_out_action_errors
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy

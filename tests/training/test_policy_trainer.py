@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from carp.policy.sampling import generate_chunk
+from carp.policies.carp.sampling import generate_chunk
 from carp.training.policy_trainer import (
     CHECKPOINT_NAME,
     NonFiniteLossError,
@@ -13,7 +13,7 @@ from carp.training.policy_trainer import (
     compute_token_targets,
     train_policy,
 )
-from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
 
 SETTINGS = PolicyTrainingSettings(
     epochs=4, batch_size=4, learning_rate=3e-3, weight_decay=0.0, warmup_steps=2, checkpoint_every=2, device="cpu"

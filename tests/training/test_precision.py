@@ -4,11 +4,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import _attention
+from carp.policies.carp.blocks import _attention
 from carp.training import runtime
 from carp.training.policy_trainer import PolicyTrainingSettings, train_policy
 from carp.training.runtime import autocast_to, resolve_precision
-from tests.policy.factories import tiny_policy_spec, tiny_tokenizer
+from tests.policies.carp.factories import tiny_policy_spec, tiny_tokenizer
 from tests.training.test_policy_trainer import _data
 
 CPU = torch.device("cpu")

@@ -30,10 +30,10 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm.auto import tqdm
 
 from carp.config import TRAINING_PRECISIONS
-from carp.policy.layout import TokenLayout
-from carp.policy.policy import check_specs_match
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.layout import TokenLayout
+from carp.policies.carp.policy import check_specs_match
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.cross_entropy import blockwise_cross_entropy

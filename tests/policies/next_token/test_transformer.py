@@ -5,11 +5,11 @@ import torch
 import torch.nn.functional as F
 
 from carp.config import ConfigError
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.generation import generate_actions, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policy.transformer import CoarseToFineTransformer
-from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
 
 SCALES = (1, 2, 3)
 A, V = 2, 8

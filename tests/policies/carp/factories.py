@@ -4,9 +4,9 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer

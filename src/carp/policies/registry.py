@@ -1,0 +1,110 @@
+"""Family name -> its config, model builder and loader, and `load_policy`, which dispatches on `policy_type`.
+
+Each family's folder has a `family` module that defines `FAMILY`, a :class:`PolicyFamily`; the table below names
+that module, one line per family. The modules are imported on first use, so reading params does not import torch
+models, and a family's module may import `carp.config` without a cycle.
+"""
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from carp.policies.base import POLICY_FORMAT_VERSION, Policy
+from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
+
+FAMILY_MODULES = {
+    "carp": "carp.policies.carp.family",
+}
+"""One line per family: registry name -> module defining `FAMILY`."""
+
+_registered: dict[str, "PolicyFamily"] = {}
+
+
+@dataclass(frozen=True)
+class PolicyFamily:
+    """A policy family as the rest of carp sees it.
+
+    Attributes:
+        name: registry name, stored as `policy_type` in every checkpoint and used as the params section name.
+        config_class: frozen dataclass of the family's params section (what its checkpoint stores).
+        build: `build(config, context)` -> an untrained :class:`~carp.policies.base.Policy` sized by `config` and
+            by a :class:`~carp.policies.context.PolicyContext` (the data's shapes, normalizers, tokenizer).
+        from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
+            ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
+    """
+
+    name: str
+    config_class: type
+    build: Callable[..., Policy]
+    from_checkpoint: Callable[[dict[str, Any]], Policy]
+
+
+def family_names() -> tuple[str, ...]:
+    """Registered family names, built-in ones first."""
+    return tuple(FAMILY_MODULES) + tuple(name for name in _registered if name not in FAMILY_MODULES)
+
+
+def get_family(name: str) -> PolicyFamily:
+    """The family registered under `name`.
+
+    Raises:
+        KeyError: no such family; the message lists the known ones.
+    """
+    if name in _registered:
+        return _registered[name]
+    if name not in FAMILY_MODULES:
+        raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
+    family = importlib.import_module(FAMILY_MODULES[name]).FAMILY
+    _registered[name] = family
+    return family
+
+
+def register_family(family: PolicyFamily) -> None:
+    """Add a family defined outside `FAMILY_MODULES` (e.g. in a test); re-registering a name replaces it."""
+    _registered[family.name] = family
+
+
+def build_policy(name: str, config: Any, context: Any) -> Policy:
+    """An untrained policy of family `name`, sized by its `config` and a `carp.policies.context.PolicyContext`."""
+    return get_family(name).build(config, context)
+
+
+def policy_from_checkpoint(checkpoint: Any) -> Policy:
+    """Rebuild the policy a checkpoint dict holds, through the family named by its `policy_type`.
+
+    Raises:
+        ValueError: not a dict, another format version, or an unknown `policy_type`.
+        KeyError, RuntimeError, TypeError: raised by the family's loader for a checkpoint that does not fit.
+    """
+    version = checkpoint.get("format_version") if isinstance(checkpoint, dict) else None
+    if version != POLICY_FORMAT_VERSION:
+        raise ValueError(
+            f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
+        )
+    policy_type = checkpoint.get("policy_type")
+    try:
+        family = get_family(policy_type)
+    except KeyError as error:
+        raise ValueError(f"policy_type={policy_type!r}: {error.args[0]}") from None
+    return family.from_checkpoint(checkpoint)
+
+
+def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
+    """Read any family's checkpoint onto `map_location`.
+
+    Raises:
+        FileNotFoundError: no file at `path`.
+        CheckpointError: the file is truncated or corrupt, of another format version, of an unknown family,
+            incomplete, or its parts do not fit together; the message is one line that starts with `path`.
+    """
+    checkpoint = read_checkpoint(Path(path), weights_only=True)
+    try:
+        return policy_from_checkpoint(checkpoint).to(map_location)
+    except KeyError as error:
+        raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
+    except (AttributeError, RuntimeError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: {one_line(error)}") from error
