@@ -7,7 +7,7 @@ Measures, with randomly initialized weights (speed does not depend on the values
   and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
-  token targets, as `carp.training.policy_trainer` runs it, in float32 and in the precision `policy.precision: auto`
+  token targets, as `carp.policies.carp.trainer` runs it, in float32 and in the precision `policy.precision: auto`
   picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
@@ -26,14 +26,15 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.trainer import make_optimizer, teacher_forced_loss
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer, teacher_forced_loss
 from carp.training.runtime import precision_name, resolve_precision
 
 OBS_DIM = 19  # Lift's low-dim observation width
@@ -93,7 +94,7 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisi
     def make_step(precision: torch.dtype):
         torch.manual_seed(0)
         transformer = CoarseToFineTransformer(spec).train()
-        optimizer = make_optimizer(transformer, PolicyTrainingSettings())
+        optimizer = make_optimizer(transformer, CarpConfig().learning_rate, CarpConfig().weight_decay)
 
         def step() -> None:
             loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)

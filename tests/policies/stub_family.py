@@ -15,6 +15,8 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction, count_parameters
 from carp.policies.registry import PolicyFamily, load_policy
 from carp.training.checkpoint import atomic_torch_save
+from carp.training.loop import OptimizerRecipe, train_with_loss
+from carp.training.runtime import seed_everything
 
 
 @dataclass(frozen=True)
@@ -22,6 +24,14 @@ class StubConfig:
     """The params section `stub`: nothing to choose but a bias switch."""
 
     use_bias: bool = True
+
+
+@dataclass(frozen=True)
+class StubInference:
+    """The section `inference.stub`: no settings."""
+
+    def settings_for(self, task: str) -> dict:
+        return {}
 
 
 class StubPolicy(nn.Module):
@@ -81,4 +91,11 @@ def build(config: StubConfig, context) -> StubPolicy:
                       context.action_horizon, context.metadata)  # fmt: skip
 
 
-STUB_FAMILY = PolicyFamily("stub", StubConfig, build, from_checkpoint)
+def train(config, training, context, data, checkpoint_dir, device="cpu", epochs=None, on_epoch_end=None):
+    seed_everything(training.seed)
+    recipe = OptimizerRecipe(learning_rate=1e-2)
+    return train_with_loss(build(config, context), data, recipe, training, checkpoint_dir, asdict(config), epochs,
+                           device, on_epoch_end)  # fmt: skip
+
+
+STUB_FAMILY = PolicyFamily("stub", StubConfig, StubInference, build, from_checkpoint, train)

@@ -6,15 +6,22 @@ import numpy as np
 import pytest
 import torch
 
-from carp.config import PolicyConfig
 from carp.evaluation.sources import PolicySource
+from carp.policies.carp.config import CarpConfig
 from carp.policies.context import PolicyContext
-from carp.policies.registry import build_policy, family_names, get_family, load_policy, register_family
+from carp.policies.registry import (
+    build_policy,
+    family_names,
+    get_family,
+    load_policy,
+    register_family,
+    unregister_family,
+)
 from carp.training.checkpoint import CheckpointError
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
 from tests.policies.stub_family import STUB_FAMILY
 
-TINY_CONFIGS = {"carp": PolicyConfig(depth=1, width=16, num_heads=2)}
+TINY_CONFIGS = {"carp": CarpConfig(depth=1, width=16, num_heads=2)}
 
 
 def tiny_context() -> PolicyContext:
@@ -54,6 +61,8 @@ def train_a_few_steps(policy, steps: int = 3) -> list[float]:
 @pytest.fixture(autouse=True)
 def stub_registered():
     register_family(STUB_FAMILY)
+    yield
+    unregister_family(STUB_FAMILY.name)
 
 
 @pytest.mark.parametrize("name", ["carp", STUB_FAMILY.name])

@@ -94,6 +94,7 @@ def evaluate_policy(
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
+    summary["action_steps"] = action_steps  # chunks per control step, for the report's inference budget
     return summary, results
 
 

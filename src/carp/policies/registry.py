@@ -30,17 +30,24 @@ class PolicyFamily:
 
     Attributes:
         name: registry name, stored as `policy_type` in every checkpoint and used as the params section name.
-        config_class: frozen dataclass of the family's params section (what its checkpoint stores).
+        config_class: frozen dataclass of the family's params section `<name>` (its model and optimizer).
+        inference_class: frozen dataclass of the `inference.<name>` section, read by evaluation only; its
+            `settings_for(task)` gives the keyword arguments of the policy's `configure_inference`.
         build: `build(config, context)` -> an untrained :class:`~carp.policies.base.Policy` sized by `config` and
             by a :class:`~carp.policies.context.PolicyContext` (the data's shapes, normalizers, tokenizer).
         from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
             ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
+        train: `train(config, training, context, data, checkpoint_dir, device=..., epochs=..., on_epoch_end=...)`
+            -> the trained policy in eval mode: builds the policy and runs the resumable loop on it (most families
+            through `carp.training.loop.train_with_loss`); see :func:`train_policy`.
     """
 
     name: str
     config_class: type
+    inference_class: type
     build: Callable[..., Policy]
     from_checkpoint: Callable[[dict[str, Any]], Policy]
+    train: Callable[..., Policy]
 
 
 def family_names() -> tuple[str, ...]:
@@ -71,6 +78,48 @@ def register_family(family: PolicyFamily) -> None:
 def build_policy(name: str, config: Any, context: Any) -> Policy:
     """An untrained policy of family `name`, sized by its `config` and a `carp.policies.context.PolicyContext`."""
     return get_family(name).build(config, context)
+
+
+def train_policy(
+    name: str,
+    config: Any,
+    training: Any,
+    context: Any,
+    data: Any,
+    checkpoint_dir: Path,
+    device: str | torch.device = "cpu",
+    epochs: int | None = None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> Policy:
+    """Train a policy of family `name`, resuming from `checkpoint_dir` when a run of the same setup left a state.
+
+    Args:
+        name: registered family.
+        config: the family's params section.
+        training: the shared loop settings (`carp.config.TrainingConfig`).
+        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
+            goes into the checkpoint.
+        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
+        checkpoint_dir: where the resumable training state lives.
+        device: training device ("auto", "cpu", "cuda", ...).
+        epochs: passes over the windows; None takes `training.epochs`.
+        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
+            `loss` and `epoch_seconds`.
+
+    Returns:
+        The trained policy in eval mode on the CPU.
+    """
+    family = get_family(name)
+    policy = family.train(
+        config, training, context, data, checkpoint_dir, device=device, epochs=epochs, on_epoch_end=on_epoch_end
+    )
+    return policy.to("cpu").train(False)
+
+
+def unregister_family(name: str) -> None:
+    """Forget a family added by :func:`register_family` (built-in families stay)."""
+    if name not in FAMILY_MODULES:
+        _registered.pop(name, None)
 
 
 def policy_from_checkpoint(checkpoint: Any) -> Policy:
