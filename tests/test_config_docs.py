@@ -25,6 +25,12 @@ def test_every_field_of_every_config_section_is_documented():
         "sweep.",
         "carp.",
         "inference.carp.",
+        "diffusion_unet.",
+        "inference.diffusion_unet.",
+        "diffusion_transformer.",
+        "inference.diffusion_transformer.",
+        "next_token.",
+        "inference.next_token.",
     ]
     assert documentation_problems() == []
     for _, cls in sections:

@@ -6,22 +6,41 @@ import numpy as np
 import pytest
 import torch
 
+from carp.config import TrainingConfig
 from carp.evaluation.sources import PolicySource
 from carp.policies.carp.config import CarpConfig
 from carp.policies.context import PolicyContext
+from carp.policies.diffusion.config import DiffusionTransformerConfig, DiffusionUNetConfig
+from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.registry import (
     build_policy,
     family_names,
     get_family,
     load_policy,
     register_family,
+    train_policy,
     unregister_family,
 )
 from carp.training.checkpoint import CheckpointError
+from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
 from tests.policies.stub_family import STUB_FAMILY
 
-TINY_CONFIGS = {"carp": CarpConfig(depth=1, width=16, num_heads=2)}
+TINY_CONFIGS = {
+    "carp": CarpConfig(depth=1, width=16, num_heads=2),
+    "diffusion_unet": DiffusionUNetConfig(
+        down_dims=(16, 32), kernel_size=3, num_groups=8, step_embedding_dim=16, num_train_steps=10, warmup_steps=0
+    ),
+    "diffusion_transformer": DiffusionTransformerConfig(
+        num_layers=1, num_heads=2, width=16, num_train_steps=10, warmup_steps=0, attention_dropout=0.0
+    ),
+    "next_token": NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=0),
+}
+TINY_INFERENCE = {
+    "diffusion_unet": {"sampler": "ddim", "num_inference_steps": 4},
+    "diffusion_transformer": {"sampler": "ddpm", "num_inference_steps": 10},
+    "next_token": {"top_k": 3},
+}
 
 
 def tiny_context() -> PolicyContext:
@@ -37,25 +56,13 @@ def tiny_context() -> PolicyContext:
     )
 
 
-def train_a_few_steps(policy, steps: int = 3) -> list[float]:
-    """Adam on the family's own loss over one fixed random batch; returns the losses."""
+def tiny_data(count: int = 16) -> PolicyTrainingData:
+    """Normalized random windows of the tiny shapes: obs (N, 2, 3), actions (N, 8, 2) in [-1, 1]."""
     generator = torch.Generator().manual_seed(0)
-    batch = {
-        "obs": torch.rand(16, OBS_STEPS, OBS_DIM, generator=generator) * 2 - 1,
-        "actions": torch.rand(16, 8, 2, generator=generator) * 2 - 1,
-    }
-    trainable = [parameter for parameter in policy.parameters() if parameter.requires_grad]
-    optimizer = torch.optim.Adam(trainable, lr=1e-2)
-    policy.train()
-    losses = []
-    for _ in range(steps):
-        loss = policy.training_loss(batch)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        losses.append(float(loss))
-    policy.train(False)
-    return losses
+    return PolicyTrainingData(
+        torch.rand(count, OBS_STEPS, OBS_DIM, generator=generator) * 2 - 1,
+        torch.rand(count, 8, 2, generator=generator) * 2 - 1,
+    )
 
 
 @pytest.fixture(autouse=True)
@@ -65,24 +72,64 @@ def stub_registered():
     unregister_family(STUB_FAMILY.name)
 
 
-@pytest.mark.parametrize("name", ["carp", STUB_FAMILY.name])
-def test_every_family_round_trips_through_load_policy(name, tmp_path):
+@pytest.mark.parametrize("name", [*TINY_CONFIGS, STUB_FAMILY.name])
+def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp_path):
     config = TINY_CONFIGS.get(name) or get_family(name).config_class()
-    policy = build_policy(name, config, tiny_context())
-    losses = train_a_few_steps(policy)
-    assert all(np.isfinite(losses)) and losses[-1] < losses[0]
+    training = TrainingConfig(epochs=2, batch_size=8, checkpoint_every=1)
+    history = []
+    policy = train_policy(
+        name,
+        config,
+        training,
+        tiny_context(),
+        tiny_data(),
+        tmp_path / "state",
+        on_epoch_end=lambda e, m: history.append(m),
+    )
+    assert len(history) == 2 and all(np.isfinite(epoch["loss"]) and epoch["epoch_seconds"] > 0 for epoch in history)
+    untrained = build_policy(name, config, tiny_context())
+    changed = [
+        not torch.equal(trained, fresh)
+        for trained, fresh in zip(policy.state_dict().values(), untrained.state_dict().values(), strict=True)
+    ]
+    assert any(changed), "training left every weight at its initial value"
+    policy.configure_inference(**TINY_INFERENCE.get(name, {}))
     path = tmp_path / "policy.pt"
     policy.save(path)
     loaded = load_policy(path)
+    loaded.configure_inference(**TINY_INFERENCE.get(name, {}))
     assert type(loaded) is type(policy) and loaded.policy_type == name
     assert loaded.metadata == {"task": "lift"}
     assert loaded.num_parameters == policy.num_parameters > 0
+    assert loaded.description == policy.description
     obs = np.random.default_rng(1).normal(size=(4, OBS_STEPS, OBS_DIM)).astype(np.float32)
     before = policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(3))
     after = loaded.predict_action_timed(obs, generator=torch.Generator().manual_seed(3))
     np.testing.assert_array_equal(after.actions, before.actions)
     assert before.actions.shape == (4, 8, 2) and before.actions.dtype == np.float32
     assert after.model_calls == loaded.model_calls_per_chunk >= 1
+    # An interrupted run of the same setup resumes from its state: a second call trains no further epochs.
+    replayed = []
+    train_policy(
+        name,
+        config,
+        training,
+        tiny_context(),
+        tiny_data(),
+        tmp_path / "state",
+        on_epoch_end=lambda e, m: replayed.append(m),
+    )
+    assert replayed == history
+
+
+def test_model_calls_per_chunk_are_the_familys_sequential_steps():
+    context = tiny_context()
+    expected = {"carp": 2, "diffusion_unet": 4, "diffusion_transformer": 10, "next_token": 2 * (1 + 2)}
+    for name, calls in expected.items():
+        policy = build_policy(name, TINY_CONFIGS[name], context)
+        policy.configure_inference(**TINY_INFERENCE.get(name, {}))
+        assert policy.model_calls_per_chunk == calls, name
+    assert build_policy("diffusion_unet", TINY_CONFIGS["diffusion_unet"], context).description == "DDPM-10"
 
 
 def test_the_stub_family_acts_through_the_evaluation_source(tmp_path):

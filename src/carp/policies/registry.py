@@ -1,8 +1,8 @@
 """Family name -> its config, model builder and loader, and `load_policy`, which dispatches on `policy_type`.
 
-Each family's folder has a `family` module that defines `FAMILY`, a :class:`PolicyFamily`; the table below names
-that module, one line per family. The modules are imported on first use, so reading params does not import torch
-models, and a family's module may import `carp.config` without a cycle.
+Each family's folder has a `family` module that defines its :class:`PolicyFamily` (the two Diffusion Policy families
+share one folder and module); the table below names it, one line per family. The modules are imported on first use,
+after `carp.config` has loaded, so a family's config may import `carp.config` without a cycle.
 """
 
 import importlib
@@ -17,9 +17,12 @@ from carp.policies.base import POLICY_FORMAT_VERSION, Policy
 from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
 
 FAMILY_MODULES = {
-    "carp": "carp.policies.carp.family",
+    "carp": "carp.policies.carp.family:FAMILY",
+    "diffusion_unet": "carp.policies.diffusion.family:UNET_FAMILY",
+    "diffusion_transformer": "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
+    "next_token": "carp.policies.next_token.family:FAMILY",
 }
-"""One line per family: registry name -> module defining `FAMILY`."""
+"""One line per family: registry name -> `module:attribute` of its :class:`PolicyFamily`."""
 
 _registered: dict[str, "PolicyFamily"] = {}
 
@@ -65,7 +68,8 @@ def get_family(name: str) -> PolicyFamily:
         return _registered[name]
     if name not in FAMILY_MODULES:
         raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
-    family = importlib.import_module(FAMILY_MODULES[name]).FAMILY
+    module, attribute = FAMILY_MODULES[name].split(":")
+    family = getattr(importlib.import_module(module), attribute)
     _registered[name] = family
     return family
 

@@ -69,6 +69,9 @@ class OptimizerRecipe:
         warmup_steps: optimizer steps of linear warm-up before the cosine decay to 1% of the peak.
         betas: AdamW betas.
         ema: builds the weight average of the trained module (e.g. `carp.policies.diffusion.ema`), or None.
+        parameter_groups: returns AdamW parameter groups (each with its own `weight_decay`) when the family decays
+            some parameters and not others; None trains every parameter that requires gradients with
+            `weight_decay`.
     """
 
     learning_rate: float
@@ -76,6 +79,7 @@ class OptimizerRecipe:
     warmup_steps: int = 0
     betas: tuple[float, float] = (0.9, 0.999)
     ema: Callable[[nn.Module], AveragedModel] | None = None
+    parameter_groups: Callable[[], list[dict]] | None = None
 
 
 def make_scheduler(
@@ -157,7 +161,10 @@ def train_with_loss(
     ema = recipe.ema(policy) if recipe.ema is not None else None
     if ema is not None:
         trainable["ema"] = ema
-    parameters = [parameter for parameter in policy.parameters() if parameter.requires_grad]
+    if recipe.parameter_groups is not None:
+        parameters = recipe.parameter_groups()
+    else:
+        parameters = [parameter for parameter in policy.parameters() if parameter.requires_grad]
     optimizer = torch.optim.AdamW(
         parameters, lr=recipe.learning_rate, betas=recipe.betas, weight_decay=recipe.weight_decay
     )
@@ -172,7 +179,8 @@ def train_with_loss(
             "seed": training.seed,
             "precision": precision_name(precision),
         },
-        "recipe": {key: value for key, value in vars(recipe).items() if key != "ema"} | {"ema": ema is not None},
+        "recipe": {key: value for key, value in vars(recipe).items() if not callable(value)}
+        | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
         "data_sha256": data_digest(data),
     }
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME

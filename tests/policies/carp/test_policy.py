@@ -207,3 +207,21 @@ def test_batch_of_envs_equals_one_by_one():
     batched = policy.predict_action(obs)
     for index in range(3):
         np.testing.assert_allclose(policy.predict_action(obs[index : index + 1]), batched[index : index + 1], atol=1e-5)
+
+
+def test_training_loss_is_the_trainers_teacher_forced_cross_entropy():
+    from carp.policies.carp.trainer import compute_token_targets, teacher_forced_loss
+
+    policy = tiny_policy()
+    generator = torch.Generator().manual_seed(0)
+    batch = {
+        "obs": torch.rand(6, 2, 3, generator=generator),
+        "actions": torch.rand(6, 8, 2, generator=generator) * 2 - 1,
+    }
+    targets = compute_token_targets(policy.tokenizer, batch["actions"])
+    expected, _ = teacher_forced_loss(
+        policy.transformer, batch["obs"], targets.teacher_inputs, targets.token_sequence, None, torch.float32
+    )
+    torch.testing.assert_close(policy.training_loss(batch), expected)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the tokens do not depend on the loop's autocast
+        assert torch.isfinite(policy.training_loss(batch))

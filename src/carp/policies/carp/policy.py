@@ -210,8 +210,10 @@ class CarpPolicy(nn.Module):
         Args:
             batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) long when multi-task.
         """
-        with torch.no_grad():
-            token_ids = self.tokenizer.encode_to_ids(batch["actions"])  # K x (b, A, s_k)
+        actions = batch["actions"]
+        # The frozen tokenizer encodes in float32 whatever the loop's autocast: its ids must not depend on it.
+        with torch.no_grad(), torch.autocast(actions.device.type, enabled=False):
+            token_ids = self.tokenizer.encode_to_ids(actions.float())  # K x (b, A, s_k)
             token_sequence = self.tokenizer.ids_to_sequence(token_ids)  # (b, L)
             teacher_inputs = self.tokenizer.teacher_forcing_sequence(token_ids)  # (b, L - s_1 * A, C)
         grouped_logits = self.transformer(
