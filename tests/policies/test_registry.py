@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from carp.config import TrainingConfig
+from carp.data.normalizer import MinMaxNormalizer
 from carp.evaluation.sources import PolicySource
 from carp.policies.carp.config import CarpConfig
 from carp.policies.context import PolicyContext
@@ -24,7 +25,7 @@ from carp.policies.registry import (
 from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
-from tests.policies.stub_family import STUB_FAMILY
+from tests.policies.stub_family import STUB_FAMILY, StubConfig
 
 TINY_CONFIGS = {
     "carp": CarpConfig(depth=1, width=16, num_heads=2),
@@ -177,3 +178,37 @@ def test_inference_settings_are_the_familys_own(tmp_path):
     source = functools.partial(PolicySource, functools.partial(load_policy, path), "delta", OBS_STEPS, 4)
     with pytest.raises(ValueError, match="top_k"):
         source(inference={"top_k": 99})
+
+
+@pytest.mark.slow
+def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
+    """Train, save and evaluate a family defined in a test file, in simulation, with no change outside that file."""
+    from carp import simulation
+    from carp.evaluation.runner import evaluate_policy
+
+    obs_keys = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]  # Do = 19 on Lift
+    shapes = PolicyContext(
+        obs_normalizer=MinMaxNormalizer(np.full(19, -1.0), np.full(19, 1.0)),
+        action_normalizer=MinMaxNormalizer(np.full(7, -0.05), np.full(7, 0.05)),  # small delta actions
+        obs_steps=2,
+        action_horizon=8,
+    )
+    data = PolicyTrainingData(torch.zeros(8, 2, 19), torch.zeros(8, 8, 7))
+    training = TrainingConfig(epochs=1, batch_size=8)
+    policy = train_policy(STUB_FAMILY.name, StubConfig(), training, shapes, data, tmp_path / "state")
+    path = tmp_path / "policy.pt"
+    policy.save(path)
+    summary, results = evaluate_policy(
+        path,
+        env_args=simulation.make_env_args("lift", controller="delta"),
+        controller="delta",
+        obs_keys=obs_keys,
+        obs_steps=2,
+        action_steps=4,
+        seeds=[100_000],
+        max_steps=12,
+        workers=1,
+    )
+    assert summary["episodes"] == 1 and summary["policy_type"] == "stub" and summary["backend"] == "torch"
+    assert summary["inference"] == "linear" and summary["model_calls_per_chunk"] == 1
+    assert results[0].steps == 12 and not results[0].error and len(results[0].prediction_seconds) == 3
