@@ -1,3 +1,5 @@
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -165,3 +167,18 @@ def test_values_dvc_reads_as_strings_or_refuses_are_refused(tmp_path):
     path.write_text("codebook_size: 64\ncodebook_size: 128\n")
     with pytest.raises(ConfigError, match=r"params.yaml: not valid YAML \(found duplicate key \"codebook_size\""):
         load_params(path)
+
+
+def test_loading_params_imports_no_model_code():
+    """Every stage, the always-run input check included, loads params first: the families' sections come from their
+    light config modules, not from torch and the networks."""
+    code = (
+        "import sys; from carp.config import load_params; params = load_params('params.yaml'); "
+        "assert set(params.families) >= {'carp', 'diffusion_unet', 'diffusion_transformer', 'next_token'}; "
+        "print(sorted(name for name in ('torch', 'diffusers', 'numpy') if name in sys.modules))"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    assert completed.stdout.strip() == "[]"

@@ -346,10 +346,10 @@ FAMILY_SECTIONS = "family_sections"
 
 def family_sections() -> dict[str, tuple[type, type]]:
     """Registered family -> (config class of its section, class of its `inference.<family>` section)."""
-    # Imported here: the registry's families import this module for `_require` and `ConfigError`.
-    from carp.policies.registry import family_names, get_family
+    # Imported here: the families' config modules import this module for `_require` and `ConfigError`.
+    from carp.policies.registry import family_names, get_sections
 
-    return {name: (get_family(name).config_class, get_family(name).inference_class) for name in family_names()}
+    return {name: get_sections(name) for name in family_names()}
 
 
 @dataclass(frozen=True)

@@ -8,13 +8,18 @@ family that wrote it) and the family's own entries. `carp.policies.registry.load
 entries and hands the rest to the family's loader.
 """
 
+from __future__ import annotations
+
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
-import numpy as np
-import torch
+# Annotations only: the params loader reaches this module through the registry, and reading params should not pay
+# for importing torch.
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
 
 POLICY_FORMAT_VERSION = 3
 """Version 3 added `policy_type`; version 2 checkpoints held a CARP policy without it."""
@@ -50,7 +55,7 @@ class Deployment:
     """
 
     backend: str
-    load: Callable[[], "Policy"]
+    load: Callable[[], Policy]
 
 
 @runtime_checkable
@@ -123,11 +128,11 @@ class Policy(Protocol):
         """Atomically write :meth:`to_checkpoint` to `path`."""
         ...
 
-    def to(self, device: str | torch.device) -> "Policy":
+    def to(self, device: str | torch.device) -> Policy:
         """Move the weights to `device`; returns the policy."""
         ...
 
-    def train(self, mode: bool = True) -> "Policy":
+    def train(self, mode: bool = True) -> Policy:
         """Training mode for the trained parts (frozen parts stay in eval mode); returns the policy."""
         ...
 

@@ -1,30 +1,37 @@
 """Family name -> its config, model builder and loader, and `load_policy`, which dispatches on `policy_type`.
 
-Each family's folder has a `family` module that defines its :class:`PolicyFamily` (the two Diffusion Policy families
-share one folder and module); the table below names it, one line per family. The modules are imported on first use,
-after `carp.config` has loaded, so a family's config may import `carp.config` without a cycle.
+Each family's folder has a `config` module with its params sections and a `family` module that defines its
+:class:`PolicyFamily` (the two Diffusion Policy families share one folder); the table below names both, one line per
+family. Modules are imported on first use, after `carp.config` has loaded, so a family's config may import
+`carp.config` without a cycle; and loading params imports only the light config modules, not torch or the models.
 """
+
+from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from carp.policies.base import POLICY_FORMAT_VERSION, Policy
-from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
+
+if TYPE_CHECKING:
+    import torch
 
 FAMILY_MODULES = {
-    "carp": "carp.policies.carp.family:FAMILY",
-    "diffusion_unet": "carp.policies.diffusion.family:UNET_FAMILY",
-    "diffusion_transformer": "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
-    "next_token": "carp.policies.next_token.family:FAMILY",
+    "carp": ("carp.policies.carp.config:SECTIONS", "carp.policies.carp.family:FAMILY"),
+    "diffusion_unet": ("carp.policies.diffusion.config:UNET_SECTIONS", "carp.policies.diffusion.family:UNET_FAMILY"),
+    "diffusion_transformer": (
+        "carp.policies.diffusion.config:TRANSFORMER_SECTIONS",
+        "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
+    ),
+    "next_token": ("carp.policies.next_token.config:SECTIONS", "carp.policies.next_token.family:FAMILY"),
 }
-"""One line per family: registry name -> `module:attribute` of its :class:`PolicyFamily`."""
+"""One entry per family: registry name -> (`module:attribute` of its (config class, inference class),
+`module:attribute` of its :class:`PolicyFamily`)."""
 
-_registered: dict[str, "PolicyFamily"] = {}
+_registered: dict[str, PolicyFamily] = {}
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,24 @@ def family_names() -> tuple[str, ...]:
     return tuple(FAMILY_MODULES) + tuple(name for name in _registered if name not in FAMILY_MODULES)
 
 
+def _attribute(path: str) -> Any:
+    module, attribute = path.split(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+def get_sections(name: str) -> tuple[type, type]:
+    """(config class, inference class) of family `name`, without importing its model code.
+
+    Raises:
+        KeyError: no such family; the message lists the known ones.
+    """
+    if name in _registered:
+        return _registered[name].config_class, _registered[name].inference_class
+    if name not in FAMILY_MODULES:
+        raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
+    return _attribute(FAMILY_MODULES[name][0])
+
+
 def get_family(name: str) -> PolicyFamily:
     """The family registered under `name`.
 
@@ -68,8 +93,7 @@ def get_family(name: str) -> PolicyFamily:
         return _registered[name]
     if name not in FAMILY_MODULES:
         raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
-    module, attribute = FAMILY_MODULES[name].split(":")
-    family = getattr(importlib.import_module(module), attribute)
+    family = _attribute(FAMILY_MODULES[name][1])
     _registered[name] = family
     return family
 
@@ -154,6 +178,8 @@ def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
         CheckpointError: the file is truncated or corrupt, of another format version, of an unknown family,
             incomplete, or its parts do not fit together; the message is one line that starts with `path`.
     """
+    from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
+
     checkpoint = read_checkpoint(Path(path), weights_only=True)
     try:
         return policy_from_checkpoint(checkpoint).to(map_location)

@@ -97,3 +97,7 @@ class CarpInference:
         for name, top_k in entries:
             if top_k > params.codebook_size:
                 raise ConfigError(f"{name}={top_k!r}: must be <= codebook_size = {params.codebook_size}")
+
+
+SECTIONS = (CarpConfig, CarpInference)
+"""The registry's view of this module: the `carp` section and the `inference.carp` section."""

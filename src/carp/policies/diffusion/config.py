@@ -255,3 +255,8 @@ class DiffusionTransformerConfig(DenoisingConfig):
         for name in ("embedding_dropout", "attention_dropout"):
             value = getattr(self, name)
             _require(0.0 <= value < 1.0, f"{section}.{name}", value, "must be in [0, 1)")
+
+
+UNET_SECTIONS = (DiffusionUNetConfig, DiffusionUNetSampling)
+TRANSFORMER_SECTIONS = (DiffusionTransformerConfig, DiffusionTransformerSampling)
+"""The registry's view of this module: each family's section and its `inference.<family>` section."""

@@ -111,3 +111,7 @@ class NextTokenInference:
             if top_k > params.codebook_size:
                 name = f"inference.{SECTION}.top_k" + (f"_per_task.{task}" if task else "")
                 raise ConfigError(f"{name}={top_k!r}: must be <= codebook_size = {params.codebook_size}")
+
+
+SECTIONS = (NextTokenConfig, NextTokenInference)
+"""The registry's view of this module: the `next_token` and `inference.next_token` sections."""
