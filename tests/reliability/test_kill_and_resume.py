@@ -31,7 +31,7 @@ TOKENIZER_EPOCHS = 12
 POLICY_EPOCHS = 12
 PARAMS = {
     "tokenizer": {"epochs": TOKENIZER_EPOCHS, "checkpoint_every": 1},
-    "policy": {"epochs": POLICY_EPOCHS, "checkpoint_every": 1},
+    "training": {"epochs": POLICY_EPOCHS, "checkpoint_every": 1},
     "eval": {"episodes": 4, "workers": 2, "video": False},
 }
 TIMING_COLUMNS = {"epoch_seconds", "samples_per_second", "seconds"}
