@@ -50,6 +50,7 @@ docs: setup
 benchmark: setup
 	$(BIN)/python benchmarks/tokenizer_throughput.py
 	$(BIN)/python benchmarks/policy_speed.py
+	$(BIN)/python benchmarks/policy_families.py
 
 ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000

@@ -14,6 +14,7 @@ Usage: python benchmarks/eval_batching.py --checkpoint models/policy/lift/policy
 """
 
 import argparse
+import functools
 import multiprocessing
 import os
 import time
@@ -27,7 +28,7 @@ from carp import simulation
 from carp.data.dataset import load_task_windows
 from carp.evaluation.rollout import evaluate_episodes, flatten_observation
 from carp.evaluation.sources import PolicySource, executed_actions
-from carp.policy.policy import CarpPolicy
+from carp.policies.registry import load_policy
 
 OBS_KEYS = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]
 OBS_STEPS, ACTION_HORIZON, ACTION_STEPS = 2, 16, 8
@@ -63,7 +64,7 @@ def env_worker(connection, env_args: dict, max_steps: int) -> None:
 def run_batched(checkpoint: Path, env_args: dict, controller: str, seeds: list[int], workers: int, max_steps: int):
     """Episodes per seed with one batched policy in this process; returns (total steps, successes)."""
     torch.set_num_threads(1)
-    policy = CarpPolicy.load(checkpoint)
+    policy = load_policy(checkpoint)
     context = multiprocessing.get_context("spawn")
     connections, processes = [], []
     for _ in range(workers):
@@ -115,7 +116,7 @@ class PolicySourceFactory:
         self.controller = controller
 
     def __call__(self) -> PolicySource:
-        return PolicySource(self.checkpoint, self.controller, OBS_STEPS, ACTION_STEPS)
+        return PolicySource(functools.partial(load_policy, self.checkpoint), self.controller, OBS_STEPS, ACTION_STEPS)
 
 
 def main() -> None:

@@ -3,11 +3,11 @@
 Measures, with randomly initialized weights (speed does not depend on the values):
 - per-chunk latency at batch 1 on one CPU thread: prediction (normalization + K = 4 steps with the kv-cache) and
   decoding (tokenizer decoder + un-normalization), median and p90, for the PyTorch policy and for the ONNX Runtime
-  graphs that evaluation runs by default (`carp.evaluation.onnx_policy`, exported here first, ~1-2 s each), greedy
+  graphs that evaluation runs by default (`carp.policies.carp.onnx_policy`, exported here first, ~1-2 s each), greedy
   and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
-  token targets, as `carp.training.policy_trainer` runs it, in float32 and in the precision `policy.precision: auto`
+  token targets, as `carp.policies.carp.trainer` runs it, in float32 and in the precision `policy.precision: auto`
   picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
@@ -26,14 +26,15 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.trainer import make_optimizer, teacher_forced_loss
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.policy_trainer import PolicyTrainingSettings, make_optimizer, teacher_forced_loss
 from carp.training.runtime import precision_name, resolve_precision
 
 OBS_DIM = 19  # Lift's low-dim observation width
@@ -70,7 +71,7 @@ def time_chunks(policy: CarpPolicy | OnnxPolicy, batch_size: int, calls: int) ->
     timings = {"total": [], "prediction": [], "decoding": [], "cpu": []}
     for _ in range(calls):
         cpu_started = time.thread_time()
-        _, prediction, decoding = policy.predict_action_timed(obs)
+        _, prediction, decoding, _ = policy.predict_action_timed(obs)
         timings["cpu"].append((time.thread_time() - cpu_started) * 1e3)
         timings["prediction"].append(prediction * 1e3)
         timings["decoding"].append(decoding * 1e3)
@@ -93,7 +94,7 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisi
     def make_step(precision: torch.dtype):
         torch.manual_seed(0)
         transformer = CoarseToFineTransformer(spec).train()
-        optimizer = make_optimizer(transformer, PolicyTrainingSettings())
+        optimizer = make_optimizer(transformer, CarpConfig().learning_rate, CarpConfig().weight_decay)
 
         def step() -> None:
             loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)

@@ -5,14 +5,14 @@ from importlib.metadata import version
 
 import pandas as pd
 from stage_support import (
-    EVAL_REPORT_DIR,
-    POLICY_REPORT_DIR,
     PROJECT_DIR,
     REPORTS_DIR,
     TOKENIZER_REPORT_DIR,
+    evaluation_report,
     git_commit,
     load,
     parse_args,
+    policy_report_dir,
     setup_logging,
 )
 
@@ -27,13 +27,19 @@ def main() -> None:
     params = load(args.params)
     tokenizer_history = TOKENIZER_REPORT_DIR / "history.csv"
     inputs = ReportInputs(
-        evaluation={task: json.loads((EVAL_REPORT_DIR / f"{task}.json").read_text()) for task in params.tasks},
+        evaluation={
+            task: {policy: json.loads(evaluation_report(task, policy).read_text()) for policy in params.policies}
+            for task in params.tasks
+        },
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
         tokenizer_history=pd.read_csv(tokenizer_history) if tokenizer_history.exists() else None,
         policy_histories={
-            task: pd.read_csv(POLICY_REPORT_DIR / task / "history.csv")
+            task: {
+                policy: pd.read_csv(policy_report_dir(task, policy) / "history.csv")
+                for policy in params.policies
+                if (policy_report_dir(task, policy) / "history.csv").exists()
+            }
             for task in params.tasks
-            if (POLICY_REPORT_DIR / task / "history.csv").exists()
         },
         reconstruction_figure=TOKENIZER_REPORT_DIR / "reconstruction.png",
         sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
@@ -41,7 +47,8 @@ def main() -> None:
         git_commit=git_commit(),
         params_yaml=args.params.read_text(),
     )
-    markdown, html = write_report(inputs, REPORTS_DIR, title=f"carp report: {', '.join(params.tasks)}")
+    title = f"carp report: {', '.join(params.tasks)} ({', '.join(params.policies)})"
+    markdown, html = write_report(inputs, REPORTS_DIR, title=title)
     print(f"wrote {markdown.relative_to(PROJECT_DIR)} and {html.relative_to(PROJECT_DIR)}")
 
 

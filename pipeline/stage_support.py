@@ -55,13 +55,30 @@ def project_root() -> Path:
     return PROJECT_DIR
 
 
-def parse_args(description: str, per_task: bool = False) -> argparse.Namespace:
-    """Common command line: ``--params`` and, for per-task stages, ``--task``."""
+def parse_args(description: str, per_task: bool = False, per_policy: bool = False) -> argparse.Namespace:
+    """Common command line: ``--params``, ``--task`` for per-task stages, ``--policy`` for per-family stages."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
     if per_task:
         parser.add_argument("--task", required=True)
+    if per_policy:
+        parser.add_argument("--policy", required=True, help="a policy family listed in `policies`")
     return parser.parse_args()
+
+
+def policy_dir(task: str, policy: str) -> Path:
+    """``models/policy/<task>/<policy>``: the checkpoint ``policy.pt`` of one (task, family) pair."""
+    return POLICY_DIR / task / policy
+
+
+def policy_report_dir(task: str, policy: str) -> Path:
+    """``reports/policy/<task>/<policy>``: training history and metrics of one (task, family) pair."""
+    return POLICY_REPORT_DIR / task / policy
+
+
+def evaluation_report(task: str, policy: str) -> Path:
+    """``reports/eval/<task>/<policy>.json``: evaluation summary of one (task, family) pair."""
+    return EVAL_REPORT_DIR / task / f"{policy}.json"
 
 
 def load(path: Path) -> Params:

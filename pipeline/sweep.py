@@ -21,10 +21,10 @@ from pathlib import Path
 
 from dvc.utils.hydra import apply_overrides
 from stage_support import (
-    EVAL_REPORT_DIR,
     PROJECT_DIR,
     REPORTS_DIR,
     TOKENIZER_REPORT_DIR,
+    evaluation_report,
     fail,
     git_commit,
     load,
@@ -47,8 +47,9 @@ TOKENIZER_ERROR_KEY = "rmse_percent_range/mean"
 class DvcExperimentRunner:
     """Runs trials with DVC in the project workspace (the files the stages read and write)."""
 
-    def __init__(self, tasks: tuple[str, ...]) -> None:
+    def __init__(self, tasks: tuple[str, ...], policies: tuple[str, ...]) -> None:
         self.tasks = tasks
+        self.policies = policies
 
     def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
         # The same override code as `dvc exp run -S`, so the experiment that follows finds the tokenizer cached.
@@ -61,7 +62,9 @@ class DvcExperimentRunner:
     def run_experiment(self, name: str, settings: TrialSettings) -> ExperimentResult:
         overrides = [part for argument in settings.set_arguments() for part in ("-S", argument)]
         self._dvc("exp", "run", "--name", name, *overrides)
-        evaluations = [_read_json(EVAL_REPORT_DIR / f"{task}.json") for task in self.tasks]
+        # Averaged over every evaluated (task, policy) pair; the sweep's axes are the tokenizer's, so it is meant for
+        # the token-predicting families (the default `policies: [carp]`).
+        evaluations = [_read_json(evaluation_report(task, policy)) for task in self.tasks for policy in self.policies]
         return ExperimentResult(
             success_rate=sum(e["success_rate"] for e in evaluations) / len(evaluations),
             latency_ms=sum(e["latency_predict_ms_median"] + e["latency_decode_ms_median"] for e in evaluations)
@@ -104,7 +107,7 @@ def main() -> None:
         tags={"carp.git_commit": git_commit()},
     )
     try:
-        result = run_sweep(config, DvcExperimentRunner(params.tasks), REPORTS_DIR / "sweep", tracker)
+        result = run_sweep(config, DvcExperimentRunner(params.tasks, params.policies), REPORTS_DIR / "sweep", tracker)
     except SweepStateError as error:
         fail(str(error))
     states = {}

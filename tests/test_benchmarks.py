@@ -112,3 +112,30 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
         # more than 1% off: below 50 samples/s or a speed-up of 0.5.
         assert samples_per_second == pytest.approx(256 / seconds, rel=0.01, abs=0.5)
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
+
+
+def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_carp():
+    completed = run_benchmark("policy_families.py", "--tiny", "--rounds", "2", "--batched-rounds", "1")
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    row = re.compile(
+        rf"^\| (\w+)\s+\| ([\w-]+)\s+\| (\w+)\s+\|\s+([\d,]+) \|\s+(\d+) \|\s+{NUMBER} \|\s+{NUMBER} \|\s+(\S+) \|"
+        rf"\s+{NUMBER} \|$",
+        flags=re.MULTILINE,
+    )
+    rows = [match.groups() for match in row.finditer(completed.stdout)]
+    assert [(family, inference, backend) for family, inference, backend, *_ in rows] == [
+        ("carp", "greedy", "onnxruntime"),
+        ("carp", "greedy", "torch"),
+        ("diffusion_unet", "DDIM-10", "torch"),
+        ("diffusion_unet", "DDPM-10", "torch"),
+        ("diffusion_transformer", "DDIM-10", "torch"),
+        ("diffusion_transformer", "DDPM-10", "torch"),
+        ("next_token", "greedy", "torch"),
+    ], completed.stdout
+    reference = float(rows[0][5])
+    for family, _, backend, _, _, median, _, per_chunk, ratio in rows:
+        assert float(ratio) == pytest.approx(float(median) / reference, rel=0.02, abs=0.06), family
+        assert (per_chunk == "-") == (backend == "onnxruntime")
+    assert rows[-1][4] == str(10 * (1 + 2 + 3 + 4))  # next_token: one call per token, L = A * sum(scales)
+    failed = run_benchmark("policy_families.py", "--rounds", "0")
+    assert failed.returncode == 1 and failed.stderr.startswith("error: --rounds")

@@ -1,3 +1,5 @@
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,7 +24,9 @@ def test_defaults_follow_the_design():
     assert params.codebook_size == 512
     assert params.tasks == ("lift",)
     assert (params.data.obs_steps, params.data.action_horizon, params.data.action_steps) == (2, 16, 8)
-    assert (params.policy.depth, params.policy.width, params.policy.num_heads) == (8, 64, 8)
+    assert params.policies == ("carp",)
+    carp = params.family_config("carp")
+    assert (carp.depth, carp.width, carp.num_heads) == (8, 64, 8)
     assert params.tokenizer.latent_channels == 8
 
 
@@ -37,27 +41,43 @@ def test_defaults_follow_the_design():
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
         ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
-        ({"policy": {"width": 64, "num_heads": 5}}, "policy.num_heads=5: must divide policy.width=64"),
-        ({"policy": {"depth": "deep"}}, "policy.depth='deep': expected an integer"),
-        ({"policy": {"use_ema": "yes"}}, "policy.use_ema='yes': expected true or false"),
-        ({"policy": {"learning_rate": 0}}, "policy.learning_rate=0.0: must be > 0"),
+        ({"carp": {"width": 64, "num_heads": 5}}, "carp.num_heads=5: must divide carp.width=64"),
+        ({"carp": {"depth": "deep"}}, "carp.depth='deep': expected an integer"),
+        ({"carp": {"use_ema": "yes"}}, "carp.use_ema='yes': expected true or false"),
+        ({"carp": {"learning_rate": 0}}, "carp.learning_rate=0.0: must be > 0"),
         ({"tokenizer": {"source": "mlflow://x"}}, "tokenizer.source='mlflow://x': must be 'pipeline' or"),
         ({"tokenizer": {"registry_alias": "latest"}}, "tokenizer.registry_alias='latest'"),
         ({"eval": {"episodes": 0}}, "eval.episodes=0: must be >= 1"),
         ({"eval": {"backend": "tensorrt"}}, "eval.backend='tensorrt': must be one of"),
-        ({"policy": {"precision": "half"}}, "policy.precision='half': must be one of"),
-        ({"policy": {"epochs_per_task": {"kitchen": 5}}}, "policy.epochs_per_task.kitchen='kitchen': task must be"),
-        ({"policy": {"epochs_per_task": {"square": 0}}}, "policy.epochs_per_task.square=0: must be >= 1"),
-        ({"policy": {"top_k_per_task": {"kitchen": 3}}}, "policy.top_k_per_task.kitchen='kitchen': task must be"),
-        ({"policy": {"top_k_per_task": {"can": 0}}}, "policy.top_k_per_task.can=0: must be >= 1 (1 = greedy)"),
+        ({"training": {"precision": "half"}}, "training.precision='half': must be one of"),
+        ({"training": {"epochs_per_task": {"kitchen": 5}}}, "training.epochs_per_task.kitchen='kitchen': task must"),
+        ({"training": {"epochs_per_task": {"square": 0}}}, "training.epochs_per_task.square=0: must be >= 1"),
         (
-            {"policy": {"top_k_per_task": {"can": 9}}, "codebook_size": 8},
-            "policy.top_k_per_task.can=9: must be <= codebook_size = 8",
+            {"inference": {"carp": {"top_k_per_task": {"kitchen": 3}}}},
+            "inference.carp.top_k_per_task.kitchen='kitchen'",
         ),
-        ({"policy": {"top_k": 600}}, "policy.top_k=600: must be <= codebook_size = 512"),
+        ({"inference": {"carp": {"top_k_per_task": {"can": 0}}}}, "inference.carp.top_k_per_task.can=0: must be >= 1"),
+        (
+            {"inference": {"carp": {"top_k_per_task": {"can": 9}}}, "codebook_size": 8},
+            "inference.carp.top_k_per_task.can=9: must be <= codebook_size = 8",
+        ),
+        ({"inference": {"carp": {"top_k": 600}}}, "inference.carp.top_k=600: must be <= codebook_size = 512"),
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
-        ({"policy": {"depht": 3}}, "policy.depht: unknown key"),
+        ({"carp": {"depht": 3}}, "carp.depht: unknown key"),
+        ({"policy": {"depth": 3}}, "policy: unknown key (known: carp, codebook_size,"),
+        (
+            {"policies": ["carp", "lstm"]},
+            "policies=['carp', 'lstm']: every family must be one of ['carp', 'diffusion_unet',",
+        ),
+        ({"policies": ["carp", "carp"]}, "policies=('carp', 'carp'): must not repeat a family"),
+        ({"policies": []}, "policies=[]: must list at least one policy family"),
+        ({"lstm": {"depth": 3}}, "lstm: unknown key"),
+        (
+            {"inference": {"lstm": {}}},
+            "inference.lstm: unknown policy family (known: carp, diffusion_unet, diffusion_transformer, next_token)",
+        ),
+        ({"inference": {"carp": {"top_p": 0.9}}}, "inference.carp.top_p: unknown key (known: top_k, top_k_per_task)"),
         ({"eval": {"seed": 100}, "data": {"num_demos": 50}}, "eval.seed=100: evaluation seeds [100, 150) overlap"),
         ({"data": {"num_demos_per_task": {"kitchen": 5}}}, "data.num_demos_per_task.kitchen='kitchen': task must be"),
         ({"data": {"num_demos_per_task": {"lift": 0}}}, "data.num_demos_per_task.lift=0: must be at least 1"),
@@ -95,17 +115,17 @@ def test_params_are_frozen_and_flatten():
         params.codebook_size = 3  # type: ignore[misc]
     flat = flatten_params(params)
     assert flat["codebook_size"] == "256"
-    assert flat["policy.depth"] == "8"
+    assert flat["carp.depth"] == "8" and flat["inference.carp.top_k"] == "1" and flat["training.epochs"] == "20"
     assert flat["scales"] == "[1, 2, 4]"
 
 
 def test_policy_epochs_per_task_override_the_common_value():
     params = params_from_dict(
-        {"tasks": ["lift", "square"], "policy": {"epochs": 20, "epochs_per_task": {"square": 35}}}
+        {"tasks": ["lift", "square"], "training": {"epochs": 20, "epochs_per_task": {"square": 35}}}
     )
-    assert params.policy.epochs_for("square") == 35
-    assert params.policy.epochs_for("lift") == 20
-    assert flatten_params(params)["policy.epochs_per_task.square"] == "35"
+    assert params.training.epochs_for("square") == 35
+    assert params.training.epochs_for("lift") == 20
+    assert flatten_params(params)["training.epochs_per_task.square"] == "35"
 
 
 def test_num_demos_per_task_overrides_the_common_demo_count():
@@ -120,27 +140,45 @@ def test_num_demos_per_task_overrides_the_common_demo_count():
 
 def test_policy_top_k_per_task_overrides_the_common_token_choice():
     params = params_from_dict(
-        {"tasks": ["lift", "can", "square"], "policy": {"top_k": 3, "top_k_per_task": {"can": 5, "square": 1}}}
+        {
+            "tasks": ["lift", "can", "square"],
+            "inference": {"carp": {"top_k": 3, "top_k_per_task": {"can": 5, "square": 1}}},
+        }
     )
-    assert [params.policy.top_k_for(task) for task in params.tasks] == [3, 5, 1]
-    assert flatten_params(params)["policy.top_k_per_task.can"] == "5"
+    assert [params.inference_settings("carp", task) for task in params.tasks] == [{"top_k": k} for k in (3, 5, 1)]
+    assert flatten_params(params)["inference.carp.top_k_per_task.can"] == "5"
 
 
 @pytest.mark.parametrize("text, expected", [("1e-3", 0.001), ("1E5", 100000.0), ("+1e-3", 0.001), ("2.5E-2", 0.025)])
 def test_numbers_read_as_dvc_reads_them(tmp_path, text, expected):
     path = tmp_path / "params.yaml"
-    path.write_text(f"policy:\n  learning_rate: {text}\n")
-    assert load_params(path).policy.learning_rate == expected
-    dvc_value = parse_yaml(path.read_text(), str(path))["policy"]["learning_rate"]
+    path.write_text(f"carp:\n  learning_rate: {text}\n")
+    assert load_params(path).family_config("carp").learning_rate == expected
+    dvc_value = parse_yaml(path.read_text(), str(path))["carp"]["learning_rate"]
     assert dvc_value == expected
 
 
 def test_values_dvc_reads_as_strings_or_refuses_are_refused(tmp_path):
     path = tmp_path / "params.yaml"
     # YAML 1.2 (DVC) reads `yes` as a string; YAML 1.1 would have made it true.
-    path.write_text("policy:\n  use_ema: yes\n")
-    with pytest.raises(ConfigError, match=r"policy.use_ema='yes': expected true or false"):
+    path.write_text("carp:\n  use_ema: yes\n")
+    with pytest.raises(ConfigError, match=r"carp.use_ema='yes': expected true or false"):
         load_params(path)
     path.write_text("codebook_size: 64\ncodebook_size: 128\n")
     with pytest.raises(ConfigError, match=r"params.yaml: not valid YAML \(found duplicate key \"codebook_size\""):
         load_params(path)
+
+
+def test_loading_params_imports_no_model_code():
+    """Every stage, the always-run input check included, loads params first: the families' sections come from their
+    light config modules, not from torch and the networks."""
+    code = (
+        "import sys; from carp.config import load_params; params = load_params('params.yaml'); "
+        "assert set(params.families) >= {'carp', 'diffusion_unet', 'diffusion_transformer', 'next_token'}; "
+        "print(sorted(name for name in ('torch', 'diffusers', 'numpy') if name in sys.modules))"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    assert completed.stdout.strip() == "[]"

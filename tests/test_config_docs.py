@@ -15,7 +15,23 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_every_field_of_every_config_section_is_documented():
     sections = config_sections()
-    assert [prefix for prefix, _ in sections] == ["", "data.", "tokenizer.", "policy.", "eval.", "tracking.", "sweep."]
+    assert [prefix for prefix, _ in sections] == [
+        "",
+        "data.",
+        "tokenizer.",
+        "training.",
+        "eval.",
+        "tracking.",
+        "sweep.",
+        "carp.",
+        "inference.carp.",
+        "diffusion_unet.",
+        "inference.diffusion_unet.",
+        "diffusion_transformer.",
+        "inference.diffusion_transformer.",
+        "next_token.",
+        "inference.next_token.",
+    ]
     assert documentation_problems() == []
     for _, cls in sections:
         descriptions = field_descriptions(cls)
@@ -37,14 +53,16 @@ def test_the_page_lists_every_key_of_params_yaml_with_its_default():
 
     def keys(mapping, prefix=""):
         for key, value in mapping.items():
-            if isinstance(value, dict) and f"{prefix}{key}" in {p.rstrip(".") for p, _ in config_sections()}:
+            sections = {p for p, _ in config_sections()}
+            if isinstance(value, dict) and any(p.startswith(f"{prefix}{key}.") for p in sections):
                 yield from keys(value, f"{prefix}{key}.")
             else:
                 yield f"{prefix}{key}"
 
     for key in keys(raw):
         assert f"- `{key}` (" in page, key
-    assert "- `policy.top_k` (integer, default `1`):" in page
+    assert "- `inference.carp.top_k` (integer, default `1`):" in page
+    assert "- `carp.depth` (integer, default `8`):" in page
     assert "- `data.filter_key` (string or null, default `null`):" in page
     assert (
         "- `sweep.scale_schedules` (list of lists of integers, default `[[4], [1, 4], [1, 2, 4], [1, 2, 3, 4]]`)"

@@ -1,7 +1,7 @@
 """Typed, validated configuration: ``params.yaml`` loads into frozen dataclasses, one per section.
 
 Every problem is reported at load time as a :class:`ConfigError` whose message names the dotted key
-(``policy.learning_rate``), the offending value and the constraint. Unknown keys are errors, so a typo in
+(``carp.learning_rate``), the offending value and the constraint. Unknown keys are errors, so a typo in
 ``dvc exp run -S`` fails loudly instead of silently training with a default.
 
 The library never reads ``params.yaml`` itself: the pipeline scripts call :func:`load_params` and pass the typed
@@ -185,29 +185,12 @@ class TokenizerConfig:
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
-    """The coarse-to-fine transformer (DESIGN.md section 5) and its training.
+class TrainingConfig:
+    """The training loop every policy family shares (each family's own section holds its model and optimizer).
 
     Attributes:
-        depth: Transformer blocks; an integer >= 1.
-        width: ``D``, width of every token; an integer >= 1, divisible by ``num_heads``.
-        num_heads: Attention heads per block; an integer >= 1 that divides ``width``.
-        mlp_ratio: Hidden width of each block's feed-forward layer as a multiple of ``width``; a number > 0.
-        dropout: Dropout probability of the attention weights and of both residual branches during training; a
-            number in [0, 1).
         epochs: Passes over a task's training windows; an integer >= 1. ``epochs_per_task`` overrides it per task.
         batch_size: Windows per optimizer step; an integer >= 1.
-        learning_rate: Peak AdamW learning rate, reached after ``warmup_steps`` of linear warm-up and followed by a
-            cosine decay to 1% of the peak; a number > 0.
-        weight_decay: AdamW weight decay of the weight matrices (biases and embeddings are not decayed); a number
-            >= 0.
-        warmup_steps: Optimizer steps of linear learning-rate warm-up; an integer >= 0.
-        use_ema: Keep an exponential moving average of the weights during training and save it instead of the raw
-            weights; true or false.
-        ema_decay: Decay of the moving average per optimizer step, used only with ``use_ema``; a number in (0, 1).
-        top_k: How evaluation chooses each token: 1 takes the most likely one (greedy); k > 1 draws among the k most
-            likely ones, with draws seeded per episode so results reproduce. An integer between 1 and
-            ``codebook_size``. Decoding only: a change reruns evaluation, not training.
         checkpoint_every: Epochs between resumable training states in ``checkpoints/``; an integer >= 1. The last
             epoch is always saved.
         seed: Seeds weight initialization and shuffling; any integer.
@@ -215,65 +198,33 @@ class PolicyConfig:
             multiplies bfloat16 natively (CPUs with AMX or AVX512-BF16, CUDA GPUs that support it) and in float32
             elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
             and inference stay float32 (see ``carp.training.runtime.resolve_precision``).
-        epochs_per_task: Task -> epochs of that task's policy, overriding ``epochs``; each an integer >= 1, tasks
+        epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
             among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
             ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
-        top_k_per_task: Task -> token choice when evaluating that task, overriding ``top_k``; each an integer between
-            1 and ``codebook_size``, tasks among lift, can and square. Decoding only: a change reruns evaluation, not
-            training.
     """
 
-    depth: int = 8
-    width: int = 64
-    num_heads: int = 8
-    mlp_ratio: float = 4.0
-    dropout: float = 0.0
     epochs: int = 20
     batch_size: int = 64
-    learning_rate: float = 1e-3
-    weight_decay: float = 0.05
-    warmup_steps: int = 100
-    use_ema: bool = False
-    ema_decay: float = 0.999
-    top_k: int = 1
     checkpoint_every: int = 1
     seed: int = 0
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
-    top_k_per_task: dict[str, int] = field(default_factory=dict)
 
     def epochs_for(self, task: str) -> int:
         """Policy epochs of `task`: its `epochs_per_task` entry, else `epochs`."""
         return self.epochs_per_task.get(task, self.epochs)
 
-    def top_k_for(self, task: str) -> int:
-        """Token choice when evaluating `task`'s policy (1 = greedy): its `top_k_per_task` entry, else `top_k`."""
-        return self.top_k_per_task.get(task, self.top_k)
-
     def __post_init__(self) -> None:
-        _require(self.depth >= 1, "policy.depth", self.depth, "must be >= 1")
-        _require(self.width >= 1, "policy.width", self.width, "must be >= 1")
-        _require(self.num_heads >= 1, "policy.num_heads", self.num_heads, "must be >= 1")
-        _require(
-            self.width % self.num_heads == 0,
-            "policy.num_heads",
-            self.num_heads,
-            f"must divide policy.width={self.width}",
-        )
-        _require(self.mlp_ratio > 0, "policy.mlp_ratio", self.mlp_ratio, "must be > 0")
-        _require(0.0 <= self.dropout < 1.0, "policy.dropout", self.dropout, "must be in [0, 1)")
-        _positive_training_fields(self, "policy")
-        _require(self.warmup_steps >= 0, "policy.warmup_steps", self.warmup_steps, "must be >= 0")
-        _require(0.0 < self.ema_decay < 1.0, "policy.ema_decay", self.ema_decay, "must be in (0, 1)")
-        _require(self.top_k >= 1, "policy.top_k", self.top_k, "must be >= 1 (1 = greedy)")
+        _require(self.epochs >= 1, "training.epochs", self.epochs, "must be >= 1")
+        _require(self.batch_size >= 1, "training.batch_size", self.batch_size, "must be >= 1")
+        _require(self.checkpoint_every >= 1, "training.checkpoint_every", self.checkpoint_every, "must be >= 1")
         _require(
             self.precision in TRAINING_PRECISIONS,
-            "policy.precision",
+            "training.precision",
             self.precision,
             f"must be one of {TRAINING_PRECISIONS}",
         )
-        _require_per_task_minimum(self.epochs_per_task, "policy.epochs_per_task", "must be >= 1")
-        _require_per_task_minimum(self.top_k_per_task, "policy.top_k_per_task", "must be >= 1 (1 = greedy)")
+        _require_per_task_minimum(self.epochs_per_task, "training.epochs_per_task", "must be >= 1")
 
 
 def _require_per_task_minimum(mapping: dict[str, int], name: str, constraint: str) -> None:
@@ -310,7 +261,7 @@ class EvalConfig:
             (needs offscreen rendering through EGL); true or false.
         video_episodes: Episodes recorded per task when ``video`` is true; an integer >= 0.
         backend: ``onnxruntime`` runs batch-1 inference as exported ONNX graphs, several times faster per chunk than
-            the eager modules (see ``carp.evaluation.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
+            the eager modules (see ``carp.policies.carp.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
             the same tokens.
     """
 
@@ -389,6 +340,18 @@ class SweepConfig:
         _require(self.heartbeat_seconds >= 1, "sweep.heartbeat_seconds", self.heartbeat_seconds, "must be >= 1")
 
 
+FAMILY_SECTIONS = "family_sections"
+"""Marks the two `Params` fields whose YAML sections are named after the registered policy families."""
+
+
+def family_sections() -> dict[str, tuple[type, type]]:
+    """Registered family -> (config class of its section, class of its `inference.<family>` section)."""
+    # Imported here: the families' config modules import this module for `_require` and `ConfigError`.
+    from carp.policies.registry import family_names, get_sections
+
+    return {name: get_sections(name) for name in family_names()}
+
+
 @dataclass(frozen=True)
 class Params:
     """All of ``params.yaml``. ``scales`` and ``codebook_size`` are top-level so ``dvc exp run -S`` reaches them.
@@ -398,35 +361,56 @@ class Params:
             a chunk has ``L = A * sum(scales)`` tokens. Positive, strictly increasing integers whose last entry equals
             the latent length ``l = data.action_horizon / 2**len(tokenizer.channel_mult)`` (4 by default).
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
-            >= 2 and at least ``policy.top_k``.
+            >= 2 and at least ``inference.carp.top_k``.
         tasks: Tasks the pipeline runs, among lift, can and square, each at most once; the per-task stages
             (``collect``, ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
+        policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
+            (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
+            has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.
         device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
             rollouts run on the CPU.
         data: Demonstrations, ingestion and the time convention.
         tokenizer: The action tokenizer and its training.
-        policy: The coarse-to-fine transformer, its training and its token choice.
+        training: The training loop shared by every policy family.
         eval: Simulated evaluation.
         tracking: MLflow tracking.
         sweep: The Optuna sweep.
+        families: Family -> its section (the top-level key named after the family), for every registered family;
+            a missing section takes the family's defaults, a section of an unknown family is refused.
+        inference: Family -> its inference settings (``inference.<family>``), read by evaluation only, so a change
+            reruns evaluation and not training; a missing entry takes the family's defaults.
     """
 
     scales: tuple[int, ...] = (1, 2, 3, 4)
     codebook_size: int = 512
     tasks: tuple[str, ...] = ("lift",)
+    policies: tuple[str, ...] = ("carp",)
     device: str = "auto"
     data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
+    families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
+    inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
 
     def __post_init__(self) -> None:
         _require(len(self.tasks) >= 1, "tasks", self.tasks, "must list at least one task")
         for task in self.tasks:
             _require(task in TASK_NAMES, "tasks", self.tasks, f"every task must be one of {TASK_NAMES}")
         _require(len(set(self.tasks)) == len(self.tasks), "tasks", self.tasks, "must not repeat a task")
+        known = family_sections()
+        _require(len(self.policies) >= 1, "policies", list(self.policies), "must list at least one policy family")
+        for name in self.policies:
+            _require(name in known, "policies", list(self.policies), f"every family must be one of {list(known)}")
+        _require(len(set(self.policies)) == len(self.policies), "policies", self.policies, "must not repeat a family")
+        # Families without a section in the file take their defaults, so every registered family has a config.
+        object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
+        object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
+        for section in (*self.families.values(), *self.inference.values()):
+            if hasattr(section, "check_with"):  # constraints across sections, e.g. CARP's top_k <= codebook_size
+                section.check_with(self)
         _require(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
         _require(self.codebook_size >= 2, "codebook_size", self.codebook_size, "must be >= 2")
         latent_length = self.latent_length
@@ -451,10 +435,6 @@ class Params:
                 [list(s) for s in self.sweep.scale_schedules],
                 f"every schedule must be strictly increasing and end at l = {latent_length}",
             )
-        for key, top_k in [("policy.top_k", self.policy.top_k)] + [
-            (f"policy.top_k_per_task.{task}", k) for task, k in self.policy.top_k_per_task.items()
-        ]:
-            _require(top_k <= self.codebook_size, key, top_k, f"must be <= codebook_size = {self.codebook_size}")
         # Collection may try up to 3 seeds per kept demo (see carp.data.collect); evaluation must never reuse them.
         collection_end = self.data.collection_seed + 3 * max(self.data.demos_for(task) for task in self.tasks)
         evaluation_end = self.eval.seed + self.eval.episodes
@@ -474,6 +454,14 @@ class Params:
             )
         for task in self.tasks:
             _require(task in self.eval.max_steps, "eval.max_steps", self.eval.max_steps, f"has no entry for '{task}'")
+
+    def family_config(self, name: str) -> Any:
+        """The params section of policy family `name` (its model and optimizer)."""
+        return self.families[name]
+
+    def inference_settings(self, name: str, task: str) -> dict[str, Any]:
+        """Keyword arguments of family `name`'s `configure_inference` when evaluating `task`."""
+        return self.inference[name].settings_for(task)
 
     @property
     def latent_length(self) -> int:
@@ -543,12 +531,16 @@ def _yaml_problem(error: YAMLError) -> str:
 
 
 def params_to_dict(params: Params) -> dict[str, Any]:
-    """Plain nested dict (lists instead of tuples) of validated params, e.g. for logging or checkpoints."""
-    return _plain(dataclasses.asdict(params))
+    """Plain nested dict (lists instead of tuples) of validated params, shaped as ``params.yaml``.
+
+    Each family's section comes out at the top level under its name, as it is written in the file.
+    """
+    values = _plain(dataclasses.asdict(params))
+    return {**values, **values.pop("families")}
 
 
 def flatten_params(params: Params) -> dict[str, str]:
-    """Dotted-key view (``policy.depth`` -> ``"8"``) for MLflow params."""
+    """Dotted-key view (``carp.depth`` -> ``"8"``) for MLflow params."""
     flat: dict[str, str] = {}
 
     def visit(prefix: str, value: Any) -> None:
@@ -575,11 +567,16 @@ def _build(cls: type, raw: Any, prefix: str) -> Any:
     if not isinstance(raw, dict):
         raise ConfigError(f"{section}: expected a mapping, got {type(raw).__name__}")
     hints = typing.get_type_hints(cls)
-    known = {f.name for f in dataclasses.fields(cls)}
+    dynamic = [f.name for f in dataclasses.fields(cls) if f.metadata.get(FAMILY_SECTIONS)]
+    known = {f.name for f in dataclasses.fields(cls) if f.name not in dynamic}
+    values = {}
+    if dynamic:
+        raw, values = _build_family_sections(raw, prefix)
+        named = known | set(family_sections()) | {"inference"}
     for key in raw:
         if key not in known:
-            raise ConfigError(f"{prefix}{key}: unknown key (known: {', '.join(sorted(known))})")
-    values = {}
+            names = ", ".join(sorted(named if dynamic else known))
+            raise ConfigError(f"{prefix}{key}: unknown key (known: {names})")
     for name, value in raw.items():
         hint = hints[name]
         key = f"{prefix}{name}"
@@ -588,6 +585,32 @@ def _build(cls: type, raw: Any, prefix: str) -> Any:
         else:
             values[name] = _coerce(value, hint, key)
     return cls(**values)
+
+
+def _build_family_sections(raw: dict, prefix: str) -> tuple[dict, dict[str, Any]]:
+    """Split the family sections (`<family>:` and `inference: {<family>: ...}`) off `raw` and build them.
+
+    Returns:
+        The rest of `raw`, and `{"families": ..., "inference": ...}` with each family's built sections.
+    """
+    known = family_sections()
+    rest = {key: value for key, value in raw.items() if key not in known and key != "inference"}
+    families = {
+        name: _build(classes[0], raw[name] if raw[name] is not None else {}, f"{prefix}{name}.")
+        for name, classes in known.items()
+        if name in raw
+    }
+    inference_raw = raw.get("inference") or {}
+    if not isinstance(inference_raw, dict):
+        raise ConfigError(f"{prefix}inference: expected a mapping, got {type(inference_raw).__name__}")
+    for name in inference_raw:
+        if name not in known:
+            raise ConfigError(f"{prefix}inference.{name}: unknown policy family (known: {', '.join(known)})")
+    inference = {
+        name: _build(known[name][1], value if value is not None else {}, f"{prefix}inference.{name}.")
+        for name, value in inference_raw.items()
+    }
+    return rest, {"families": families, "inference": inference}
 
 
 def _coerce(value: Any, hint: Any, key: str) -> Any:

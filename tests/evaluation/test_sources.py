@@ -1,7 +1,10 @@
+import functools
+
 import numpy as np
 
 from carp.evaluation.sources import PolicySource, executed_actions
-from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy
+from carp.policies.registry import load_policy
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
 
 
 def test_executed_actions_take_the_rows_from_the_current_step_on():
@@ -30,8 +33,10 @@ def test_sampling_depends_on_the_episode_seed_only(tmp_path):
         source.reset(env=None, seed=seed)
         return source.act(history, env=None)[0]
 
-    fresh = PolicySource(checkpoint, controller="delta", obs_steps=OBS_STEPS, action_steps=4, top_k=8)
-    used = PolicySource(checkpoint, controller="delta", obs_steps=OBS_STEPS, action_steps=4, top_k=8)
+    load = functools.partial(load_policy, checkpoint)
+    settings = dict(controller="delta", obs_steps=OBS_STEPS, action_steps=4, inference={"top_k": 8})
+    fresh = PolicySource(load, **settings)
+    used = PolicySource(load, **settings)
     draws_for_other_seeds = [first_chunk(used, seed) for seed in (11, 12, 13)]
     np.testing.assert_array_equal(first_chunk(fresh, 7), first_chunk(used, 7))
     assert any(not np.array_equal(draws, draws_for_other_seeds[0]) for draws in draws_for_other_seeds[1:])

@@ -49,7 +49,7 @@ def test_user_file_replaced_in_place_reruns_collect_and_touched_does_not(workspa
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("section, key", [(None, "foo"), ("policy", "epoch"), ("data", "num_demo")])
+@pytest.mark.parametrize("section, key", [(None, "foo"), ("carp", "epoch"), ("data", "num_demo")])
 def test_params_typo_fails_the_pipeline_even_when_nothing_is_stale(workspace, section, key):
     params_file = workspace / "params.yaml"
     original = params_file.read_text()
@@ -70,7 +70,7 @@ def test_params_typo_fails_the_pipeline_even_when_nothing_is_stale(workspace, se
 
 @pytest.mark.slow
 def test_exp_run_with_an_added_unknown_key_fails(workspace):
-    result = run([sys.executable, "-m", "dvc", "exp", "run", "-S", "+policy.epoch=3"], workspace)
+    result = run([sys.executable, "-m", "dvc", "exp", "run", "-S", "+carp.epoch=3"], workspace)
     assert result.returncode != 0
-    assert "policy.epoch: unknown key" in result.stderr
+    assert "carp.epoch: unknown key" in result.stderr
     run(["git", "checkout", "params.yaml"], workspace)

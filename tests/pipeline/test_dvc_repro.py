@@ -25,19 +25,19 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         "data/processed/lift/normalization.json",
         "models/tokenizer/tokenizer.pt",
         "models/tokenizer_ref.json",
-        "models/policy/lift/policy.pt",
+        "models/policy/lift/carp/policy.pt",
         "reports/tokenizer/metrics.json",
         "reports/tokenizer/reconstruction.png",
-        "reports/policy/lift/metrics.json",
-        "reports/eval/lift.json",
-        "reports/eval/lift_episodes.csv",
+        "reports/policy/lift/carp/metrics.json",
+        "reports/eval/lift/carp.json",
+        "reports/eval/lift/carp_episodes.csv",
         "reports/report.md",
         "reports/report.html",
     ):
         assert (workspace / output).exists(), output
     with h5py.File(workspace / "data/raw/lift.hdf5", "r") as raw:
         assert len(raw["data"]) == 4
-    evaluation = json.loads((workspace / "reports/eval/lift.json").read_text())
+    evaluation = json.loads((workspace / "reports/eval/lift/carp.json").read_text())
     assert evaluation["episodes"] == 2 and 0 <= evaluation["success_rate"] <= 1
     assert evaluation["latency_predict_ms_median"] > 0 and evaluation["top_k"] == 1
     reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())
@@ -58,9 +58,10 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     original = params_file.read_text()
     for section, value in (("top_k", 2), ("top_k_per_task", {"lift": 2})):
         params = yaml.safe_load(original)
-        params["policy"][section] = value
+        params["inference"]["carp"][section] = value
         params_file.write_text(yaml.safe_dump(params, sort_keys=False))
         status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
         assert status.returncode == 0, status.stderr[-3000:]
         stale = set(json.loads(status.stdout))
-        assert "evaluate@lift" in stale and not any(stage.startswith("train_") for stage in stale), (section, stale)
+        trained = [stage for stage in stale if stage.startswith("train_")]
+        assert "evaluate@lift-carp" in stale and not trained, (section, stale)

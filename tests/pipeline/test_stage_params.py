@@ -1,29 +1,70 @@
 """dvc.yaml's parameter lists follow the config: a stage reruns when, and only when, a setting it reads changes."""
 
 import dataclasses
+import shutil
 from pathlib import Path
 
+import pytest
 import yaml
+from dvc.repo import Repo
 
-from carp.config import PolicyConfig
+from carp.config import params_from_dict
+from carp.policies.registry import family_names, get_family
 
 REPO = Path(__file__).resolve().parents[2]
-# Read by decoding only (the evaluate stage), never by training.
-INFERENCE_ONLY_POLICY_KEYS = {"top_k", "top_k_per_task"}
 
 
-def stage_params(stage: str) -> list[str]:
-    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
-    return stages[stage]["do"]["params"]
+def resolved_params(workspace: Path, policies: list[str]) -> dict[str, list[str]]:
+    """Stage name -> the params.yaml keys DVC tracks for it, as DVC resolves dvc.yaml for `policies`."""
+    for name in ("dvc.yaml", "params.yaml"):
+        shutil.copy(REPO / name, workspace / name)
+    (workspace / ".dvc").mkdir(exist_ok=True)
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    params["policies"] = policies
+    (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    with Repo(str(workspace), uninitialized=True) as repo:
+        return {
+            stage.name: [key for dep in stage.deps if hasattr(dep, "params") for key in dep.params]
+            for stage in repo.index.stages
+        }
 
 
-def test_train_policy_tracks_every_training_setting_and_not_top_k():
-    tracked = {key.removeprefix("policy.") for key in stage_params("train_policy") if key.startswith("policy.")}
-    training_keys = {field.name for field in dataclasses.fields(PolicyConfig)} - INFERENCE_ONLY_POLICY_KEYS
-    assert "policy" not in stage_params("train_policy")
-    missing, extra = training_keys - tracked, tracked - training_keys
-    assert not missing and not extra, f"missing: {missing}, not training settings: {extra}"
+@pytest.fixture(scope="module")
+def stages(tmp_path_factory) -> dict[str, list[str]]:
+    return resolved_params(tmp_path_factory.mktemp("stages"), ["carp"])
 
 
-def test_evaluate_tracks_every_decoding_setting():
-    assert {f"policy.{key}" for key in INFERENCE_ONLY_POLICY_KEYS} <= set(stage_params("evaluate"))
+def test_train_policy_tracks_its_family_section_and_the_shared_loop_but_no_inference_setting(stages):
+    assert stages["train_policy@lift-carp"] == [
+        "scales",
+        "codebook_size",
+        "data.obs_steps",
+        "data.action_horizon",
+        "data.action_steps",
+        "training",
+        "carp",
+        "device",
+    ]
+
+
+def test_evaluate_tracks_its_familys_inference_section_only(stages):
+    tracked = stages["evaluate@lift-carp"]
+    assert "inference.carp" in tracked and "eval" in tracked
+    assert "carp" not in tracked and "training" not in tracked
+
+
+@pytest.mark.parametrize("name", family_names())
+def test_no_setting_is_both_a_training_and_an_inference_setting(name):
+    family = get_family(name)
+    config_keys = {field.name for field in dataclasses.fields(family.config_class)}
+    inference_keys = {field.name for field in dataclasses.fields(family.inference_class)}
+    assert not config_keys & inference_keys
+
+
+def test_every_default_family_section_is_in_params_yaml():
+    """DVC hashes `<family>` and `inference.<family>` as written in params.yaml, so each must be there."""
+    raw = yaml.safe_load((REPO / "params.yaml").read_text())
+    params = params_from_dict(raw)
+    for name in family_names():
+        assert name in raw and name in raw["inference"], name
+        assert params.family_config(name) == get_family(name).config_class(**raw[name])

@@ -16,7 +16,8 @@ TINY_PARAMS = {
     "codebook_size": 16,
     "data": {"num_demos": 3},
     "tokenizer": {"epochs": 2, "batch_size": 64, "checkpoint_every": 1},
-    "policy": {"epochs": 2, "depth": 1, "width": 16, "num_heads": 2, "batch_size": 64, "warmup_steps": 2},
+    "training": {"epochs": 2, "batch_size": 64},
+    "carp": {"depth": 1, "width": 16, "num_heads": 2, "warmup_steps": 2},
     "eval": {"episodes": 2, "workers": 2, "max_steps": {"lift": 40, "can": 40, "square": 40}},
 }
 

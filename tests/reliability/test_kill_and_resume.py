@@ -31,7 +31,7 @@ TOKENIZER_EPOCHS = 12
 POLICY_EPOCHS = 12
 PARAMS = {
     "tokenizer": {"epochs": TOKENIZER_EPOCHS, "checkpoint_every": 1},
-    "policy": {"epochs": POLICY_EPOCHS, "checkpoint_every": 1},
+    "training": {"epochs": POLICY_EPOCHS, "checkpoint_every": 1},
     "eval": {"episodes": 4, "workers": 2, "video": False},
 }
 TIMING_COLUMNS = {"epoch_seconds", "samples_per_second", "seconds"}
@@ -40,11 +40,11 @@ REFERENCE_OUTPUTS = (
     "models/tokenizer/tokenizer.json",
     "reports/tokenizer/metrics.json",
     "reports/tokenizer/history.csv",
-    "models/policy/lift/policy.pt",
-    "reports/policy/lift/metrics.json",
-    "reports/policy/lift/history.csv",
-    "reports/eval/lift.json",
-    "reports/eval/lift_episodes.csv",
+    "models/policy/lift/carp/policy.pt",
+    "reports/policy/lift/carp/metrics.json",
+    "reports/policy/lift/carp/history.csv",
+    "reports/eval/lift/carp.json",
+    "reports/eval/lift/carp_episodes.csv",
 )
 
 
@@ -60,7 +60,7 @@ def pipeline(tmp_path_factory) -> dict[str, Path]:
     temp_directory = root / "system-tmp"
     temp_directory.mkdir()
     completed = subprocess.run(
-        dvc("repro", "evaluate@lift"),
+        dvc("repro", "evaluate@lift-carp"),
         cwd=workspace,
         env=_env(temp_directory),
         capture_output=True,
@@ -167,48 +167,50 @@ def test_a_truncated_training_state_is_discarded_with_one_warning_and_the_stage_
 @pytest.mark.slow
 def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipeline):
     workspace, reference = pipeline["workspace"], pipeline["reference"]
-    state = workspace / "checkpoints/policy/lift/policy_training_state.pt"
+    state = workspace / "checkpoints/policy/lift/carp/policy_training_state.pt"
     state.unlink()
-    process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift")
+    process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
     _kill_when(process, state.exists)
     killed_at = _training_epochs(state)
     assert 0 < killed_at < POLICY_EPOCHS
 
-    log = _rerun(pipeline, "pipeline/train_policy.py", "--task", "lift")
+    log = _rerun(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
     assert f"resuming policy training from {state}" in log
-    resumed = torch.load(workspace / "models/policy/lift/policy.pt", weights_only=True)
-    expected = torch.load(reference / "models/policy/lift/policy.pt", weights_only=True)
+    resumed = torch.load(workspace / "models/policy/lift/carp/policy.pt", weights_only=True)
+    expected = torch.load(reference / "models/policy/lift/carp/policy.pt", weights_only=True)
     _assert_same_tensors(expected.pop("transformer_state"), resumed.pop("transformer_state"))
     _assert_same_tensors(expected["tokenizer"].pop("state_dict"), resumed["tokenizer"].pop("state_dict"))
     # The rerun is another MLflow run; everything else in the metadata is the same.
     assert resumed["metadata"].pop("mlflow_run_id") != expected["metadata"].pop("mlflow_run_id")
     assert resumed == expected
-    name = "reports/policy/lift/metrics.json"
+    name = "reports/policy/lift/carp/metrics.json"
     assert json.loads((workspace / name).read_text()) == json.loads((reference / name).read_text())
-    _assert_same_table(reference / "reports/policy/lift/history.csv", workspace / "reports/policy/lift/history.csv")
+    history = "reports/policy/lift/carp/history.csv"
+    _assert_same_table(reference / history, workspace / history)
     _assert_no_leftover_temporaries(workspace / "checkpoints")
 
 
 @pytest.mark.slow
 def test_evaluate_killed_mid_way_runs_again_to_the_same_episodes_and_leaves_no_onnx_folder(pipeline):
     workspace, reference, temp_directory = pipeline["workspace"], pipeline["reference"], pipeline["tmp"]
-    outputs = workspace / "reports/eval"
-    for name in ("lift.json", "lift_episodes.csv"):
+    outputs = workspace / "reports/eval/lift"
+    for name in ("carp.json", "carp_episodes.csv"):
         (outputs / name).unlink()
 
     def graphs_exported() -> bool:
         return any(temp_directory.glob("carp-onnx-*/decoding.onnx"))
 
-    process = _stage(pipeline, "pipeline/evaluate.py", "--task", "lift")
+    process = _stage(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp")
     _kill_when(process, graphs_exported)
     left_behind = sorted(temp_directory.glob("carp-onnx-*"))
     assert len(left_behind) == 1, "the killed evaluation's folder is still there until the next evaluation"
-    assert not (outputs / "lift.json").exists() and not (outputs / "lift_episodes.csv").exists()
+    assert not (outputs / "carp.json").exists() and not (outputs / "carp_episodes.csv").exists()
 
-    _rerun(pipeline, "pipeline/evaluate.py", "--task", "lift")
+    _rerun(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp")
     assert not list(temp_directory.glob("carp-onnx-*")), "no ONNX folder outlives the evaluations"
-    _assert_same_table(reference / "reports/eval/lift_episodes.csv", outputs / "lift_episodes.csv")
-    resumed, expected = (json.loads((path / "reports/eval/lift.json").read_text()) for path in (workspace, reference))
+    _assert_same_table(reference / "reports/eval/lift/carp_episodes.csv", outputs / "carp_episodes.csv")
+    summary = "reports/eval/lift/carp.json"
+    resumed, expected = (json.loads((path / summary).read_text()) for path in (workspace, reference))
     assert {key: value for key, value in resumed.items() if "latency" not in key} == {
         key: value for key, value in expected.items() if "latency" not in key
     }

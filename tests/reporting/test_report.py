@@ -9,7 +9,13 @@ import pandas as pd
 import pytest
 
 from carp.evaluation.metrics import summarize_episodes
-from carp.reporting.report import ReportInputs, success_table, write_report
+from carp.reporting.report import (
+    ReportInputs,
+    comparison_table,
+    inference_budget_lines,
+    success_table,
+    write_report,
+)
 
 
 @pytest.fixture
@@ -35,9 +41,16 @@ def inputs(tmp_path):
             "top_k": 1,
         }
     )
-    history = pd.DataFrame({"epoch": [1, 2, 3], "loss": [3.0, 2.0, 1.0], "token_accuracy_scale_1": [0.2, 0.5, 0.9]})
+    history = pd.DataFrame(
+        {
+            "epoch": [1, 2, 3],
+            "loss": [3.0, 2.0, 1.0],
+            "token_accuracy_scale_1": [0.2, 0.5, 0.9],
+            "epoch_seconds": [40.0, 40.0, 40.0],
+        }
+    )
     return ReportInputs(
-        evaluation={"lift": lift},
+        evaluation={"lift": {"carp": lift | {"backend": "onnxruntime", "inference": "greedy", "action_steps": 8}}},
         tokenizer_metrics={
             "rmse/x": 0.001,
             "rmse/mean": 0.001,
@@ -49,7 +62,7 @@ def inputs(tmp_path):
             "perplexity/x": 40.0,
         },
         tokenizer_history=pd.DataFrame({"epoch": [1, 2], "loss": [0.5, 0.1], "reconstruction_loss": [0.4, 0.05]}),
-        policy_histories={"lift": history},
+        policy_histories={"lift": {"carp": history}},
         reconstruction_figure=figure,
         sweep_trials=pd.DataFrame(
             {"num_scales": [2, 4, 2, 4], "codebook_size": [64, 64, 256, 256], "success_rate": [0.5, 0.9, 0.6, 0.95]}
@@ -91,9 +104,51 @@ def test_html_is_self_contained(tmp_path, inputs):
     assert "45/50" in page
 
 
-def test_success_table_names_each_tasks_token_choice(inputs):
-    lift = inputs.evaluation["lift"]
+def test_success_table_names_each_rows_token_choice(inputs):
+    lift = inputs.evaluation["lift"]["carp"]
+    legacy = {k: v for k, v in lift.items() if k not in ("top_k", "inference")}
     table = success_table(
-        {"lift": lift, "can": {**lift, "top_k": 5}, "square": {k: v for k, v in lift.items() if k != "top_k"}}
+        {"lift": {"carp": lift}, "can": {"carp": {**lift, "inference": None, "top_k": 5}}, "square": {"carp": legacy}}
     )
     assert table.set_index("task")["decoding"].to_dict() == {"lift": "greedy", "can": "top-5 draws", "square": "-"}
+
+
+def _baseline(lift: dict) -> dict:
+    """The same episodes as a slower family with 10 denoising steps in PyTorch."""
+    return lift | {
+        "inference": "DDIM-10",
+        "backend": "torch",
+        "model_calls_per_chunk": 10,
+        "num_parameters": 9_000_000,
+        "latency_predict_ms_median": 40.0,
+        "latency_predict_ms_p90": 45.0,
+    }
+
+
+def test_one_comparison_table_per_task_with_a_row_per_policy(tmp_path, inputs):
+    lift = inputs.evaluation["lift"]["carp"]
+    inputs.evaluation["lift"]["diffusion_transformer"] = _baseline(lift)
+    table = comparison_table(inputs.evaluation["lift"], inputs.policy_histories["lift"]).set_index("policy")
+    assert list(table.index) == ["carp", "diffusion_transformer"]
+    assert table.loc["carp", "95% interval"] == "78.6-95.7%" and table.loc["carp", "training"] == "2.0 min"
+    assert table.loc["carp", "predict ms (median / p90)"] == "2.00 / 2.00"
+    assert table.loc["diffusion_transformer", "model calls"] == "10"
+    assert table.loc["diffusion_transformer", "parameters"] == "9,000,000"
+    assert (
+        table.loc["diffusion_transformer", "backend"] == "torch"
+        and table.loc["diffusion_transformer", "training"] == "-"
+    )
+    markdown = write_report(inputs, tmp_path / "reports")[0].read_text()
+    assert "## Policies on lift" in markdown and "DDIM-10" in markdown
+    assert (tmp_path / "reports" / "figures" / "success_vs_latency.png").exists()
+
+
+def test_inference_budget_counts_the_chunks_of_400_control_steps(inputs):
+    lift = inputs.evaluation["lift"]["carp"]
+    lines = inference_budget_lines({"lift": {"carp": lift, "diffusion_transformer": _baseline(lift)}})
+    # 400 steps / Ta = 8 -> 50 chunks; 2.0 + 0.5 ms and 40.0 + 0.5 ms per chunk.
+    assert (
+        lines[0]
+        == "lift, carp (greedy, onnxruntime): 0.12 s of inference over 400 control steps (50 chunks of 2.50 ms)"
+    )
+    assert lines[1].startswith("lift, diffusion_transformer (DDIM-10, torch): 2.02 s")

@@ -8,13 +8,14 @@ from carp.data.collect import collect_demonstrations
 from carp.data.dataset import load_task_windows
 from carp.data.ingest import ingest_demonstrations
 from carp.evaluation.offline import held_out_action_errors
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
-from carp.training.policy_trainer import PolicyTrainingData, PolicyTrainingSettings, train_policy
+from carp.training.loop import PolicyTrainingData
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
+from tests.policies.carp.factories import train_transformer
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
@@ -51,8 +52,8 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
         num_heads=4,
     )
     data = PolicyTrainingData(obs=normalized(obs_normalizer, windows.train_obs), actions=train_actions)
-    settings = PolicyTrainingSettings(epochs=40, batch_size=32, learning_rate=2e-3, warmup_steps=10, device="cpu")
-    trained = train_policy(policy_spec, tokenizer, data, settings, tmp_path / "policy_state").cpu()
+    settings = dict(epochs=40, batch_size=32, learning_rate=2e-3, warmup_steps=10, device="cpu")
+    trained = train_transformer(policy_spec, tokenizer, data, settings, tmp_path / "policy_state").cpu()
 
     torch.manual_seed(0)
     untrained = CoarseToFineTransformer(policy_spec)

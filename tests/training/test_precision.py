@@ -4,12 +4,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import _attention
+from carp.config import ConfigError
+from carp.policies.carp.blocks import _attention
 from carp.training import runtime
-from carp.training.policy_trainer import PolicyTrainingSettings, train_policy
 from carp.training.runtime import autocast_to, resolve_precision
-from tests.policy.factories import tiny_policy_spec, tiny_tokenizer
-from tests.training.test_policy_trainer import _data
+from tests.policies.carp.factories import tiny_policy_spec, tiny_tokenizer, train_transformer, trainer_settings
+from tests.policies.carp.test_trainer import _data
 
 CPU = torch.device("cpu")
 
@@ -25,8 +25,8 @@ def test_auto_precision_follows_native_bfloat16_support(monkeypatch, native):
 def test_unknown_precision_is_refused():
     with pytest.raises(ValueError, match="precision must be one of .* got 'half'"):
         resolve_precision("half", CPU)
-    with pytest.raises(ValueError, match="PolicyTrainingSettings.precision"):
-        PolicyTrainingSettings(precision="fp16")
+    with pytest.raises(ConfigError, match="training.precision='fp16': must be one of"):
+        trainer_settings(precision="fp16")
 
 
 def test_cpu_attention_stays_float32_under_bfloat16_autocast():
@@ -46,11 +46,13 @@ def test_cpu_attention_stays_float32_under_bfloat16_autocast():
 
 
 def _history(tmp_path, precision: str) -> list[dict]:
-    settings = PolicyTrainingSettings(
+    settings = dict(
         epochs=6, batch_size=8, learning_rate=3e-3, weight_decay=0.0, warmup_steps=2, device="cpu", precision=precision
     )
     history = []
-    train_policy(tiny_policy_spec(), tiny_tokenizer(), _data(32), settings, tmp_path, lambda e, m: history.append(m))
+    train_transformer(
+        tiny_policy_spec(), tiny_tokenizer(), _data(32), settings, tmp_path, lambda e, m: history.append(m)
+    )
     return history
 
 

@@ -9,7 +9,7 @@ def held_out_action_errors(
     """RMSE in original action units of the whole chunk and of the executed part ``[To-1 : To-1+Ta]``.
 
     Args:
-        policy: a :class:`carp.policy.policy.CarpPolicy`.
+        policy: a policy of any family (`carp.policies.base.Policy`).
         obs: (N, To, Do) raw observations.
         actions: (N, H, A) raw demonstrated actions.
         obs_steps: ``To``.

@@ -2,9 +2,10 @@
 
 import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -12,11 +13,11 @@ import torch
 
 from carp.config import EVAL_BACKENDS
 from carp.evaluation.metrics import latency_summary, summarize_episodes
-from carp.evaluation.onnx_policy import export_policy_graphs
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
-from carp.policy.policy import CarpPolicy
+from carp.policies.base import Policy
+from carp.policies.registry import load_policy
 
 logger = logging.getLogger(__name__)
 
@@ -31,38 +32,46 @@ def evaluate_policy(
     seeds: Sequence[int],
     max_steps: int,
     workers: int,
-    top_k: int = 1,
+    inference: Mapping[str, Any] | None = None,
     video_episodes: int = 0,
     task_index: int | None = None,
     backend: str = "onnxruntime",
-) -> tuple[dict[str, float], list[EpisodeResult]]:
-    """Run one episode per seed with the checkpoint's policy; returns the summary metrics (with `top_k`), episodes.
+) -> tuple[dict[str, Any], list[EpisodeResult]]:
+    """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
-    Each worker process loads the checkpoint once and runs its policy on one CPU thread. Measured against one policy
-    batched across the workers' envs (`benchmarks/eval_batching.py`, 2 workers, 8 Lift episodes, 2 alternating runs
-    each): 25.4 and 25.4 simulator steps/s per worker against 24.2 and 23.6 batched, with identical episodes. Per
-    chunk the policy needs a few ms against ~8 simulator steps, so batching saves little and adds a round trip
-    between processes on every decision.
+    Each worker process loads the policy once and runs it on one CPU thread. Measured against one policy batched
+    across the workers' envs (`benchmarks/eval_batching.py`, 2 workers, 8 Lift episodes, 2 alternating runs each):
+    25.4 and 25.4 simulator steps/s per worker against 24.2 and 23.6 batched, with identical episodes. Per chunk the
+    policy needs a few ms against ~8 simulator steps, so batching saves little and adds a round trip between
+    processes on every decision.
 
-    With `backend` "onnxruntime" the checkpoint is exported once (greedy or top-k, as `top_k` says) to ONNX graphs in
-    a temporary directory that every worker runs with ONNX Runtime (`carp.evaluation.onnx_policy`); otherwise the
-    workers run the PyTorch policy. Both choose the same tokens: top-k draws come from a generator seeded with the
-    episode's seed either way. The directory does not outlive a killed evaluation (`carp.evaluation.scratch`).
+    The policy's family decides how `backend` is served (`Policy.deployment`): CARP exports ONNX graphs for
+    "onnxruntime" into a temporary directory that every worker runs with ONNX Runtime; families without graphs, and
+    "torch", run the PyTorch policy. The summary's `backend` names what actually ran. Sampling draws come from a
+    generator seeded with the episode's seed either way. The directory does not outlive a killed evaluation
+    (`carp.evaluation.scratch`).
+
+    `inference` holds the family's inference settings (`configure_inference`), e.g. CARP's `{"top_k": 1}`; they are
+    copied into the summary.
 
     With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
     calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
+    if backend not in EVAL_BACKENDS:
+        raise ValueError(f"backend must be one of {EVAL_BACKENDS}, got {backend!r}")
+    inference = dict(inference or {})
+    policy = load_policy(Path(checkpoint_path))
+    policy.configure_inference(**inference)
     with scratch_directory() as scratch:
-        onnx_directory = onnx_graphs_for(Path(checkpoint_path), backend, top_k, scratch)
+        deployment = policy.deployment(Path(checkpoint_path), backend, scratch)
         factory = functools.partial(
             PolicySource,
-            checkpoint_path=Path(checkpoint_path),
+            deployment.load,
             controller=controller,
             obs_steps=obs_steps,
             action_steps=action_steps,
-            top_k=top_k,
+            inference=inference,
             task_index=task_index,
-            onnx_directory=onnx_directory,
         )
         results = evaluate_episodes(
             env_args,
@@ -75,35 +84,28 @@ def evaluate_policy(
             video_episodes=video_episodes,
             description="evaluate",
         )
-    summary = summarize_episodes(
+    summary: dict[str, Any] = summarize_episodes(
         successes=[r.success for r in results],
         steps=[r.steps for r in results],
         crashed=[bool(r.error) for r in results],
         prediction_seconds=[s for r in results for s in r.prediction_seconds],
         decoding_seconds=[s for r in results for s in r.decoding_seconds],
     )
-    summary["top_k"] = top_k  # the report names each task's token choice
+    summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
+    summary.update(policy_facts(policy))
+    summary["backend"] = deployment.backend
+    summary["action_steps"] = action_steps  # chunks per control step, for the report's inference budget
     return summary, results
 
 
-def onnx_graphs_for(checkpoint_path: Path, backend: str, top_k: int, directory: Path) -> Path | None:
-    """Export the checkpoint's graphs (token choice `top_k`) into `directory` when the ONNX Runtime backend applies.
-
-    Returns:
-        `directory` with the graphs, or None when the workers should run the PyTorch policy: `backend` is "torch",
-        or the export failed (logged as a warning, evaluation goes on).
-    """
-    if backend not in EVAL_BACKENDS:
-        raise ValueError(f"backend must be 'onnxruntime' or 'torch', got {backend!r}")
-    if backend == "torch":
-        return None
-    try:
-        return export_policy_graphs(CarpPolicy.load(checkpoint_path), directory, top_k)
-    except Exception as error:  # an export problem must not cost the evaluation; PyTorch computes the same actions
-        logger.warning(
-            "ONNX export of %s failed (%s: %s); evaluating with PyTorch", checkpoint_path, type(error).__name__, error
-        )
-        return None
+def policy_facts(policy: Policy) -> dict[str, Any]:
+    """What the report shows of a policy besides its results: family, configuration, model calls, parameters."""
+    return {
+        "policy_type": policy.policy_type,
+        "inference": policy.description,
+        "model_calls_per_chunk": policy.model_calls_per_chunk,
+        "num_parameters": policy.num_parameters,
+    }
 
 
 def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
@@ -128,7 +130,7 @@ def batched_latency(policy, observations: np.ndarray, batch_size: int = 64, repe
     """Per-chunk latency of the policy on a batch (keys ``batched_latency_*``), after two warm-up calls.
 
     Args:
-        policy: a :class:`carp.policy.policy.CarpPolicy`.
+        policy: a policy of any family (`carp.policies.base.Policy`), run in PyTorch.
         observations: (N, To, Do) raw observations; tiled or cut to ``batch_size``.
         batch_size: B.
         repeats: timed calls.

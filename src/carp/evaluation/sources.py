@@ -1,15 +1,15 @@
-"""Action sources for the rollout loop: the trained CARP policy and the scripted experts."""
+"""Action sources for the rollout loop: a trained policy of any family and the scripted experts."""
 
 import time
-from pathlib import Path
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 import torch
 
 from carp.data.rotation import rot6d_to_absolute_actions
-from carp.evaluation.onnx_policy import OnnxPolicy
 from carp.evaluation.rollout import ChunkTiming
-from carp.policy.policy import CarpPolicy
+from carp.policies.base import Policy
 
 
 def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, controller: str) -> np.ndarray:
@@ -50,45 +50,36 @@ class ExpertSource:
 
 
 class PolicySource:
-    """A trained policy checkpoint: predicts ``H`` actions, executes ``actions[To-1 : To-1+Ta]``.
+    """A trained policy of any family: predicts ``H`` actions, executes ``actions[To-1 : To-1+Ta]``.
 
     Args:
-        checkpoint_path: self-contained policy checkpoint (``models/policy/policy.pt``).
+        load: zero-argument callable returning the policy (a `carp.policies.base.Deployment`'s `load`); called once,
+            in the worker process that runs the episodes.
         controller: ``absolute`` converts the 10-D actions back to the controller's 7-D form.
-        top_k: 1 = greedy; >1 samples from the top-k tokens with a generator seeded per episode.
+        obs_steps: ``To``.
+        action_steps: ``Ta``.
+        inference: the family's inference settings (e.g. ``{"top_k": 3}``), applied through
+            ``configure_inference``; any sampling draws from a generator seeded per episode.
         task_index: task id for multi-task policies.
-        device: torch device for inference.
-        onnx_directory: graphs written by `carp.evaluation.onnx_policy.export_policy_graphs` for this checkpoint
-            and this `top_k`; when given, chunks are predicted by ONNX Runtime instead of PyTorch.
     """
 
     def __init__(
         self,
-        checkpoint_path: Path,
+        load: Callable[[], Policy],
         controller: str,
         obs_steps: int,
         action_steps: int,
-        top_k: int = 1,
+        inference: Mapping[str, Any] | None = None,
         task_index: int | None = None,
-        device: str = "cpu",
-        onnx_directory: Path | None = None,
     ) -> None:
-        self.policy = (
-            OnnxPolicy(onnx_directory)
-            if onnx_directory is not None
-            else CarpPolicy.load(Path(checkpoint_path), map_location=device)
-        )
-        if isinstance(self.policy, OnnxPolicy) and self.policy.top_k != top_k:
-            raise ValueError(
-                f"the ONNX graphs in {onnx_directory} use top_k = {self.policy.top_k}, got top_k = {top_k}"
-            )
+        self.policy = load()
+        self.policy.configure_inference(**dict(inference or {}))
         self.controller = controller
         self.obs_steps = obs_steps
         self.action_steps = action_steps
-        self.top_k = top_k
         self.task_index = task_index
-        self.device = torch.device(device)
-        self._generator = torch.Generator(device=self.device)
+        # Rollouts run on the CPU, so the draws come from a CPU generator whatever the policy's backend.
+        self._generator = torch.Generator()
 
     def reset(self, env, seed: int) -> None:
         """New episode: seed sampling with the episode's seed.
@@ -99,16 +90,10 @@ class PolicySource:
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming]:
         """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time."""
-        if isinstance(self.policy, CarpPolicy):
-            timed = self.policy.predict_action_timed(
-                observation_history[None], task_index=self.task_index, top_k=self.top_k, generator=self._generator
-            )
-        else:
-            timed = self.policy.predict_action_timed(
-                observation_history[None], task_index=self.task_index, generator=self._generator
-            )
-        actions, prediction_seconds, decoding_seconds = timed
+        timed = self.policy.predict_action_timed(
+            observation_history[None], task_index=self.task_index, generator=self._generator
+        )
         started = time.perf_counter()
-        executed = executed_actions(actions[0], self.obs_steps, self.action_steps, self.controller)
-        decoding_seconds += time.perf_counter() - started
-        return executed, ChunkTiming(prediction=prediction_seconds, decoding=decoding_seconds)
+        executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.controller)
+        decoding_seconds = timed.decoding_seconds + time.perf_counter() - started
+        return executed, ChunkTiming(prediction=timed.prediction_seconds, decoding=decoding_seconds)

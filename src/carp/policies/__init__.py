@@ -1,1 +1,12 @@
-"""Policy families: one folder per family, each with its config and model (STYLE.md "Families behind one seam")."""
+"""Policy families behind one seam (STYLE.md section 6).
+
+- `base`: the `Policy` protocol every family implements, `TimedPrediction`, `Deployment`, the checkpoint format
+  version.
+- `context`: `PolicyContext`, what a family is sized by besides its own params section (shapes, normalizers,
+  tokenizer).
+- `registry`: family name -> `PolicyFamily` (config class, builder, loader), one line per family, and `load_policy`,
+  which dispatches on the `policy_type` stored in every checkpoint.
+- One folder per family: `carp/` (coarse-to-fine autoregressive), `diffusion/` (Diffusion Policy U-Net and
+  transformer), `next_token/` (next-token autoregressive baseline). Nothing outside a family's folder names its
+  classes.
+"""

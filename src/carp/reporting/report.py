@@ -37,10 +37,11 @@ class ReportInputs:
     """Everything a report is made of (all optional except the evaluation metrics).
 
     Attributes:
-        evaluation: task -> evaluation metrics dict (``reports/eval/<task>.json``).
+        evaluation: task -> policy family -> evaluation metrics dict (``reports/eval/<task>/<policy>.json``).
         tokenizer_metrics: tokenizer reconstruction metrics (``reports/tokenizer/metrics.json``).
         tokenizer_history: per-epoch tokenizer losses.
-        policy_histories: task -> per-epoch policy losses and token accuracies.
+        policy_histories: task -> policy family -> per-epoch losses (and CARP's token accuracies); their
+            ``epoch_seconds`` sum to the training wall time of the comparison table.
         reconstruction_figure: raw vs reconstructed actions PNG.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
         versions: package -> version (robosuite, mujoco, torch, ...).
@@ -48,10 +49,10 @@ class ReportInputs:
         params_yaml: the params file's text.
     """
 
-    evaluation: Mapping[str, Mapping]
+    evaluation: Mapping[str, Mapping[str, Mapping]]
     tokenizer_metrics: Mapping | None = None
     tokenizer_history: pd.DataFrame | None = None
-    policy_histories: Mapping[str, pd.DataFrame] = field(default_factory=dict)
+    policy_histories: Mapping[str, Mapping[str, pd.DataFrame]] = field(default_factory=dict)
     reconstruction_figure: Path | None = None
     sweep_trials: pd.DataFrame | None = None
     versions: Mapping[str, str] = field(default_factory=dict)
@@ -59,23 +60,63 @@ class ReportInputs:
     params_yaml: str = ""
 
 
-def success_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
-    """One row per task: successes, rate, 95% Wilson interval, mean episode length, token choice."""
+CONTROL_STEPS = 400
+"""Control steps of the Table-1-style inference budget (the paper's supplementary table 1: 400 steps)."""
+
+
+def comparison_table(
+    evaluations: Mapping[str, Mapping], histories: Mapping[str, pd.DataFrame] | None = None
+) -> pd.DataFrame:
+    """One task's row per policy family: success with its 95% Wilson interval, latency, model calls, size, backend.
+
+    Args:
+        evaluations: policy family -> that family's evaluation metrics on the task.
+        histories: policy family -> its training history; the ``epoch_seconds`` sum is the training wall time.
+    """
     rows = []
-    for task, metrics in evaluation.items():
+    for policy, metrics in evaluations.items():
         successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
         lower, upper = wilson_interval(successes, episodes)
+        history = (histories or {}).get(policy)
+        seconds = float(history["epoch_seconds"].sum()) if history is not None and "epoch_seconds" in history else None
         rows.append(
             {
-                "task": task,
+                "policy": policy,
+                "inference": metrics.get("inference") or token_choice(metrics.get("top_k")),
                 "success": f"{successes}/{episodes}",
                 "rate": f"{100 * successes / episodes:.1f}%",
                 "95% interval": f"{100 * lower:.1f}-{100 * upper:.1f}%",
-                "mean steps": f"{metrics.get('mean_episode_steps', float('nan')):.0f}",
                 "crashed": int(metrics.get("crashed_episodes", 0)),
-                "decoding": token_choice(metrics.get("top_k")),
+                "predict ms (median / p90)": _pair(metrics, "latency_predict_ms"),
+                "decode ms (median / p90)": _pair(metrics, "latency_decode_ms"),
+                "model calls": _integer(metrics.get("model_calls_per_chunk")),
+                "parameters": _integer(metrics.get("num_parameters")),
+                "training": "-" if seconds is None else f"{seconds / 60:.1f} min",
+                "backend": metrics.get("backend", "-"),
             }
         )
+    return pd.DataFrame(rows)
+
+
+def success_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFrame:
+    """One row per (task, policy): successes, rate, 95% Wilson interval, mean episode length, inference setting."""
+    rows = []
+    for task, policies in evaluation.items():
+        for policy, metrics in policies.items():
+            successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
+            lower, upper = wilson_interval(successes, episodes)
+            rows.append(
+                {
+                    "task": task,
+                    "policy": policy,
+                    "success": f"{successes}/{episodes}",
+                    "rate": f"{100 * successes / episodes:.1f}%",
+                    "95% interval": f"{100 * lower:.1f}-{100 * upper:.1f}%",
+                    "mean steps": f"{metrics.get('mean_episode_steps', float('nan')):.0f}",
+                    "crashed": int(metrics.get("crashed_episodes", 0)),
+                    "decoding": metrics.get("inference") or token_choice(metrics.get("top_k")),
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -86,25 +127,86 @@ def token_choice(top_k: float | None) -> str:
     return "greedy" if int(top_k) == 1 else f"top-{int(top_k)} draws"
 
 
-def latency_table(evaluation: Mapping[str, Mapping]) -> pd.DataFrame:
-    """Per task: per-chunk latency (ms) of prediction and decoding, at batch 1 in rollouts and batched."""
+def latency_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFrame:
+    """Per (task, policy): per-chunk latency (ms) of prediction and decoding, at batch 1 in rollouts and batched."""
     rows = []
-    for task, metrics in evaluation.items():
-        for setting, prefix in (("batch 1 (rollouts)", "latency"), ("batched", "batched_latency")):
-            if f"{prefix}_predict_ms_median" not in metrics:
-                continue
-            batch = metrics.get("batched_latency_batch_size", "") if prefix == "batched_latency" else 1
-            rows.append(
-                {
-                    "task": task,
-                    "setting": f"{setting}" + (f", B={batch}" if prefix == "batched_latency" else ""),
-                    "predict median": f"{metrics[f'{prefix}_predict_ms_median']:.2f}",
-                    "predict p90": f"{metrics[f'{prefix}_predict_ms_p90']:.2f}",
-                    "decode median": f"{metrics[f'{prefix}_decode_ms_median']:.2f}",
-                    "decode p90": f"{metrics[f'{prefix}_decode_ms_p90']:.2f}",
-                }
-            )
+    for task, policies in evaluation.items():
+        for policy, metrics in policies.items():
+            for setting, prefix in (("batch 1 (rollouts)", "latency"), ("batched", "batched_latency")):
+                if f"{prefix}_predict_ms_median" not in metrics:
+                    continue
+                batch = metrics.get("batched_latency_batch_size", "") if prefix == "batched_latency" else 1
+                backend = metrics.get("backend", "-") if prefix == "latency" else "torch"
+                rows.append(
+                    {
+                        "task": task,
+                        "policy": policy,
+                        "setting": f"{setting}" + (f", B={batch}" if prefix == "batched_latency" else ""),
+                        "backend": backend,
+                        "predict median": f"{metrics[f'{prefix}_predict_ms_median']:.2f}",
+                        "predict p90": f"{metrics[f'{prefix}_predict_ms_p90']:.2f}",
+                        "decode median": f"{metrics[f'{prefix}_decode_ms_median']:.2f}",
+                        "decode p90": f"{metrics[f'{prefix}_decode_ms_p90']:.2f}",
+                    }
+                )
     return pd.DataFrame(rows)
+
+
+def inference_budget_lines(evaluation: Mapping[str, Mapping[str, Mapping]]) -> list[str]:
+    """Table-1-style lines: per (task, policy), total inference time over `CONTROL_STEPS` control steps.
+
+    A chunk is predicted every ``action_steps`` (Ta) control steps, so 400 steps take ``ceil(400 / Ta)`` chunks at
+    the median batch-1 latency of prediction plus decoding.
+    """
+    lines = []
+    for task, policies in evaluation.items():
+        for policy, metrics in policies.items():
+            if "latency_predict_ms_median" not in metrics or "action_steps" not in metrics:
+                continue
+            chunks = -(-CONTROL_STEPS // int(metrics["action_steps"]))
+            chunk_ms = metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
+            lines.append(
+                f"{task}, {policy} ({metrics.get('inference', '-')}, {metrics.get('backend', '-')}): "
+                f"{chunks * chunk_ms / 1000:.2f} s of inference over {CONTROL_STEPS} control steps "
+                f"({chunks} chunks of {chunk_ms:.2f} ms)"
+            )
+    return lines
+
+
+def plot_success_against_latency(evaluation: Mapping[str, Mapping[str, Mapping]], path: Path) -> Path:
+    """Success rate (with its 95% interval) against batch-1 latency per chunk on a log axis; one point per pair."""
+    figure, axis = plt.subplots(figsize=(6, 3.6))
+    for task, policies in evaluation.items():
+        for policy, metrics in policies.items():
+            if "latency_predict_ms_median" not in metrics:
+                continue
+            successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
+            lower, upper = wilson_interval(successes, episodes)
+            rate = successes / episodes
+            latency = metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
+            axis.errorbar(
+                [latency],
+                [100 * rate],
+                yerr=[[100 * (rate - lower)], [100 * (upper - rate)]],
+                fmt="o",
+                capsize=3,
+                label=f"{task}: {policy}",
+            )
+    axis.set_xscale("log")
+    axis.set_xlabel("latency per chunk at batch 1 (ms, log scale)")
+    axis.set_ylabel("success rate (%)")
+    axis.set_ylim(0, 105)
+    return _finish(figure, axis, path)
+
+
+def _pair(metrics: Mapping, prefix: str) -> str:
+    if f"{prefix}_median" not in metrics:
+        return "-"
+    return f"{metrics[f'{prefix}_median']:.2f} / {metrics[f'{prefix}_p90']:.2f}"
+
+
+def _integer(value: float | None) -> str:
+    return "-" if value is None else f"{int(value):,}"
 
 
 TOKENIZER_COLUMNS = {
@@ -172,18 +274,35 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     """Assemble the report's sections; figures are written into ``figures_dir``."""
     sections = [
         Section(
+            f"Policies on {task}",
+            paragraphs=[
+                "Episodes with fixed seeds disjoint from the collection seeds, the same for every policy; success is "
+                "the env's own check, with its 95% Wilson interval. Latency per chunk at batch 1 in the rollouts, "
+                "split into prediction and decoding; model calls are the sequential network calls per chunk "
+                "(K scales, L tokens or N denoising steps); the backend ran the rollouts."
+            ],
+            tables=[comparison_table(policies, inputs.policy_histories.get(task))],
+        )
+        for task, policies in inputs.evaluation.items()
+    ]
+    sections += [
+        Section(
             "Success rate",
             paragraphs=[
                 "Episodes with fixed seeds disjoint from the collection seeds; success is the env's own check."
             ],
             tables=[success_table(inputs.evaluation)],
+            figures=[plot_success_against_latency(inputs.evaluation, figures_dir / "success_vs_latency.png")],
         ),
         Section(
             "Inference latency per chunk (ms)",
             paragraphs=[
-                "Prediction is the coarse-to-fine token prediction; decoding turns tokens into actions. Rollouts run "
-                "one environment per worker with the backend of `eval.backend` (default: the exported ONNX graphs on "
-                "ONNX Runtime, greedy or top-k alike); the batched row is the PyTorch policy."
+                "Prediction is everything up to the family's decoding step (CARP: the coarse-to-fine token "
+                "prediction; a diffusion policy: the denoising loop); decoding turns the prediction into actions. "
+                "Rollouts run one environment per worker with the backend named in each row (CARP: the exported "
+                "ONNX graphs on ONNX Runtime unless `eval.backend` is torch; the baselines: PyTorch in inference "
+                "mode); the batched rows are the PyTorch policies.",
+                *inference_budget_lines(inputs.evaluation),
             ],
             tables=[latency_table(inputs.evaluation)],
         ),
@@ -208,20 +327,26 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         curves.figures.append(
             plot_curves(inputs.tokenizer_history, columns, "tokenizer", figures_dir / "tokenizer_curves.png")
         )
-    for task, history in inputs.policy_histories.items():
-        if history.empty:
-            continue
-        columns = [c for c in history.columns if c.endswith("loss")]
-        curves.figures.append(
-            plot_curves(history, columns, f"policy ({task})", figures_dir / f"policy_{task}_loss.png")
-        )
-        accuracy = [c for c in history.columns if c.startswith("token_accuracy")]
-        if accuracy:
+    for task, histories in inputs.policy_histories.items():
+        for policy, history in histories.items():
+            if history.empty:
+                continue
+            name = f"{task}_{policy}"
+            columns = [c for c in history.columns if c.endswith("loss")]
             curves.figures.append(
-                plot_curves(
-                    history, accuracy, f"token accuracy ({task})", figures_dir / f"policy_{task}_acc.png", False
-                )
+                plot_curves(history, columns, f"{policy} ({task})", figures_dir / f"policy_{name}_loss.png")
             )
+            accuracy = [c for c in history.columns if c.startswith("token_accuracy")]
+            if accuracy:
+                curves.figures.append(
+                    plot_curves(
+                        history,
+                        accuracy,
+                        f"token accuracy, {policy} ({task})",
+                        figures_dir / f"policy_{name}_acc.png",
+                        False,
+                    )
+                )
     if curves.figures:
         sections.append(curves)
 

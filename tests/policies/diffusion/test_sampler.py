@@ -2,7 +2,7 @@ import pytest
 import torch
 from torch import nn
 
-from carp.policies.diffusion.config import DiffusionUNetConfig
+from carp.policies.diffusion.config import DiffusionUNetConfig, SamplingConfig
 from carp.policies.diffusion.sampler import DiffusionSampler
 from carp.policies.diffusion.unet import ConditionalUNet1D
 
@@ -102,12 +102,10 @@ def test_trained_denoiser_produces_both_modes_where_a_regressor_averages_them():
     # few hundred training steps within a few seconds on one CPU thread.
     torch.manual_seed(0)
     horizon, batch = 4, 64
-    config = DiffusionUNetConfig(
-        down_dims=(16,), kernel_size=3, num_groups=8, step_embedding_dim=16, sampler="ddim", num_inference_steps=10
-    )
+    config = DiffusionUNetConfig(down_dims=(16,), kernel_size=3, num_groups=8, step_embedding_dim=16)
     denoiser = ConditionalUNet1D(config, action_dim=1, obs_dim=1, obs_steps=1)
     regressor = nn.Sequential(nn.Linear(1, 32), nn.Mish(), nn.Linear(32, horizon))
-    sampler = DiffusionSampler.from_config(config)
+    sampler = DiffusionSampler.from_config(config, SamplingConfig(sampler="ddim", num_inference_steps=10))
     generator = torch.Generator().manual_seed(0)
     obs = torch.zeros(batch, 1, 1)
     denoiser_optimizer = torch.optim.AdamW(denoiser.parameters(), lr=3e-3)

@@ -5,11 +5,11 @@ import torch
 import torch.nn.functional as F
 
 from carp.config import ConfigError
-from carp.policies.next_token.config import NextTokenConfig
+from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.generation import generate_actions, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policy.transformer import CoarseToFineTransformer
-from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
 
 SCALES = (1, 2, 3)
 A, V = 2, 8
@@ -142,7 +142,7 @@ def test_transformer_blocks_are_the_size_of_carps():
 def test_bad_config_values_are_refused_with_the_dotted_key():
     with pytest.raises(ConfigError, match=r"^next_token.num_heads=3: must divide width=64"):
         NextTokenConfig(num_heads=3)
-    with pytest.raises(ConfigError, match=r"^next_token.top_k=0: must be an integer >= 1"):
-        NextTokenConfig(top_k=0)
+    with pytest.raises(ConfigError, match=r"^inference.next_token.top_k=0: must be an integer >= 1"):
+        NextTokenInference(top_k=0)
     with pytest.raises(ConfigError, match=r"^next_token.dropout=1.0: must be in \[0, 1\)"):
         NextTokenConfig(dropout=1.0)

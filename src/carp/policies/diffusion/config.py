@@ -1,9 +1,11 @@
 """Configs of the two Diffusion Policy families, one frozen dataclass each, validated at construction.
 
 Each config is the family's params section (`diffusion_unet`, `diffusion_transformer`) and what its checkpoint
-stores: the denoiser's shape, the noise schedule and sampler, and DP's optimizer and EMA recipe. Shapes that come
-from the data (`Do`, `To`, `H`, `A`) are passed to the models separately. Loop settings shared by every family (epochs,
-batch size, checkpoints, seed) are left to the training loop's section. Defaults are those of the official lowdim
+stores: the denoiser's shape, the training noise schedule, and DP's optimizer and EMA recipe. The inference sampler
+is the separate section `inference.<family>` (:class:`SamplingConfig`): it changes evaluation only, so DVC reruns
+evaluation and not training when it changes. Shapes that come from the data (`Do`, `To`, `H`, `A`) are passed to the
+models separately. Loop settings shared by every family (epochs, batch size, checkpoints, seed) are the `training`
+section. Defaults are those of the official lowdim
 configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transformer_lowdim_workspace.yaml`).
 """
 
@@ -26,31 +28,27 @@ def _require_positive_int(section: str, name: str, value: Any) -> None:
 
 @dataclass(frozen=True)
 class DenoisingConfig:
-    """Noise schedule, sampler, optimizer and EMA fields shared by both Diffusion Policy families.
+    """Noise schedule, optimizer and EMA fields shared by both Diffusion Policy families.
 
     The schedule itself is fixed to DP's: squared-cosine betas (`squaredcos_cap_v2`), epsilon prediction, denoised
     estimates clipped to [-1, 1] (actions are min-max normalized to that range). See `carp.policies.diffusion.sampler`.
 
     Attributes:
-        num_train_steps: diffusion steps of the training noise schedule (DP: 100); integer >= 1.
-        sampler: inference sampler, `ddpm` (DP's protocol: ancestral sampling) or `ddim` (deterministic given the
-            initial noise, fewer steps).
-        num_inference_steps: denoiser calls per action chunk, integer in [1, num_train_steps]; DDPM with fewer
-            steps than training strides the schedule.
-        learning_rate: peak AdamW learning rate, > 0.
-        weight_decay: AdamW weight decay, >= 0.
-        warmup_steps: optimizer steps of linear learning-rate warmup before the cosine decay, integer >= 0.
-        use_ema: evaluate an exponential moving average of the weights (DP does), see `carp.policies.diffusion.ema`.
-        ema_power: exponent of the EMA warmup: the decay after n updates is `1 - n ** -ema_power`, capped at
-            `ema_max_decay`; in (0, 1].
-        ema_max_decay: largest EMA decay, in [0, 1).
+        num_train_steps: Diffusion steps of the training noise schedule (DP: 100); an integer >= 1.
+        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 1%
+            of the peak; a number > 0.
+        weight_decay: AdamW weight decay of the weight matrices; a number >= 0.
+        warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0.
+        use_ema: Evaluate an exponential moving average of the weights, as DP does (see
+            `carp.policies.diffusion.ema`); true or false.
+        ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
+            ``ema_max_decay``; a number in (0, 1].
+        ema_max_decay: Largest EMA decay; a number in [0, 1).
     """
 
     SECTION: ClassVar[str] = "diffusion"
 
     num_train_steps: int = 100
-    sampler: str = "ddpm"
-    num_inference_steps: int = 100
     learning_rate: float = 1e-4
     weight_decay: float = 1e-6
     warmup_steps: int = 500
@@ -61,14 +59,6 @@ class DenoisingConfig:
     def __post_init__(self) -> None:
         section = self.SECTION
         _require_positive_int(section, "num_train_steps", self.num_train_steps)
-        _require(self.sampler in SAMPLERS, f"{section}.sampler", self.sampler, f"must be one of {SAMPLERS}")
-        _require_positive_int(section, "num_inference_steps", self.num_inference_steps)
-        _require(
-            self.num_inference_steps <= self.num_train_steps,
-            f"{section}.num_inference_steps",
-            self.num_inference_steps,
-            f"must be at most num_train_steps={self.num_train_steps}",
-        )
         _require(self.learning_rate > 0, f"{section}.learning_rate", self.learning_rate, "must be > 0")
         _require(self.weight_decay >= 0, f"{section}.weight_decay", self.weight_decay, "must be >= 0")
         _require(
@@ -83,6 +73,71 @@ class DenoisingConfig:
 
 
 @dataclass(frozen=True)
+class SamplingConfig:
+    """How a Diffusion Policy family denoises at evaluation (the section `inference.<family>`).
+
+    Attributes:
+        sampler: ``ddpm`` (DP's protocol: ancestral sampling) or ``ddim`` (deterministic given the initial noise, so
+            fewer steps suffice). The report names each row's sampler, e.g. ``DDPM-100`` or ``DDIM-10``.
+        num_inference_steps: Denoiser calls per action chunk; an integer between 1 and the family's
+            ``num_train_steps``. DDPM with fewer steps than training strides the schedule.
+    """
+
+    SECTION: ClassVar[str] = "diffusion"
+
+    sampler: str = "ddpm"
+    num_inference_steps: int = 100
+
+    def __post_init__(self) -> None:
+        key = f"inference.{self.SECTION}"
+        _require(self.sampler in SAMPLERS, f"{key}.sampler", self.sampler, f"must be one of {SAMPLERS}")
+        _require_positive_int(key, "num_inference_steps", self.num_inference_steps)
+
+    def settings_for(self, task: str) -> dict[str, Any]:
+        """Keyword arguments of `DiffusionPolicy.configure_inference` (the same for every task)."""
+        return {"sampler": self.sampler, "num_inference_steps": self.num_inference_steps}
+
+    def check_with(self, params: Any) -> None:
+        """Refuse more denoising steps than the family's training schedule has."""
+        train_steps = params.family_config(self.SECTION).num_train_steps
+        _require(
+            self.num_inference_steps <= train_steps,
+            f"inference.{self.SECTION}.num_inference_steps",
+            self.num_inference_steps,
+            f"must be at most {self.SECTION}.num_train_steps={train_steps}",
+        )
+
+
+@dataclass(frozen=True)
+class DiffusionUNetSampling(SamplingConfig):
+    """How DP-C denoises at evaluation (``inference.diffusion_unet``); see :class:`SamplingConfig`.
+
+    Attributes:
+        sampler: ``ddpm`` (DP's protocol: ancestral sampling) or ``ddim`` (deterministic given the initial noise, so
+            fewer steps suffice). At paper size DDPM-100 costs seconds per chunk on a CPU core; DDIM-10 is the
+            CPU-friendly alternative, and the report names each row's sampler.
+        num_inference_steps: Denoiser calls per action chunk; an integer between 1 and
+            ``diffusion_unet.num_train_steps``.
+    """
+
+    SECTION: ClassVar[str] = "diffusion_unet"
+
+
+@dataclass(frozen=True)
+class DiffusionTransformerSampling(SamplingConfig):
+    """How DP-T denoises at evaluation (``inference.diffusion_transformer``); see :class:`SamplingConfig`.
+
+    Attributes:
+        sampler: ``ddpm`` (DP's protocol: ancestral sampling) or ``ddim`` (deterministic given the initial noise, so
+            fewer steps suffice); the report names each row's sampler.
+        num_inference_steps: Denoiser calls per action chunk; an integer between 1 and
+            ``diffusion_transformer.num_train_steps``.
+    """
+
+    SECTION: ClassVar[str] = "diffusion_transformer"
+
+
+@dataclass(frozen=True)
 class DiffusionUNetConfig(DenoisingConfig):
     """DP-C: the 1-D temporal convolutional U-Net with FiLM conditioning (`carp.policies.diffusion.unet`).
 
@@ -90,14 +145,24 @@ class DiffusionUNetConfig(DenoisingConfig):
     (64, 128, 256) gives a CPU-sized variant of 5.4 M. The count does not depend on the horizon.
 
     Attributes:
-        down_dims: channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
-            divisible by `num_groups`. The horizon must be divisible by `2 ** (len(down_dims) - 1)`.
-        kernel_size: temporal kernel of the residual blocks' convolutions, odd integer >= 1 (odd keeps the
+        num_train_steps: Diffusion steps of the training noise schedule (DP: 100); an integer >= 1.
+        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 1%
+            of the peak; a number > 0.
+        weight_decay: AdamW weight decay of the weight matrices; a number >= 0 (DP's default: 1e-6).
+        warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0
+            (DP's default: 500).
+        use_ema: Evaluate an exponential moving average of the weights, as DP does (see
+            `carp.policies.diffusion.ema`); true or false.
+        ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
+            ``ema_max_decay``; a number in (0, 1].
+        ema_max_decay: Largest EMA decay; a number in [0, 1).
+        down_dims: Channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
+            divisible by ``num_groups``. The horizon must be divisible by ``2 ** (len(down_dims) - 1)``.
+        kernel_size: Temporal kernel of the residual blocks' convolutions; an odd integer >= 1 (odd keeps the
             horizon unchanged with symmetric padding).
-        num_groups: GroupNorm groups of every convolution block, integer >= 1.
-        step_embedding_dim: width of the sinusoidal diffusion-step embedding and of the MLP that follows it,
+        num_groups: GroupNorm groups of every convolution block; an integer >= 1.
+        step_embedding_dim: Width of the sinusoidal diffusion-step embedding and of the MLP that follows it; an
             even integer >= 4.
-        (and the fields of :class:`DenoisingConfig`, DP-C's defaults: weight decay 1e-6, 500 warmup steps.)
     """
 
     SECTION: ClassVar[str] = "diffusion_unet"
@@ -146,13 +211,23 @@ class DiffusionTransformerConfig(DenoisingConfig):
     horizon H = 10 and 8,969,994 at H = 16: only the action position embedding grows, by `width` per action.
 
     Attributes:
-        num_layers: decoder layers, integer >= 1.
-        num_heads: attention heads, integer >= 1 dividing `width`.
-        width: token width, integer >= 1.
-        embedding_dropout: dropout on the token and condition embeddings in training, in [0, 1).
-        attention_dropout: dropout inside every decoder layer (attention weights, residual branches) in training,
-            in [0, 1).
-        (and the fields of :class:`DenoisingConfig`, DP-T's defaults: weight decay 1e-3, 1000 warmup steps.)
+        num_train_steps: Diffusion steps of the training noise schedule (DP: 100); an integer >= 1.
+        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 1%
+            of the peak; a number > 0.
+        weight_decay: AdamW weight decay of the weight matrices; a number >= 0 (DP's default: 1e-3).
+        warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0
+            (DP's default: 1000).
+        use_ema: Evaluate an exponential moving average of the weights, as DP does (see
+            `carp.policies.diffusion.ema`); true or false.
+        ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
+            ``ema_max_decay``; a number in (0, 1].
+        ema_max_decay: Largest EMA decay; a number in [0, 1).
+        num_layers: Transformer decoder layers of the denoiser; an integer >= 1.
+        num_heads: Attention heads of every layer; an integer >= 1 dividing ``width``.
+        width: Token width of the action and condition tokens; an integer >= 1.
+        embedding_dropout: Dropout on the token and condition embeddings during training; a number in [0, 1).
+        attention_dropout: Dropout inside every decoder layer (attention weights, residual branches) during training;
+            a number in [0, 1).
     """
 
     SECTION: ClassVar[str] = "diffusion_transformer"
@@ -180,3 +255,8 @@ class DiffusionTransformerConfig(DenoisingConfig):
         for name in ("embedding_dropout", "attention_dropout"):
             value = getattr(self, name)
             _require(0.0 <= value < 1.0, f"{section}.{name}", value, "must be in [0, 1)")
+
+
+UNET_SECTIONS = (DiffusionUNetConfig, DiffusionUNetSampling)
+TRANSFORMER_SECTIONS = (DiffusionTransformerConfig, DiffusionTransformerSampling)
+"""The registry's view of this module: each family's section and its `inference.<family>` section."""

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from diffusers import DDIMScheduler, DDPMScheduler
 
-from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig
+from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig, SamplingConfig
 
 BETA_SCHEDULE = "squaredcos_cap_v2"
 CLIP_RANGE = 1.0
@@ -84,9 +84,9 @@ class DiffusionSampler:
         self._step_values = tuple(self.steps.unbind(0))
 
     @classmethod
-    def from_config(cls, config: DenoisingConfig) -> "DiffusionSampler":
-        """The sampler a family's config describes."""
-        return cls(config.num_train_steps, config.sampler, config.num_inference_steps)
+    def from_config(cls, config: DenoisingConfig, sampling: SamplingConfig) -> "DiffusionSampler":
+        """The sampler of a family's config (training schedule) and inference section (sampler, steps)."""
+        return cls(config.num_train_steps, sampling.sampler, sampling.num_inference_steps)
 
     def _ddpm(self) -> DDPMScheduler:
         return DDPMScheduler(

@@ -1,14 +1,14 @@
 """Token-by-token inference of the next-token transformer: L steps with a kv-cache, then the tokenizer's decoding.
 
 Each step scores one token, chooses it (argmax, or a draw among the top k with CARP's Gumbel-max helpers from
-`carp.policy.sampling`, the chunk's uniforms drawn up front) and feeds it back. The condition, the AdaLN
+`carp.policies.carp.sampling`, the chunk's uniforms drawn up front) and feeds it back. The condition, the AdaLN
 modulations and the position embeddings are computed once per chunk by `start_generation`.
 """
 
 import torch
 
+from carp.policies.carp.sampling import check_top_k, sampling_uniforms, select_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policy.sampling import check_top_k, sampling_uniforms, select_tokens
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 

@@ -1,14 +1,14 @@
 """Next-token autoregressive transformer: CARP's tokens and network, predicted one token at a time.
 
 The conventional next-token baseline of the CARP paper (supplementary, section E): the same registered tokenizer,
-the same transformer size and conditioning as CARP (`carp.policy.transformer`), but a causal mask over single tokens
-and L sequential steps per chunk instead of K scale steps.
+the same transformer size and conditioning as CARP (`carp.policies.carp.transformer`), but a causal mask over single
+tokens and L sequential steps per chunk instead of K scale steps.
 
-Token order: CARP's own flattened sequence (`carp.policy.layout.TokenLayout`): coarse-to-fine scale by scale, within
-a scale position by position, within a position dimension by dimension. Keeping CARP's order and token ids isolates
-the one difference the comparison is about, the number of tokens per step: the coarse scales still come first, so
-the baseline also keeps CARP's coarse-to-fine prior, and every token id still belongs to dimension `i % A`'s
-vocabulary, so CARP's per-dimension head applies unchanged.
+Token order: CARP's own flattened sequence (`carp.policies.carp.layout.TokenLayout`): coarse-to-fine scale by scale,
+within a scale position by position, within a position dimension by dimension. Keeping CARP's order and token ids
+isolates the one difference the comparison is about, the number of tokens per step: the coarse scales still come
+first, so the baseline also keeps CARP's coarse-to-fine prior, and every token id still belongs to dimension
+`i % A`'s vocabulary, so CARP's per-dimension head applies unchanged.
 
 Inputs: a GPT-style shifted sequence. Position 0 reads the condition plus a learned start embedding (CARP's first
 scale input); position i > 0 reads a learned embedding of token i - 1, one table row per (dimension, id) pair, since
@@ -18,7 +18,7 @@ for multi-task policies) is projected to `D` and modulates every block through A
 replace CARP's projected, area-downsampled tokenizer latents because the latent of a partly predicted scale is not
 defined one token at a time.
 
-Blocks, the kv-cache, the mask type and the head are CARP's, imported from `carp.policy.blocks`.
+Blocks, the kv-cache, the mask type and the head are CARP's, imported from `carp.policies.carp.blocks`.
 """
 
 import math
@@ -28,16 +28,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from carp.policies.next_token.config import NextTokenConfig
-from carp.policy.blocks import (
+from carp.policies.carp.blocks import (
     MODULATIONS_PER_BLOCK,
     AdaptiveBlock,
     KeyValueCache,
     PerDimensionHead,
     modulate,
 )
-from carp.policy.layout import TokenLayout
-from carp.policy.spec import TASK_EMBEDDING_DIM
+from carp.policies.carp.layout import TokenLayout
+from carp.policies.carp.spec import TASK_EMBEDDING_DIM
+from carp.policies.next_token.config import NextTokenConfig
 
 EMBEDDING_INIT_STD = 0.02
 GATE_INIT_GAIN = 1e-5

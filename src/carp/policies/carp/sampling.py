@@ -8,14 +8,14 @@ f_hat area-downsampled to the next scale becomes the next input.
 Top-k draws use the Gumbel-max trick: with u uniform in (0, 1), argmax over the k largest logits of
 ``logit - log(-log(u))`` is a draw from the softmax over those k logits. The uniforms of a whole chunk, (B, L, k), are
 drawn up front from the generator (:func:`sampling_uniforms`), so the exported ONNX graph
-(`carp.evaluation.onnx_policy`), which takes them as an input, chooses the same tokens as this module.
+(`carp.policies.carp.onnx_policy`), which takes them as an input, chooses the same tokens as this module.
 """
 
 from dataclasses import dataclass
 
 import torch
 
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 

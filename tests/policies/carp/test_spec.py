@@ -1,7 +1,7 @@
 import pytest
 
-from carp.policy.spec import PolicySpec
-from tests.policy.factories import tiny_policy_spec
+from carp.policies.carp.spec import PolicySpec
+from tests.policies.carp.factories import tiny_policy_spec
 
 
 def test_derived_sizes_of_default_config():

@@ -5,11 +5,11 @@ import pytest
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policy.policy import CarpPolicy
-from carp.policy.sampling import generate_chunk
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.sampling import generate_chunk
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import CheckpointError
-from tests.policy.factories import (
+from tests.policies.carp.factories import (
     OBS_DIM,
     OBS_STEPS,
     scrambled_transformer,
@@ -42,9 +42,10 @@ def test_predict_action_normalizes_predicts_decodes_and_unnormalizes():
 
 def test_timed_prediction_reports_both_durations():
     policy = tiny_policy()
-    actions, prediction_seconds, decoding_seconds = policy.predict_action_timed(_raw_obs(policy, 1))
+    actions, prediction_seconds, decoding_seconds, model_calls = policy.predict_action_timed(_raw_obs(policy, 1))
     assert actions.shape == (1, 8, 2)
     assert 0 < prediction_seconds < 5 and 0 < decoding_seconds < 5
+    assert model_calls == len(policy.spec.scales)
 
 
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
@@ -140,9 +141,13 @@ DAMAGED_POLICIES = {
         lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.pop("tokenizer_sha256")),
         "policy checkpoint lacks the entry 'tokenizer_sha256'",
     ),
+    "unknown policy type": (
+        lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.update(policy_type="lstm")),
+        "policy_type='lstm': unknown policy family 'lstm' (known: carp",
+    ),
     "another format version": (
         lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.update(format_version=1)),
-        "policy checkpoint has format_version 1, this code reads version 2",
+        "policy checkpoint has format_version 1, this code reads version 3",
     ),
 }
 
@@ -202,3 +207,21 @@ def test_batch_of_envs_equals_one_by_one():
     batched = policy.predict_action(obs)
     for index in range(3):
         np.testing.assert_allclose(policy.predict_action(obs[index : index + 1]), batched[index : index + 1], atol=1e-5)
+
+
+def test_training_loss_is_the_trainers_teacher_forced_cross_entropy():
+    from carp.policies.carp.trainer import compute_token_targets, teacher_forced_loss
+
+    policy = tiny_policy()
+    generator = torch.Generator().manual_seed(0)
+    batch = {
+        "obs": torch.rand(6, 2, 3, generator=generator),
+        "actions": torch.rand(6, 8, 2, generator=generator) * 2 - 1,
+    }
+    targets = compute_token_targets(policy.tokenizer, batch["actions"])
+    expected, _ = teacher_forced_loss(
+        policy.transformer, batch["obs"], targets.teacher_inputs, targets.token_sequence, None, torch.float32
+    )
+    torch.testing.assert_close(policy.training_loss(batch), expected)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the tokens do not depend on the loop's autocast
+        assert torch.isfinite(policy.training_loss(batch))

@@ -1,12 +1,17 @@
 """Tiny tokenizer and transformer factories shared by the policy and policy-trainer tests."""
 
+import dataclasses
+
 import numpy as np
 import torch
 
+from carp.config import TrainingConfig
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policy.policy import CarpPolicy
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.policy import CarpPolicy
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.trainer import train_policy
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -78,3 +83,23 @@ def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, **overrides) ->
         MinMaxNormalizer(action_min, np.array([3.0, 0.5])),
         metadata={"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}},
     )
+
+
+def train_transformer(spec, tokenizer, data, settings: dict, checkpoint_dir, on_epoch_end=None):
+    """`carp.policies.carp.trainer.train_policy` with its config and loop settings given as one flat mapping.
+
+    Keys of `CarpConfig` go to the config, keys of `TrainingConfig` to the loop, `device` (default cpu) to the device.
+    """
+    return train_policy(
+        spec, tokenizer, data, checkpoint_dir=checkpoint_dir, on_epoch_end=on_epoch_end, **trainer_settings(**settings)
+    )
+
+
+def trainer_settings(device: str = "cpu", **values) -> dict:
+    """Keyword arguments `config`, `training` and `device` of the trainer from one flat mapping of settings."""
+    config_keys = {field.name for field in dataclasses.fields(CarpConfig)}
+    return {
+        "config": CarpConfig(**{key: value for key, value in values.items() if key in config_keys}),
+        "training": TrainingConfig(**{key: value for key, value in values.items() if key not in config_keys}),
+        "device": device,
+    }

@@ -10,8 +10,8 @@ Two graphs are exported, so that prediction and decoding stay separately timed:
 - prediction: raw observations (1, To, Do) [and the task index (1,)] [and, for top-k sampling, the chunk's
   uniforms (1, L, k)] -> f_hat (1, A, C, l) and the chosen token sequence (1, L). Normalization, the condition, then
   K next-scale steps with a key/value cache that grows by concatenation (every scale's shapes are static), each
-  step's tokens chosen (argmax, or the Gumbel-max draw of `carp.policy.sampling.gumbel_top_k` from the uniforms the
-  caller drew) and embedded by the tokenizer's quantizer.
+  step's tokens chosen (argmax, or the Gumbel-max draw of `carp.policies.carp.sampling.gumbel_top_k` from the
+  uniforms the caller drew) and embedded by the tokenizer's quantizer.
 - decoding: f_hat (1, A, C, l) -> raw actions (1, H, A): the tokenizer decoder and un-normalization.
 
 The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` and the blocks' forward for batch
@@ -19,13 +19,14 @@ The prediction graph restates :meth:`CoarseToFineTransformer.next_scale_logits` 
 (one node instead of three), and attention is written out so that the exported graph has no shape arithmetic.
 Folding the gates into the output projections as well is slower: ONNX Runtime pre-packs constant weights only.
 Every learned piece (condition encoder, projections, head, tokenizer) is the policy's own module.
-`tests/evaluation/test_onnx_policy.py` checks that both paths choose the same tokens and return the same actions,
+`tests/policies/carp/test_onnx_policy.py` checks that both paths choose the same tokens and return the same actions,
 greedy and sampled (the same generator gives the same uniforms, hence the same draws).
 
 `top_k` is fixed when the graphs are exported; batches run through `CarpPolicy`.
 """
 
 import copy
+import json
 import math
 import os
 import time
@@ -38,12 +39,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policy.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
-from carp.policy.policy import CarpPolicy, TimedPrediction
-from carp.policy.sampling import check_top_k, gumbel_top_k, sampling_uniforms
+from carp.policies.base import TimedPrediction
+from carp.policies.carp.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
+from carp.policies.carp.policy import POLICY_TYPE, CarpPolicy
+from carp.policies.carp.sampling import check_top_k, gumbel_top_k, sampling_uniforms
 
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"
+SUMMARY_FILE = "policy.json"
 ONNX_OPSET = 18
 
 
@@ -212,11 +215,20 @@ def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) ->
     _export(prediction, tuple(inputs), names, ["latent", "tokens"], directory / PREDICTION_FILE)
     latent = policy.tokenizer.empty_latent(1)
     _export(DecodingGraph(policy), (latent,), ["latent"], ["actions"], directory / DECODING_FILE)
+    # What the graphs cannot tell: the report's per-row facts about the policy they came from.
+    summary = {
+        "model_calls_per_chunk": policy.model_calls_per_chunk,
+        "num_parameters": policy.num_parameters,
+        "metadata": policy.metadata,
+    }
+    (directory / SUMMARY_FILE).write_text(json.dumps(summary))
     return directory
 
 
 class OnnxPolicy:
     """Runs the graphs of :func:`export_policy_graphs` on one CPU thread, one environment at a time.
+
+    A :class:`~carp.policies.base.Policy` for prediction (it cannot be trained or saved).
 
     Args:
         directory: where :func:`export_policy_graphs` wrote the graphs.
@@ -241,6 +253,33 @@ class OnnxPolicy:
         self._takes_task = "task_ids" in inputs
         # Greedy graphs take no uniforms; sampling graphs take (1, L, k).
         self._uniforms_shape = tuple(inputs["uniforms"].shape) if "uniforms" in inputs else None
+        summary = json.loads((directory / SUMMARY_FILE).read_text())
+        self._model_calls = int(summary["model_calls_per_chunk"])
+        self._num_parameters = int(summary["num_parameters"])
+        self.metadata = summary["metadata"]
+        self._directory = directory
+
+    policy_type = POLICY_TYPE
+
+    def configure_inference(self, top_k: int = 1) -> None:
+        """Check that the graphs were exported with this token choice (it is baked into them)."""
+        if top_k != self.top_k:
+            raise ValueError(f"the ONNX graphs in {self._directory} use top_k = {self.top_k}, got top_k = {top_k}")
+
+    @property
+    def model_calls_per_chunk(self) -> int:
+        """`K`, the scales the prediction graph steps through."""
+        return self._model_calls
+
+    @property
+    def num_parameters(self) -> int:
+        """Parameters of the exported transformer."""
+        return self._num_parameters
+
+    @property
+    def description(self) -> str:
+        """`greedy` or `top-<k>`."""
+        return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
     @property
     def top_k(self) -> int:
@@ -255,6 +294,12 @@ class OnnxPolicy:
         `generator` (CPU) supplies the top-k draws of a sampling graph, as it would to `CarpPolicy`.
         """
         return self._predict(obs, task_index, generator)[0]
+
+    def predict_action(
+        self, obs: np.ndarray, task_index: int | None = None, generator: torch.Generator | None = None
+    ) -> np.ndarray:
+        """Raw actions (1, H, A) float32 of raw observations (1, To, Do)."""
+        return self._predict(obs, task_index, generator)[0].actions
 
     def predict_tokens(
         self, obs: np.ndarray, task_index: int | None = None, generator: torch.Generator | None = None
@@ -282,4 +327,4 @@ class OnnxPolicy:
         predicted = time.perf_counter()
         (actions,) = self._decoding.run(None, {"latent": latent})
         decoded = time.perf_counter()
-        return TimedPrediction(actions, predicted - started, decoded - predicted), tokens
+        return TimedPrediction(actions, predicted - started, decoded - predicted, self._model_calls), tokens

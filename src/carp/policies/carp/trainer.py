@@ -29,14 +29,16 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm.auto import tqdm
 
-from carp.config import TRAINING_PRECISIONS
-from carp.policy.layout import TokenLayout
-from carp.policy.policy import check_specs_match
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.config import TrainingConfig
+from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.layout import TokenLayout
+from carp.policies.carp.policy import check_specs_match
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.cross_entropy import blockwise_cross_entropy
+from carp.training.loop import NonFiniteLossError, PolicyTrainingData, epoch_order, make_scheduler
 from carp.training.runtime import (
     autocast_to,
     precision_name,
@@ -50,72 +52,6 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_NAME = "policy_training_state.pt"
 TOKENIZE_BATCH_SIZE = 4096
 ADAM_BETAS = (0.9, 0.95)
-FINAL_LEARNING_RATE_FRACTION = 0.01
-
-
-@dataclass(frozen=True)
-class PolicyTrainingSettings:
-    """Optimization settings of the coarse-to-fine transformer.
-
-    Attributes:
-        epochs: passes over the training windows.
-        batch_size: windows per step.
-        learning_rate: peak AdamW learning rate (see the module docstring for the default).
-        weight_decay: AdamW weight decay of the weight matrices.
-        warmup_steps: optimizer steps of linear warm-up before the cosine decay.
-        use_ema: keep an exponential moving average of the weights and return it.
-        ema_decay: EMA decay per step.
-        seed: seeds initialization and shuffling.
-        checkpoint_every: epochs between training-state checkpoints (the last epoch is always saved).
-        device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
-        precision: "auto", "float32" or "bfloat16": autocast dtype of the forward pass, see
-            `carp.training.runtime.resolve_precision`. The loss, weights and optimizer state stay float32.
-    """
-
-    epochs: int = 60
-    batch_size: int = 256
-    learning_rate: float = 1e-3
-    weight_decay: float = 0.05
-    warmup_steps: int = 100
-    use_ema: bool = False
-    ema_decay: float = 0.999
-    seed: int = 0
-    checkpoint_every: int = 1
-    device: str = "auto"
-    precision: str = "auto"
-
-    def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "checkpoint_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"PolicyTrainingSettings.{name} must be a positive integer, got {value!r}")
-        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
-            raise ValueError(f"PolicyTrainingSettings.warmup_steps must be an integer >= 0, got {self.warmup_steps!r}")
-        if not self.learning_rate > 0:
-            raise ValueError(f"PolicyTrainingSettings.learning_rate must be > 0, got {self.learning_rate!r}")
-        if not self.weight_decay >= 0:
-            raise ValueError(f"PolicyTrainingSettings.weight_decay must be >= 0, got {self.weight_decay!r}")
-        if not 0.0 < self.ema_decay < 1.0:
-            raise ValueError(f"PolicyTrainingSettings.ema_decay must be in (0, 1), got {self.ema_decay!r}")
-        if self.precision not in TRAINING_PRECISIONS:
-            raise ValueError(
-                f"PolicyTrainingSettings.precision must be one of {TRAINING_PRECISIONS}, got {self.precision!r}"
-            )
-
-
-@dataclass
-class PolicyTrainingData:
-    """Normalized training windows.
-
-    Attributes:
-        obs: (N, To, Do) float normalized observations.
-        actions: (N, H, A) float normalized actions.
-        task_ids: (N,) long task indices for multi-task policies, else None.
-    """
-
-    obs: torch.Tensor
-    actions: torch.Tensor
-    task_ids: torch.Tensor | None = None
 
 
 @dataclass
@@ -129,10 +65,6 @@ class TokenTargets:
 
     token_sequence: torch.Tensor
     teacher_inputs: torch.Tensor
-
-
-class NonFiniteLossError(FloatingPointError):
-    """The training loss became NaN or infinite."""
 
 
 @torch.no_grad()
@@ -167,7 +99,7 @@ def _check_data(spec: PolicySpec, tokenizer: MultiScaleActionTokenizer, data: Po
         raise ValueError("task_ids were given but the policy spec is single-task (num_tasks = 0)")
 
 
-def make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) -> torch.optim.AdamW:
+def make_optimizer(transformer: nn.Module, learning_rate: float, weight_decay: float) -> torch.optim.AdamW:
     """AdamW over the transformer's parameters; weight decay applies to weight matrices only."""
     decayed, undecayed = [], []
     for name, parameter in transformer.named_parameters():
@@ -175,26 +107,11 @@ def make_optimizer(transformer: nn.Module, settings: PolicyTrainingSettings) -> 
         is_matrix = parameter.dim() > 1 and "embedding" not in name
         (decayed if is_matrix else undecayed).append(parameter)
     groups = [
-        {"params": decayed, "weight_decay": settings.weight_decay},
+        {"params": decayed, "weight_decay": weight_decay},
         {"params": undecayed, "weight_decay": 0.0},
     ]
     # The fused kernel updates all parameters in one pass (CPU and CUDA), instead of ~10 small ops per tensor.
-    return torch.optim.AdamW(groups, lr=settings.learning_rate, betas=ADAM_BETAS, fused=True)
-
-
-def _make_scheduler(
-    optimizer: torch.optim.Optimizer, total_steps: int, warmup_steps: int
-) -> torch.optim.lr_scheduler.LRScheduler:
-    warmup_steps = min(warmup_steps, total_steps - 1)
-    cosine = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimizer,
-        T_max=max(1, total_steps - warmup_steps),
-        eta_min=optimizer.param_groups[0]["lr"] * FINAL_LEARNING_RATE_FRACTION,
-    )
-    if warmup_steps <= 0:
-        return cosine
-    warmup = torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=1.0 / warmup_steps, total_iters=warmup_steps)
-    return torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[warmup_steps])
+    return torch.optim.AdamW(groups, lr=learning_rate, betas=ADAM_BETAS, fused=True)
 
 
 def teacher_forced_loss(
@@ -229,21 +146,22 @@ def teacher_forced_loss(
     return loss, predicted
 
 
-def _epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
-    # A generator per epoch makes the shuffle independent of earlier epochs' randomness, so resuming is exact.
-    return torch.randperm(count, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
-
-
 def _run_metadata(
     spec: PolicySpec,
-    settings: PolicyTrainingSettings,
+    config: CarpConfig,
+    training: TrainingConfig,
+    epochs: int,
     tokenizer: MultiScaleActionTokenizer,
     data: PolicyTrainingData,
     precision: torch.dtype,
 ) -> dict:
     # Everything that changes the result; device and checkpoint cadence do not. The precision is the resolved one.
-    relevant = {key: value for key, value in asdict(settings).items() if key not in ("device", "checkpoint_every")}
-    relevant["precision"] = precision_name(precision)
+    relevant = asdict(config) | {
+        "epochs": epochs,
+        "batch_size": training.batch_size,
+        "seed": training.seed,
+        "precision": precision_name(precision),
+    }
     digest = hashlib.sha256()
     tensors = [data.obs, data.actions] + ([data.task_ids] if data.task_ids is not None else [])
     tensors += [value for _, value in sorted(tokenizer.state_dict().items())]
@@ -269,9 +187,12 @@ def train_policy(
     spec: PolicySpec,
     tokenizer: MultiScaleActionTokenizer,
     data: PolicyTrainingData,
-    settings: PolicyTrainingSettings,
+    config: CarpConfig,
+    training: TrainingConfig,
     checkpoint_dir: Path,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    epochs: int | None = None,
+    device: str | torch.device = "cpu",
 ) -> CoarseToFineTransformer:
     """Train a transformer, resuming from `checkpoint_dir` if an interrupted run of the same setup left a state there.
 
@@ -279,7 +200,8 @@ def train_policy(
         spec: transformer architecture; must match the tokenizer (A, scales, C, V).
         tokenizer: trained tokenizer; frozen (not modified).
         data: normalized training windows.
-        settings: optimization settings.
+        config: CARP's params section: the optimizer and EMA settings (the architecture is `spec`'s).
+        training: the shared loop settings: batch size, seed, checkpoint cadence, precision.
         checkpoint_dir: directory for the training state (`policy_training_state.pt`); created if missing. A state
             from another spec, settings, tokenizer or data is ignored and overwritten, an unusable one (truncated,
             another format version) deleted; either way with a warning, and training starts over.
@@ -287,6 +209,8 @@ def train_policy(
             cross entropy per token), token_accuracy, token_accuracy_scale_<k> (k = 1..K), learning_rate,
             epoch_seconds and samples_per_second. Epochs restored from a training state are
             reported again first, so the callback sees every epoch of a resumed run.
+        epochs: passes over the windows; None takes `training.epochs`.
+        device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
 
     Returns:
         The trained transformer in eval mode on the training device; with `use_ema` it holds the EMA weights.
@@ -296,42 +220,41 @@ def train_policy(
     """
     check_specs_match(spec, tokenizer.spec)
     _check_data(spec, tokenizer, data)
-    device = resolve_device(settings.device)
+    device = resolve_device(str(device))
+    epochs = training.epochs if epochs is None else epochs
     tokenizer = tokenizer.to(device).eval()
     obs = data.obs.to(device=device, dtype=torch.float32)
     task_ids = data.task_ids.to(device=device, dtype=torch.long) if data.task_ids is not None else None
     targets = compute_token_targets(tokenizer, data.actions.to(device=device, dtype=torch.float32))
 
-    seed_everything(settings.seed)
+    seed_everything(training.seed)
     transformer = CoarseToFineTransformer(spec).to(device)
     ema = None
-    if settings.use_ema:
+    if config.use_ema:
         # Parameters only: the transformer's buffers are constant index tables, which averaging would corrupt.
-        ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(settings.ema_decay), use_buffers=False)
+        ema = AveragedModel(transformer, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=False)
     # One module holding both so a training state saves and restores them together.
     trained = nn.ModuleDict({"transformer": transformer} | ({"ema": ema} if ema is not None else {}))
-    optimizer = make_optimizer(transformer, settings)
+    optimizer = make_optimizer(transformer, config.learning_rate, config.weight_decay)
     num_windows = obs.shape[0]
-    steps_per_epoch = math.ceil(num_windows / settings.batch_size)
-    scheduler = _make_scheduler(optimizer, settings.epochs * steps_per_epoch, settings.warmup_steps)
+    steps_per_epoch = math.ceil(num_windows / training.batch_size)
+    scheduler = make_scheduler(optimizer, epochs * steps_per_epoch, config.warmup_steps)
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
-    precision = resolve_precision(settings.precision, device)
+    precision = resolve_precision(training.precision, device)
     logger.info("policy training on %s in %s", device, precision_name(precision))
-    metadata = _run_metadata(spec, settings, tokenizer, data, precision)
+    metadata = _run_metadata(spec, config, training, epochs, tokenizer, data, precision)
     start_epoch, history = resume_training_state(checkpoint_path, metadata, trained, optimizer, scheduler, on_epoch_end)
     if start_epoch > 0:
         logger.info("resuming policy training from %s at epoch %d", checkpoint_path, start_epoch)
 
-    for epoch in range(start_epoch, settings.epochs):
+    for epoch in range(start_epoch, epochs):
         transformer.train()
         started = time.perf_counter()
         loss_sum = 0.0
         correct = torch.zeros(spec.sequence_length, dtype=torch.long, device=device)
-        order = _epoch_order(settings.seed, epoch, num_windows).to(device)
-        progress = tqdm(
-            torch.split(order, settings.batch_size), desc=f"policy epoch {epoch + 1}/{settings.epochs}", leave=False
-        )
+        order = epoch_order(training.seed, epoch, num_windows).to(device)
+        progress = tqdm(torch.split(order, training.batch_size), desc=f"policy epoch {epoch + 1}/{epochs}", leave=False)
         for step, batch in enumerate(progress):
             batch_targets = targets.token_sequence[batch]  # (b, L)
             loss, predicted = teacher_forced_loss(
@@ -361,12 +284,12 @@ def train_policy(
             loss_sum, correct, num_windows, spec, optimizer.param_groups[0]["lr"], time.perf_counter() - started
         )
         history.append(metrics)
-        if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
+        if (epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs:
             save_training_state(checkpoint_path, trained, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "policy epoch %d/%d: %s",
             epoch + 1,
-            settings.epochs,
+            epochs,
             ", ".join(f"{key}={value:.4g}" for key, value in metrics.items()),
         )
         if on_epoch_end is not None:

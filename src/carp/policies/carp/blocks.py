@@ -4,7 +4,8 @@ Follows VAR (FoundationVision/VAR, `models/basic_var.py`): pre-norm blocks whose
 own and are modulated by shift/scale/gate vectors computed from the condition. Deviations:
 
 - Modulation vectors are computed by the transformer for all blocks in one projection (see
-  :class:`~carp.policy.transformer.CoarseToFineTransformer`) and passed in, instead of one small projection per block.
+  :class:`~carp.policies.carp.transformer.CoarseToFineTransformer`) and passed in, instead of one small projection per
+  block.
 - Attention uses the standard `1/sqrt(head_width)` scale and `F.scaled_dot_product_attention`; a fused qkv projection
   with ordinary biases (VAR: `0.25/sqrt(head_width)`, no key bias).
 - The feed-forward activation is exact (erf) GELU; VAR and the official CARP use the tanh approximation, which on

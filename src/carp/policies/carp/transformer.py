@@ -9,7 +9,7 @@ Training is teacher-forced under a block-causal mask; inference runs K steps wit
 Deviations from those sources: the condition comes from flattened low-dim observations (+ a task embedding) rather
 than a class label, so there is no classifier-free guidance; all AdaLN modulations (every block's and the head's)
 come from one projection of SiLU(cond) that inference computes once per chunk instead of once per block and scale;
-the head has one vocabulary per action dimension (see :class:`~carp.policy.blocks.PerDimensionHead`).
+the head has one vocabulary per action dimension (see :class:`~carp.policies.carp.blocks.PerDimensionHead`).
 """
 
 import math
@@ -19,15 +19,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from carp.policy.blocks import (
+from carp.policies.carp.blocks import (
     MODULATIONS_PER_BLOCK,
     NORM_EPS,
     AdaptiveBlock,
     KeyValueCache,
     PerDimensionHead,
 )
-from carp.policy.layout import TokenLayout
-from carp.policy.spec import TASK_EMBEDDING_DIM, PolicySpec
+from carp.policies.carp.layout import TokenLayout
+from carp.policies.carp.spec import TASK_EMBEDDING_DIM, PolicySpec
 
 EMBEDDING_INIT_STD = 0.02
 GATE_INIT_GAIN = 1e-5
@@ -176,7 +176,7 @@ class CoarseToFineTransformer(nn.Module):
                 sequence order (area-downsampled accumulated latent of the ground-truth tokens of coarser scales).
             task_ids: (B,) long, for multi-task policies.
             grouped_by_dimension: return the logits in the head's layout (see
-                :meth:`~carp.policy.blocks.PerDimensionHead.grouped_logits`), as training uses them.
+                :meth:`~carp.policies.carp.blocks.PerDimensionHead.grouped_logits`), as training uses them.
 
         Returns:
             (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary. With

@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from carp.policy.sampling import generate_chunk, select_tokens
-from tests.policy.factories import OBS_DIM, OBS_STEPS, scrambled_transformer, tiny_policy_spec, tiny_tokenizer
+from carp.policies.carp.sampling import generate_chunk, select_tokens
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, scrambled_transformer, tiny_policy_spec, tiny_tokenizer
 
 SCALES = (1, 2, 3)
 

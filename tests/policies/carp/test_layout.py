@@ -1,7 +1,7 @@
 import torch
 from einops import rearrange
 
-from carp.policy.layout import TokenLayout
+from carp.policies.carp.layout import TokenLayout
 
 
 def test_bounds_levels_and_dimensions():

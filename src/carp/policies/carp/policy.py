@@ -8,37 +8,36 @@ trained with together with that artifact's sha256; loading recomputes the hash a
 shape that is not the one the policy learned its tokens from.
 """
 
+import functools
+import logging
 import time
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policy.sampling import generate_chunk
-from carp.policy.spec import PolicySpec
-from carp.policy.transformer import CoarseToFineTransformer
+from carp.policies.base import (
+    POLICY_FORMAT_VERSION,
+    TORCH_BACKEND,
+    Deployment,
+    TimedPrediction,
+    count_parameters,
+)
+from carp.policies.carp.sampling import check_top_k, generate_chunk
+from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
-from carp.training.checkpoint import CheckpointError, atomic_torch_save, one_line, read_checkpoint
+from carp.training.checkpoint import CheckpointError, atomic_torch_save
+from carp.training.cross_entropy import blockwise_cross_entropy
 
-POLICY_FORMAT_VERSION = 2
+logger = logging.getLogger(__name__)
 
-
-class TimedPrediction(NamedTuple):
-    """Actions of one call and where its time went.
-
-    Attributes:
-        actions: (B, H, A) float32 raw actions.
-        prediction_seconds: normalization plus the K coarse-to-fine steps.
-        decoding_seconds: tokenizer decoding of f_hat plus un-normalization.
-    """
-
-    actions: np.ndarray
-    prediction_seconds: float
-    decoding_seconds: float
+POLICY_TYPE = "carp"
+ONNX_BACKEND = "onnxruntime"
 
 
 def check_specs_match(policy_spec: PolicySpec, tokenizer_spec: TokenizerSpec) -> None:
@@ -58,7 +57,7 @@ def check_specs_match(policy_spec: PolicySpec, tokenizer_spec: TokenizerSpec) ->
 
 
 class CarpPolicy(nn.Module):
-    """Normalizers + frozen tokenizer + coarse-to-fine transformer.
+    """Normalizers + frozen tokenizer + coarse-to-fine transformer; a :class:`~carp.policies.base.Policy`.
 
     Args:
         tokenizer_artifact: the trained tokenizer with its training statistics and sha256; its tokenizer is frozen
@@ -69,6 +68,8 @@ class CarpPolicy(nn.Module):
             task's own, also for a task the tokenizer was not trained on).
         metadata: plain values stored in the checkpoint (e.g. the tokenizer's registry reference, the task names).
     """
+
+    policy_type = POLICY_TYPE
 
     def __init__(
         self,
@@ -97,6 +98,7 @@ class CarpPolicy(nn.Module):
         self.obs_normalizer = obs_normalizer
         self.action_normalizer = action_normalizer
         self.metadata = dict(metadata or {})
+        self.top_k = 1
 
     @property
     def spec(self) -> PolicySpec:
@@ -136,24 +138,46 @@ class CarpPolicy(nn.Module):
             raise ValueError(f"task indices must be in [0, {self.spec.num_tasks}), got {task_ids.tolist()}")
         return task_ids  # (B,)
 
+    def configure_inference(self, top_k: int = 1) -> None:
+        """Set the token choice of later predictions: 1 = greedy; k > 1 draws among the k most likely tokens."""
+        check_top_k(top_k, self.spec.codebook_size)
+        self.top_k = top_k
+
+    @property
+    def model_calls_per_chunk(self) -> int:
+        """`K`: one transformer call per scale."""
+        return self.spec.num_scales
+
+    @property
+    def num_parameters(self) -> int:
+        """Parameters of the transformer (the frozen tokenizer is not counted)."""
+        return count_parameters(self.transformer)
+
+    @property
+    def description(self) -> str:
+        """`greedy` or `top-<k>`, the token choice of predictions."""
+        return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
+
     def predict_action_timed(
         self,
         obs: np.ndarray | torch.Tensor,
         task_index: int | np.ndarray | torch.Tensor | None = None,
-        top_k: int = 1,
         generator: torch.Generator | None = None,
+        top_k: int | None = None,
     ) -> TimedPrediction:
         """Predict raw action chunks and time prediction and decoding separately.
 
         Args:
             obs: (B, To, Do) raw observations (numpy or torch).
             task_index: None for single-task policies; otherwise one task index for the whole batch or (B,).
-            top_k: 1 = greedy; k > 1 samples from the top-k tokens (see `carp.policy.sampling.select_tokens`).
             generator: random source for top-k sampling, on the policy's device.
+            top_k: token choice of this call; None uses :meth:`configure_inference`'s (greedy by default). See
+                `carp.policies.carp.sampling.select_tokens`.
 
         Returns:
-            Actions (B, H, A) raw float32 and the two durations in seconds.
+            Actions (B, H, A) raw float32, the two durations in seconds and the K transformer calls.
         """
+        top_k = self.top_k if top_k is None else top_k
         with torch.inference_mode():
             started = time.perf_counter()
             observations = self._observations(obs)  # (B, To, Do)
@@ -163,25 +187,69 @@ class CarpPolicy(nn.Module):
             normalized_actions = self.tokenizer.decode_latent(chunk.latent)  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
             decoded = time.perf_counter()
-        return TimedPrediction(actions, predicted - started, decoded - predicted)
+        return TimedPrediction(actions, predicted - started, decoded - predicted, self.spec.num_scales)
 
     def predict_action(
         self,
         obs: np.ndarray | torch.Tensor,
         task_index: int | np.ndarray | torch.Tensor | None = None,
-        top_k: int = 1,
         generator: torch.Generator | None = None,
+        top_k: int | None = None,
     ) -> np.ndarray:
         """Predict raw action chunks (B, H, A) float32 from raw observations (B, To, Do).
 
         See :meth:`predict_action_timed` for the arguments.
         """
-        return self.predict_action_timed(obs, task_index, top_k, generator).actions
+        return self.predict_action_timed(obs, task_index, generator, top_k).actions
+
+    def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Mean cross entropy of a teacher-forced forward pass over all L tokens (scalar float32).
+
+        The frozen tokenizer encodes the batch's actions into the ground-truth ids and the teacher-forcing inputs.
+
+        Args:
+            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) long when multi-task.
+        """
+        actions = batch["actions"]
+        # The frozen tokenizer encodes in float32 whatever the loop's autocast: its ids must not depend on it.
+        with torch.no_grad(), torch.autocast(actions.device.type, enabled=False):
+            token_ids = self.tokenizer.encode_to_ids(actions.float())  # K x (b, A, s_k)
+            token_sequence = self.tokenizer.ids_to_sequence(token_ids)  # (b, L)
+            teacher_inputs = self.tokenizer.teacher_forcing_sequence(token_ids)  # (b, L - s_1 * A, C)
+        grouped_logits = self.transformer(
+            batch["obs"], teacher_inputs, batch.get("task_ids"), grouped_by_dimension=True
+        )  # (A, b * L / A, V)
+        grouped_targets = self.transformer.head.group(token_sequence)  # (A, b * L / A)
+        return blockwise_cross_entropy(grouped_logits.flatten(0, 1), grouped_targets.flatten())
+
+    def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
+        """Workers run ONNX Runtime graphs exported into `directory` for `onnxruntime`, else this checkpoint in torch.
+
+        The graphs bake in the current `top_k`. An export failure is logged and falls back to PyTorch, which
+        computes the same actions; the returned backend says which one runs.
+        """
+        if backend == ONNX_BACKEND:
+            from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
+
+            try:
+                export_policy_graphs(self, directory, self.top_k)
+                return Deployment(ONNX_BACKEND, functools.partial(OnnxPolicy, Path(directory)))
+            except Exception as error:  # an export problem must not cost the evaluation; PyTorch computes the same
+                logger.warning(
+                    "ONNX export of %s failed (%s: %s); evaluating with PyTorch",
+                    checkpoint_path,
+                    type(error).__name__,
+                    error,
+                )
+        from carp.policies.registry import load_policy
+
+        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
 
     def to_checkpoint(self) -> dict[str, Any]:
         """Self-contained state: spec, weights, the tokenizer artifact and its sha256, statistics, metadata."""
         return {
             "format_version": POLICY_FORMAT_VERSION,
+            "policy_type": POLICY_TYPE,
             "policy_spec": self.spec.to_dict(),
             "transformer_state": self.transformer.state_dict(),
             "tokenizer": self.tokenizer_artifact.to_payload(),
@@ -200,7 +268,7 @@ class CarpPolicy(nn.Module):
 
         Raises:
             TokenizerMismatchError: the embedded tokenizer does not hash to the sha256 recorded with it.
-            ValueError: another format version, or specs that do not fit together.
+            ValueError: another format version or policy type, or specs that do not fit together.
             KeyError, RuntimeError: an entry is missing, or weights do not fit their spec.
         """
         version = checkpoint.get("format_version") if isinstance(checkpoint, dict) else None
@@ -208,6 +276,8 @@ class CarpPolicy(nn.Module):
             raise ValueError(
                 f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
             )
+        if checkpoint.get("policy_type") != POLICY_TYPE:
+            raise ValueError(f"policy_type={checkpoint.get('policy_type')!r}: not a {POLICY_TYPE} checkpoint")
         transformer = CoarseToFineTransformer(PolicySpec.from_dict(checkpoint["policy_spec"]))
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
         # The specs first: a tokenizer of another shape is named as such rather than as a hash difference.
@@ -226,18 +296,15 @@ class CarpPolicy(nn.Module):
 
     @classmethod
     def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":
-        """Read a checkpoint written by :meth:`save` onto `map_location`.
+        """Read a CARP checkpoint written by :meth:`save` onto `map_location` (through `load_policy`).
 
         Raises:
             FileNotFoundError: no file at `path`.
-            CheckpointError: the file is truncated or corrupt, of another format version, incomplete, or its parts
-                do not fit together (e.g. a tokenizer that is not the one the policy was trained with); the
-                message is one line that starts with `path`.
+            CheckpointError: as `carp.policies.registry.load_policy`, or the file holds another family.
         """
-        checkpoint = read_checkpoint(Path(path), weights_only=True)
-        try:
-            return cls.from_checkpoint(checkpoint).to(map_location)
-        except KeyError as error:
-            raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
-        except (AttributeError, RuntimeError, TypeError, ValueError) as error:
-            raise CheckpointError(f"{path}: {one_line(error)}") from error
+        from carp.policies.registry import load_policy
+
+        policy = load_policy(Path(path), map_location)
+        if not isinstance(policy, cls):
+            raise CheckpointError(f"{path}: holds a {policy.policy_type} policy, not a {POLICY_TYPE} one")
+        return policy

@@ -4,9 +4,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import KeyValueCache
-from carp.policy.transformer import CoarseToFineTransformer
-from tests.policy.factories import OBS_DIM, OBS_STEPS, scrambled_transformer, tiny_policy_spec
+from carp.policies.carp.blocks import KeyValueCache
+from carp.policies.carp.transformer import CoarseToFineTransformer
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, scrambled_transformer, tiny_policy_spec
 
 SCALES = (1, 2, 3)
 A, C, V = 2, 4, 8

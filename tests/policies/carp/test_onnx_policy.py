@@ -1,15 +1,17 @@
 """The ONNX Runtime fast path must choose the same tokens and return the same actions as the PyTorch policy."""
 
+import functools
+
 import numpy as np
 import pytest
 import torch
 
-from carp.evaluation import runner
-from carp.evaluation.onnx_policy import OnnxPolicy, export_policy_graphs
-from carp.evaluation.runner import onnx_graphs_for
 from carp.evaluation.sources import PolicySource
-from carp.policy.sampling import generate_chunk
-from tests.policy.factories import OBS_DIM, OBS_STEPS, tiny_policy
+from carp.policies.carp import onnx_policy as onnx_module
+from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
+from carp.policies.carp.sampling import generate_chunk
+from carp.policies.registry import load_policy
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
 
 SCALES = (1, 2, 4)
 
@@ -97,33 +99,49 @@ def test_policy_source_acts_the_same_on_both_backends(exported, tmp_path):
     policy.save(checkpoint)
     directory = export_policy_graphs(policy, tmp_path / "onnx")
     settings = dict(controller="delta", obs_steps=OBS_STEPS, action_steps=4)
-    on_torch = PolicySource(checkpoint, **settings)
-    on_onnx = PolicySource(checkpoint, **settings, onnx_directory=directory)
+    on_torch = PolicySource(functools.partial(load_policy, checkpoint), **settings)
+    on_onnx = PolicySource(functools.partial(OnnxPolicy, directory), **settings)
     history = np.random.default_rng(3).normal(size=(OBS_STEPS, OBS_DIM))
     actions_torch, _ = on_torch.act(history, env=None)
     actions_onnx, timing = on_onnx.act(history, env=None)
     np.testing.assert_allclose(actions_onnx, actions_torch, rtol=1e-5, atol=1e-5)
     assert timing.prediction > 0
     with pytest.raises(ValueError, match=r"use top_k = 1, got top_k = 4"):
-        PolicySource(checkpoint, **settings, top_k=4, onnx_directory=directory)
+        PolicySource(functools.partial(OnnxPolicy, directory), **settings, inference={"top_k": 4})
 
 
-def test_evaluation_exports_for_onnx_runs_and_falls_back_to_torch(exported, tmp_path, monkeypatch, caplog):
+def test_onnx_policy_reports_the_facts_of_the_policy_it_was_exported_from(exported):
+    policy, onnx_policy = exported
+    assert onnx_policy.model_calls_per_chunk == policy.model_calls_per_chunk == len(SCALES)
+    assert onnx_policy.num_parameters == policy.num_parameters > 0
+    assert onnx_policy.policy_type == policy.policy_type == "carp"
+    assert onnx_policy.metadata == policy.metadata
+    timed = onnx_policy.predict_action_timed(np.zeros((1, OBS_STEPS, OBS_DIM), dtype=np.float32))
+    assert timed.model_calls == len(SCALES)
+
+
+def test_deployment_exports_for_onnx_runs_and_falls_back_to_torch(exported, tmp_path, monkeypatch, caplog):
     policy, _ = exported
     checkpoint = tmp_path / "policy.pt"
     policy.save(checkpoint)
-    directory = onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "graphs")
-    assert directory == tmp_path / "graphs" and (directory / "prediction.onnx").is_file()
-    assert onnx_graphs_for(checkpoint, "torch", 1, tmp_path / "unused") is None
-    sampling = onnx_graphs_for(checkpoint, "onnxruntime", 4, tmp_path / "sampling")
-    assert OnnxPolicy(sampling).top_k == 4
-    with pytest.raises(ValueError, match="backend must be 'onnxruntime' or 'torch', got 'tvm'"):
-        onnx_graphs_for(checkpoint, "tvm", 1, tmp_path / "unused")
+    deployment = policy.deployment(checkpoint, "onnxruntime", tmp_path / "graphs")
+    assert deployment.backend == "onnxruntime" and (tmp_path / "graphs" / "prediction.onnx").is_file()
+    assert isinstance(deployment.load(), OnnxPolicy)
+    on_torch = policy.deployment(checkpoint, "torch", tmp_path / "unused")
+    assert on_torch.backend == "torch" and not (tmp_path / "unused").exists()
+    assert on_torch.load().policy_type == "carp"
+    policy.configure_inference(top_k=4)
+    try:
+        sampling = policy.deployment(checkpoint, "onnxruntime", tmp_path / "sampling")
+    finally:
+        policy.configure_inference(top_k=1)
+    assert sampling.load().top_k == 4
 
     def broken_export(*args, **kwargs):
         raise RuntimeError("unsupported operator")
 
-    monkeypatch.setattr(runner, "export_policy_graphs", broken_export)
-    assert onnx_graphs_for(checkpoint, "onnxruntime", 1, tmp_path / "unused") is None
+    monkeypatch.setattr(onnx_module, "export_policy_graphs", broken_export)
+    fallback = policy.deployment(checkpoint, "onnxruntime", tmp_path / "broken")
+    assert fallback.backend == "torch"
     assert "ONNX export of" in caplog.text and "RuntimeError: unsupported operator" in caplog.text
-    assert not (tmp_path / "unused").exists()
+    assert not (tmp_path / "broken").exists()

@@ -6,4 +6,6 @@
 - `transformer`: `CoarseToFineTransformer`, teacher-forced forward and K-step inference.
 - `sampling`: greedy / top-k token choice and the coarse-to-fine generation loop.
 - `policy`: `CarpPolicy`, normalizers + frozen tokenizer + transformer, with `predict_action` and checkpoints.
+- `onnx_policy`: the batch-1 ONNX Runtime graphs evaluation runs (`CarpPolicy.deployment`).
+- `family`: CARP's entry in `carp.policies.registry`.
 """

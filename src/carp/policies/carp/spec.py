@@ -14,9 +14,10 @@ def _require_positive_int(name: str, value: Any) -> None:
 
 @dataclass(frozen=True)
 class PolicySpec:
-    """Shape and size of a :class:`~carp.policy.transformer.CoarseToFineTransformer`.
+    """Shape and size of a :class:`~carp.policies.carp.transformer.CoarseToFineTransformer`.
 
-    The last four fields repeat the tokenizer's spec; :class:`~carp.policy.policy.CarpPolicy` checks that they match.
+    The last four fields repeat the tokenizer's spec; :class:`~carp.policies.carp.policy.CarpPolicy` checks that they
+    match.
 
     Attributes:
         obs_dim: `Do`, low-dim observation features per step (not the flattened `To * Do`).

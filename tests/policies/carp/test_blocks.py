@@ -2,8 +2,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from carp.policy.blocks import _attention
-from carp.policy.layout import TokenLayout
+from carp.policies.carp.blocks import _attention
+from carp.policies.carp.layout import TokenLayout
 
 
 def _qkv(batch: int, heads: int, length: int, head_width: int) -> list[torch.Tensor]:

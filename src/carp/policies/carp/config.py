@@ -1,0 +1,103 @@
+"""CARP's params sections: `carp` (the coarse-to-fine transformer and its optimizer) and `inference.carp`.
+
+The two are split so that DVC can tell them apart: `train_policy` tracks `carp`, `evaluate` tracks `inference.carp`,
+and a change of the token choice re-evaluates without retraining. The epochs, batch size, checkpoints, seed and
+precision of the training loop are the shared `training` section (`carp.config.TrainingConfig`).
+"""
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from carp.config import TASK_NAMES, ConfigError, _require
+
+SECTION = "carp"
+
+
+@dataclass(frozen=True)
+class CarpConfig:
+    """The coarse-to-fine transformer (DESIGN.md section 5) and its optimizer.
+
+    Attributes:
+        depth: Transformer blocks; an integer >= 1.
+        width: ``D``, width of every token; an integer >= 1, divisible by ``num_heads``.
+        num_heads: Attention heads per block; an integer >= 1 that divides ``width``.
+        mlp_ratio: Hidden width of each block's feed-forward layer as a multiple of ``width``; a number > 0.
+        dropout: Dropout probability of the attention weights and of both residual branches during training; a
+            number in [0, 1).
+        learning_rate: Peak AdamW learning rate, reached after ``warmup_steps`` of linear warm-up and followed by a
+            cosine decay to 1% of the peak; a number > 0.
+        weight_decay: AdamW weight decay of the weight matrices (biases and embeddings are not decayed); a number
+            >= 0.
+        warmup_steps: Optimizer steps of linear learning-rate warm-up; an integer >= 0.
+        use_ema: Keep an exponential moving average of the weights during training and save it instead of the raw
+            weights; true or false.
+        ema_decay: Decay of the moving average per optimizer step, used only with ``use_ema``; a number in (0, 1).
+    """
+
+    depth: int = 8
+    width: int = 64
+    num_heads: int = 8
+    mlp_ratio: float = 4.0
+    dropout: float = 0.0
+    learning_rate: float = 1e-3
+    weight_decay: float = 0.05
+    warmup_steps: int = 100
+    use_ema: bool = False
+    ema_decay: float = 0.999
+
+    def __post_init__(self) -> None:
+        _require(self.depth >= 1, f"{SECTION}.depth", self.depth, "must be >= 1")
+        _require(self.width >= 1, f"{SECTION}.width", self.width, "must be >= 1")
+        _require(self.num_heads >= 1, f"{SECTION}.num_heads", self.num_heads, "must be >= 1")
+        _require(
+            self.width % self.num_heads == 0,
+            f"{SECTION}.num_heads",
+            self.num_heads,
+            f"must divide {SECTION}.width={self.width}",
+        )
+        _require(self.mlp_ratio > 0, f"{SECTION}.mlp_ratio", self.mlp_ratio, "must be > 0")
+        _require(0.0 <= self.dropout < 1.0, f"{SECTION}.dropout", self.dropout, "must be in [0, 1)")
+        _require(self.learning_rate > 0, f"{SECTION}.learning_rate", self.learning_rate, "must be > 0")
+        _require(self.weight_decay >= 0, f"{SECTION}.weight_decay", self.weight_decay, "must be >= 0")
+        _require(self.warmup_steps >= 0, f"{SECTION}.warmup_steps", self.warmup_steps, "must be >= 0")
+        _require(0.0 < self.ema_decay < 1.0, f"{SECTION}.ema_decay", self.ema_decay, "must be in (0, 1)")
+
+
+@dataclass(frozen=True)
+class CarpInference:
+    """How evaluation chooses CARP's tokens; decoding only, so a change reruns evaluation, not training.
+
+    Attributes:
+        top_k: 1 takes the most likely token (greedy); k > 1 draws among the k most likely ones, with draws seeded
+            per episode so results reproduce. An integer between 1 and ``codebook_size``.
+        top_k_per_task: Task -> token choice when evaluating that task, overriding ``top_k``; each an integer between
+            1 and ``codebook_size``, tasks among lift, can and square.
+    """
+
+    top_k: int = 1
+    top_k_per_task: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        key = f"inference.{SECTION}"
+        _require(self.top_k >= 1, f"{key}.top_k", self.top_k, "must be >= 1 (1 = greedy)")
+        for task, top_k in self.top_k_per_task.items():
+            _require(task in TASK_NAMES, f"{key}.top_k_per_task.{task}", task, f"task must be one of {TASK_NAMES}")
+            _require(top_k >= 1, f"{key}.top_k_per_task.{task}", top_k, "must be >= 1 (1 = greedy)")
+
+    def settings_for(self, task: str) -> dict[str, Any]:
+        """Keyword arguments of `CarpPolicy.configure_inference` when evaluating `task`."""
+        return {"top_k": self.top_k_per_task.get(task, self.top_k)}
+
+    def check_with(self, params: Any) -> None:
+        """Refuse a token choice above the vocabulary (`params.codebook_size`)."""
+        key = f"inference.{SECTION}"
+        entries = [(f"{key}.top_k", self.top_k)] + [
+            (f"{key}.top_k_per_task.{task}", top_k) for task, top_k in self.top_k_per_task.items()
+        ]
+        for name, top_k in entries:
+            if top_k > params.codebook_size:
+                raise ConfigError(f"{name}={top_k!r}: must be <= codebook_size = {params.codebook_size}")
+
+
+SECTIONS = (CarpConfig, CarpInference)
+"""The registry's view of this module: the `carp` section and the `inference.carp` section."""

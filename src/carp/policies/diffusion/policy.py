@@ -1,0 +1,206 @@
+"""The deployable Diffusion Policy (DP-C or DP-T): normalizers, a denoiser and DP's sampler in one object.
+
+`predict_action` maps raw observations to raw action chunks as the official policy does: normalize to [-1, 1],
+denoise a Gaussian chunk in `num_inference_steps` denoiser calls (DDPM or DDIM, `carp.policies.diffusion.sampler`),
+un-normalize. It runs in PyTorch under inference mode; the loop holds one denoiser call and one scheduler update per
+step. Prediction time is the denoising loop; decoding time is the un-normalization (a diffusion policy has no decoder).
+A checkpoint stores the family name, the family's config, the shapes, the weights (the EMA weights when the config
+asks for them) and the normalizer statistics; it loads strictly.
+"""
+
+import dataclasses
+import functools
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.policies.base import POLICY_FORMAT_VERSION, TORCH_BACKEND, Deployment, TimedPrediction, count_parameters
+from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig
+from carp.policies.diffusion.sampler import DiffusionSampler
+from carp.training.checkpoint import atomic_torch_save
+
+DenoiserFactory = Callable[[Any, int, int, int, int], nn.Module]
+"""`factory(config, action_dim, obs_dim, obs_steps, action_horizon)` -> an untrained denoiser."""
+
+
+class DiffusionPolicy(nn.Module):
+    """Normalizers + denoiser + sampler; a :class:`~carp.policies.base.Policy`.
+
+    Args:
+        policy_type: the registry name of the family (`diffusion_unet` or `diffusion_transformer`).
+        config: the family's config (denoiser shape, training schedule, optimizer, EMA).
+        denoiser: the noise-predicting network (`Denoiser` protocol of `carp.policies.diffusion.sampler`).
+        obs_normalizer: min-max statistics of the `Do` observation features.
+        action_normalizer: min-max statistics of the `A` action dimensions.
+        action_horizon: `H`, actions per chunk.
+        metadata: plain values stored in the checkpoint.
+    """
+
+    def __init__(
+        self,
+        policy_type: str,
+        config: DenoisingConfig,
+        denoiser: nn.Module,
+        obs_normalizer: MinMaxNormalizer,
+        action_normalizer: MinMaxNormalizer,
+        action_horizon: int,
+        metadata: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        if obs_normalizer.num_features != denoiser.obs_dim:
+            raise ValueError(
+                f"obs normalizer has {obs_normalizer.num_features} features, the denoiser expects Do = "
+                f"{denoiser.obs_dim}"
+            )
+        if action_normalizer.num_features != denoiser.action_dim:
+            raise ValueError(
+                f"action normalizer has {action_normalizer.num_features} features, the denoiser has A = "
+                f"{denoiser.action_dim}"
+            )
+        self.policy_type = policy_type
+        self.config = config
+        self.denoiser = denoiser
+        self.obs_normalizer = obs_normalizer
+        self.action_normalizer = action_normalizer
+        self.action_horizon = action_horizon
+        self.metadata = dict(metadata or {})
+        # DP's protocol until `configure_inference` says otherwise.
+        self.sampler = DiffusionSampler(config.num_train_steps, "ddpm", config.num_train_steps)
+
+    def configure_inference(self, sampler: str = "ddpm", num_inference_steps: int | None = None) -> None:
+        """Denoise later chunks with `sampler` (`ddpm` or `ddim`) in `num_inference_steps` calls (None: all)."""
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+        steps = self.config.num_train_steps if num_inference_steps is None else num_inference_steps
+        self.sampler = DiffusionSampler(self.config.num_train_steps, sampler, steps)
+
+    @property
+    def model_calls_per_chunk(self) -> int:
+        """`N`, denoiser calls per chunk."""
+        return self.sampler.num_inference_steps
+
+    @property
+    def num_parameters(self) -> int:
+        """Parameters of the denoiser."""
+        return count_parameters(self.denoiser)
+
+    @property
+    def description(self) -> str:
+        """The sampler, e.g. `DDPM-100` or `DDIM-10`."""
+        return self.sampler.description
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the weights."""
+        return next(self.denoiser.parameters()).device
+
+    def _observations(self, obs: np.ndarray | torch.Tensor) -> torch.Tensor:
+        observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
+        expected = (self.denoiser.obs_steps, self.denoiser.obs_dim)
+        if observations.dim() != 3 or tuple(observations.shape[1:]) != expected:
+            raise ValueError(f"obs must have shape (B, To, Do) = (B, {expected[0]}, {expected[1]}), got "
+                             f"{tuple(observations.shape)}")  # fmt: skip
+        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
+
+    def predict_action_timed(
+        self,
+        obs: np.ndarray | torch.Tensor,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> TimedPrediction:
+        """Denoise one raw action chunk per observation and time the loop and the un-normalization.
+
+        Args:
+            obs: (B, To, Do) raw observations.
+            task_index: must be None (the Diffusion Policy families are single-task here).
+            generator: random source of the initial noise (and of DDPM's per-step noise); seeded per episode.
+
+        Returns:
+            Actions (B, H, A) raw float32, the two durations in seconds and the N denoiser calls.
+        """
+        if task_index is not None:
+            raise ValueError(f"a {self.policy_type} policy is single-task; got a task index")
+        with torch.inference_mode():
+            started = time.perf_counter()
+            observations = self._observations(obs)  # (B, To, Do)
+            normalized_actions = self.sampler.sample(self.denoiser, observations, self.action_horizon, generator)
+            predicted = time.perf_counter()
+            actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()  # (B, H, A)
+            decoded = time.perf_counter()
+        return TimedPrediction(actions, predicted - started, decoded - predicted, self.sampler.num_inference_steps)
+
+    def predict_action(
+        self,
+        obs: np.ndarray | torch.Tensor,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> np.ndarray:
+        """(B, H, A) float32 raw actions; see :meth:`predict_action_timed`."""
+        return self.predict_action_timed(obs, task_index, generator).actions
+
+    def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """DP's loss: mean-squared error of the predicted noise at uniformly drawn diffusion steps (scalar).
+
+        Args:
+            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized.
+        """
+        return self.sampler.training_loss(self.denoiser, batch["actions"], batch["obs"])
+
+    def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
+        """Always PyTorch (inference mode), whatever `backend` asks: the report names the backend that ran."""
+        from carp.policies.registry import load_policy
+
+        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
+
+    def to_checkpoint(self) -> dict[str, Any]:
+        """Self-contained state: family, config, shapes, denoiser weights, normalizer statistics, metadata."""
+        denoiser = self.denoiser
+        return {
+            "format_version": POLICY_FORMAT_VERSION,
+            "policy_type": self.policy_type,
+            "config": dataclasses.asdict(self.config),
+            "shapes": {
+                "action_dim": denoiser.action_dim,
+                "obs_dim": denoiser.obs_dim,
+                "obs_steps": denoiser.obs_steps,
+                "action_horizon": self.action_horizon,
+            },
+            "denoiser_state": denoiser.state_dict(),
+            "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
+            "metadata": self.metadata,
+        }
+
+    def save(self, path: Path) -> None:
+        """Atomically write :meth:`to_checkpoint` to `path`."""
+        atomic_torch_save(self.to_checkpoint(), Path(path))
+
+
+def from_checkpoint(
+    checkpoint: dict[str, Any], policy_type: str, config_class: type, make_denoiser: DenoiserFactory
+) -> DiffusionPolicy:
+    """Rebuild a policy from :meth:`DiffusionPolicy.to_checkpoint` output, loading the weights strictly."""
+    if checkpoint.get("policy_type") != policy_type:
+        raise ValueError(f"policy_type={checkpoint.get('policy_type')!r}: not a {policy_type} checkpoint")
+    config = config_class(**checkpoint["config"])
+    shapes = checkpoint["shapes"]
+    denoiser = make_denoiser(
+        config, shapes["action_dim"], shapes["obs_dim"], shapes["obs_steps"], shapes["action_horizon"]
+    )
+    denoiser.load_state_dict(checkpoint["denoiser_state"], strict=True)
+    normalizers = checkpoint["normalizers"]
+    policy = DiffusionPolicy(
+        policy_type,
+        config,
+        denoiser,
+        MinMaxNormalizer.from_dict(normalizers["obs"]),
+        MinMaxNormalizer.from_dict(normalizers["action"]),
+        shapes["action_horizon"],
+        checkpoint["metadata"],
+    )
+    return policy.train(False)

@@ -1,0 +1,91 @@
+"""The next-token entry of the policy registry: CARP's tokenizer and transformer size, one token per step.
+
+It trains through the shared loop (`carp.training.loop`) on teacher-forced cross entropy with CARP's optimizer recipe
+(AdamW betas 0.9/0.95 as in VAR, no weight decay on biases and embeddings, linear warm-up then cosine decay, optional
+EMA with a constant decay), so that the two families differ in how many tokens a step predicts and nothing else.
+"""
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from carp.config import TrainingConfig
+from carp.policies.context import PolicyContext
+from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
+from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
+from carp.policies.next_token.transformer import NextTokenTransformer
+from carp.policies.registry import PolicyFamily
+from carp.training.loop import OptimizerRecipe, PolicyTrainingData, train_with_loss
+from carp.training.runtime import seed_everything
+
+ADAM_BETAS = (0.9, 0.95)
+
+
+def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
+    """An untrained next-token policy sized by `config` for the data and tokenizer of `context`."""
+    if context.tokenizer_artifact is None:
+        raise ValueError("a next_token policy needs the registered tokenizer")
+    spec = context.tokenizer_artifact.tokenizer.spec
+    transformer = NextTokenTransformer(
+        config,
+        context.obs_dim,
+        context.obs_steps,
+        context.action_dim,
+        tuple(spec.scales),
+        spec.codebook_size,
+        context.num_tasks,
+    )
+    return NextTokenPolicy(
+        context.tokenizer_artifact, transformer, context.obs_normalizer, context.action_normalizer, context.metadata
+    )
+
+
+def parameter_groups(transformer: nn.Module, weight_decay: float) -> list[dict]:
+    """Weight matrices decay; biases and the learned embeddings do not (CARP's and VAR's rule)."""
+    decayed, undecayed = [], []
+    for name, parameter in transformer.named_parameters():
+        is_matrix = parameter.dim() > 1 and "embedding" not in name
+        (decayed if is_matrix else undecayed).append(parameter)
+    return [{"params": decayed, "weight_decay": weight_decay}, {"params": undecayed, "weight_decay": 0.0}]
+
+
+def train(
+    config: NextTokenConfig,
+    training: TrainingConfig,
+    context: PolicyContext,
+    data: PolicyTrainingData,
+    checkpoint_dir: Path,
+    device: str | torch.device = "cpu",
+    epochs: int | None = None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> NextTokenPolicy:
+    """Build the policy after seeding (reproducible weights) and train it in the shared loop."""
+    seed_everything(training.seed)
+    policy = build(config, context)
+
+    def average(module: nn.Module) -> AveragedModel:
+        # Parameters only: the buffers are constant index tables and masks.
+        return AveragedModel(module, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=False)
+
+    recipe = OptimizerRecipe(
+        learning_rate=config.learning_rate,
+        weight_decay=config.weight_decay,
+        warmup_steps=config.warmup_steps,
+        betas=ADAM_BETAS,
+        ema=average if config.use_ema else None,
+        parameter_groups=lambda: parameter_groups(policy.transformer, config.weight_decay),
+    )
+    identity = {
+        "policy_type": POLICY_TYPE,
+        "config": dataclasses.asdict(config),
+        "shapes": {"obs_dim": context.obs_dim, "obs_steps": context.obs_steps, "action_dim": context.action_dim},
+        "tokenizer_sha256": context.tokenizer_artifact.sha256,
+    }
+    return train_with_loss(policy, data, recipe, training, checkpoint_dir, identity, epochs, device, on_epoch_end)
+
+
+FAMILY = PolicyFamily(POLICY_TYPE, NextTokenConfig, NextTokenInference, build, NextTokenPolicy.from_checkpoint, train)

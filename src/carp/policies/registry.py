@@ -1,0 +1,189 @@
+"""Family name -> its config, model builder and loader, and `load_policy`, which dispatches on `policy_type`.
+
+Each family's folder has a `config` module with its params sections and a `family` module that defines its
+:class:`PolicyFamily` (the two Diffusion Policy families share one folder); the table below names both, one line per
+family. Modules are imported on first use, after `carp.config` has loaded, so a family's config may import
+`carp.config` without a cycle; and loading params imports only the light config modules, not torch or the models.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from carp.policies.base import POLICY_FORMAT_VERSION, Policy
+
+if TYPE_CHECKING:
+    import torch
+
+FAMILY_MODULES = {
+    "carp": ("carp.policies.carp.config:SECTIONS", "carp.policies.carp.family:FAMILY"),
+    "diffusion_unet": ("carp.policies.diffusion.config:UNET_SECTIONS", "carp.policies.diffusion.family:UNET_FAMILY"),
+    "diffusion_transformer": (
+        "carp.policies.diffusion.config:TRANSFORMER_SECTIONS",
+        "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
+    ),
+    "next_token": ("carp.policies.next_token.config:SECTIONS", "carp.policies.next_token.family:FAMILY"),
+}
+"""One entry per family: registry name -> (`module:attribute` of its (config class, inference class),
+`module:attribute` of its :class:`PolicyFamily`)."""
+
+_registered: dict[str, PolicyFamily] = {}
+
+
+@dataclass(frozen=True)
+class PolicyFamily:
+    """A policy family as the rest of carp sees it.
+
+    Attributes:
+        name: registry name, stored as `policy_type` in every checkpoint and used as the params section name.
+        config_class: frozen dataclass of the family's params section `<name>` (its model and optimizer).
+        inference_class: frozen dataclass of the `inference.<name>` section, read by evaluation only; its
+            `settings_for(task)` gives the keyword arguments of the policy's `configure_inference`.
+        build: `build(config, context)` -> an untrained :class:`~carp.policies.base.Policy` sized by `config` and
+            by a :class:`~carp.policies.context.PolicyContext` (the data's shapes, normalizers, tokenizer).
+        from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
+            ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
+        train: `train(config, training, context, data, checkpoint_dir, device=..., epochs=..., on_epoch_end=...)`
+            -> the trained policy in eval mode: builds the policy and runs the resumable loop on it (most families
+            through `carp.training.loop.train_with_loss`); see :func:`train_policy`.
+    """
+
+    name: str
+    config_class: type
+    inference_class: type
+    build: Callable[..., Policy]
+    from_checkpoint: Callable[[dict[str, Any]], Policy]
+    train: Callable[..., Policy]
+
+
+def family_names() -> tuple[str, ...]:
+    """Registered family names, built-in ones first."""
+    return tuple(FAMILY_MODULES) + tuple(name for name in _registered if name not in FAMILY_MODULES)
+
+
+def _attribute(path: str) -> Any:
+    module, attribute = path.split(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+def get_sections(name: str) -> tuple[type, type]:
+    """(config class, inference class) of family `name`, without importing its model code.
+
+    Raises:
+        KeyError: no such family; the message lists the known ones.
+    """
+    if name in _registered:
+        return _registered[name].config_class, _registered[name].inference_class
+    if name not in FAMILY_MODULES:
+        raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
+    return _attribute(FAMILY_MODULES[name][0])
+
+
+def get_family(name: str) -> PolicyFamily:
+    """The family registered under `name`.
+
+    Raises:
+        KeyError: no such family; the message lists the known ones.
+    """
+    if name in _registered:
+        return _registered[name]
+    if name not in FAMILY_MODULES:
+        raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
+    family = _attribute(FAMILY_MODULES[name][1])
+    _registered[name] = family
+    return family
+
+
+def register_family(family: PolicyFamily) -> None:
+    """Add a family defined outside `FAMILY_MODULES` (e.g. in a test); re-registering a name replaces it."""
+    _registered[family.name] = family
+
+
+def build_policy(name: str, config: Any, context: Any) -> Policy:
+    """An untrained policy of family `name`, sized by its `config` and a `carp.policies.context.PolicyContext`."""
+    return get_family(name).build(config, context)
+
+
+def train_policy(
+    name: str,
+    config: Any,
+    training: Any,
+    context: Any,
+    data: Any,
+    checkpoint_dir: Path,
+    device: str | torch.device = "cpu",
+    epochs: int | None = None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> Policy:
+    """Train a policy of family `name`, resuming from `checkpoint_dir` when a run of the same setup left a state.
+
+    Args:
+        name: registered family.
+        config: the family's params section.
+        training: the shared loop settings (`carp.config.TrainingConfig`).
+        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
+            goes into the checkpoint.
+        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
+        checkpoint_dir: where the resumable training state lives.
+        device: training device ("auto", "cpu", "cuda", ...).
+        epochs: passes over the windows; None takes `training.epochs`.
+        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
+            `loss` and `epoch_seconds`.
+
+    Returns:
+        The trained policy in eval mode on the CPU.
+    """
+    family = get_family(name)
+    policy = family.train(
+        config, training, context, data, checkpoint_dir, device=device, epochs=epochs, on_epoch_end=on_epoch_end
+    )
+    return policy.to("cpu").train(False)
+
+
+def unregister_family(name: str) -> None:
+    """Forget a family added by :func:`register_family` (built-in families stay)."""
+    if name not in FAMILY_MODULES:
+        _registered.pop(name, None)
+
+
+def policy_from_checkpoint(checkpoint: Any) -> Policy:
+    """Rebuild the policy a checkpoint dict holds, through the family named by its `policy_type`.
+
+    Raises:
+        ValueError: not a dict, another format version, or an unknown `policy_type`.
+        KeyError, RuntimeError, TypeError: raised by the family's loader for a checkpoint that does not fit.
+    """
+    version = checkpoint.get("format_version") if isinstance(checkpoint, dict) else None
+    if version != POLICY_FORMAT_VERSION:
+        raise ValueError(
+            f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
+        )
+    policy_type = checkpoint.get("policy_type")
+    try:
+        family = get_family(policy_type)
+    except KeyError as error:
+        raise ValueError(f"policy_type={policy_type!r}: {error.args[0]}") from None
+    return family.from_checkpoint(checkpoint)
+
+
+def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
+    """Read any family's checkpoint onto `map_location`.
+
+    Raises:
+        FileNotFoundError: no file at `path`.
+        CheckpointError: the file is truncated or corrupt, of another format version, of an unknown family,
+            incomplete, or its parts do not fit together; the message is one line that starts with `path`.
+    """
+    from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
+
+    checkpoint = read_checkpoint(Path(path), weights_only=True)
+    try:
+        return policy_from_checkpoint(checkpoint).to(map_location)
+    except KeyError as error:
+        raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
+    except (AttributeError, RuntimeError, TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: {one_line(error)}") from error

@@ -1,0 +1,241 @@
+"""The resumable training loop policy families plug their loss into.
+
+A family hands over an untrained policy (`carp.policies.base.Policy`, whose `training_loss(batch)` is the only
+family-specific step) and its optimizer recipe; the loop owns what every family needs alike: a seeded shuffle per
+epoch (independent of earlier epochs, so a resumed run is exact), AdamW with linear warm-up then cosine decay, an
+optional EMA of the weights (the family's averaging rule), autocast precision, a progress bar, a training state every
+`checkpoint_every` epochs that an interrupted run of the same setup resumes from
+(`carp.training.checkpoint`), per-epoch metrics for tracking, and a clear error when the loss stops being finite.
+"""
+
+import hashlib
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from torch.optim.swa_utils import AveragedModel
+from tqdm.auto import tqdm
+
+from carp.config import TrainingConfig
+from carp.policies.base import Policy
+from carp.training.checkpoint import resume_training_state, save_training_state
+from carp.training.runtime import autocast_to, precision_name, resolve_device, resolve_precision
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "training_state.pt"
+FINAL_LEARNING_RATE_FRACTION = 0.01
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The training loss became NaN or infinite."""
+
+
+@dataclass
+class PolicyTrainingData:
+    """Normalized training windows.
+
+    Attributes:
+        obs: (N, To, Do) float normalized observations.
+        actions: (N, H, A) float normalized actions.
+        task_ids: (N,) long task indices for multi-task policies, else None.
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    task_ids: torch.Tensor | None = None
+
+    def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The windows at `indices` (b,) as a `training_loss` batch: `obs`, `actions` and, if any, `task_ids`."""
+        batch = {"obs": self.obs[indices], "actions": self.actions[indices]}
+        if self.task_ids is not None:
+            batch["task_ids"] = self.task_ids[indices]
+        return batch
+
+
+@dataclass(frozen=True)
+class OptimizerRecipe:
+    """A family's optimizer and weight averaging.
+
+    Attributes:
+        learning_rate: peak AdamW learning rate.
+        weight_decay: AdamW weight decay (of every trained parameter).
+        warmup_steps: optimizer steps of linear warm-up before the cosine decay to 1% of the peak.
+        betas: AdamW betas.
+        ema: builds the weight average of the trained module (e.g. `carp.policies.diffusion.ema`), or None.
+        parameter_groups: returns AdamW parameter groups (each with its own `weight_decay`) when the family decays
+            some parameters and not others; None trains every parameter that requires gradients with
+            `weight_decay`.
+    """
+
+    learning_rate: float
+    weight_decay: float = 0.0
+    warmup_steps: int = 0
+    betas: tuple[float, float] = (0.9, 0.999)
+    ema: Callable[[nn.Module], AveragedModel] | None = None
+    parameter_groups: Callable[[], list[dict]] | None = None
+
+
+def make_scheduler(
+    optimizer: torch.optim.Optimizer, total_steps: int, warmup_steps: int
+) -> torch.optim.lr_scheduler.LRScheduler:
+    """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total_steps`."""
+    warmup_steps = min(warmup_steps, total_steps - 1)
+    cosine = torch.optim.lr_scheduler.CosineAnnealingLR(
+        optimizer,
+        T_max=max(1, total_steps - warmup_steps),
+        eta_min=optimizer.param_groups[0]["lr"] * FINAL_LEARNING_RATE_FRACTION,
+    )
+    if warmup_steps <= 0:
+        return cosine
+    warmup = torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=1.0 / warmup_steps, total_iters=warmup_steps)
+    return torch.optim.lr_scheduler.SequentialLR(optimizer, [warmup, cosine], milestones=[warmup_steps])
+
+
+def epoch_order(seed: int, epoch: int, count: int) -> torch.Tensor:
+    """Shuffled window indices (count,) of `epoch`; a generator per epoch makes resuming exact."""
+    return torch.randperm(count, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
+
+
+def data_digest(data: PolicyTrainingData) -> str:
+    """sha256 of the training windows, part of a run's identity for resuming."""
+    digest = hashlib.sha256()
+    for tensor in [data.obs, data.actions] + ([data.task_ids] if data.task_ids is not None else []):
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def train_with_loss(
+    policy: Policy,
+    data: PolicyTrainingData,
+    recipe: OptimizerRecipe,
+    training: TrainingConfig,
+    checkpoint_dir: Path,
+    run_identity: dict[str, Any],
+    epochs: int | None = None,
+    device: str | torch.device = "cpu",
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> Policy:
+    """Train `policy` on its own `training_loss`; resume from `checkpoint_dir` if a run of this setup left a state.
+
+    Args:
+        policy: an untrained policy; its parameters that require gradients are trained. Initialize it after
+            `seed_everything(training.seed)` for reproducible weights (the family's `train` does).
+        data: normalized training windows.
+        recipe: the family's optimizer and weight averaging.
+        training: the shared loop settings (batch size, seed, checkpoint cadence, precision; `epochs` unless given).
+        checkpoint_dir: directory of the training state (`training_state.pt`); created if missing. A state of
+            another setup is ignored and overwritten, an unusable one deleted, each with a warning.
+        run_identity: plain values that, with the data and the loop settings, identify the run (the family's
+            config and shapes); a stored state resumes only if they match.
+        epochs: passes over the windows; None takes `training.epochs`.
+        device: "auto", "cpu", "cuda" or "cuda:<index>".
+        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean over
+            windows), `learning_rate`, `epoch_seconds` and `samples_per_second`; a resumed run reports its stored
+            epochs first.
+
+    Returns:
+        The trained policy in eval mode on `device`; with an EMA it holds the averaged weights.
+
+    Raises:
+        NonFiniteLossError: the loss became NaN or infinite (the message names the epoch and step).
+    """
+    epochs = training.epochs if epochs is None else epochs
+    device = resolve_device(str(device))
+    policy = policy.to(device)
+    count = data.obs.shape[0]
+    if count == 0:
+        raise ValueError("there are no training windows")
+    data = PolicyTrainingData(
+        data.obs.to(device=device, dtype=torch.float32),
+        data.actions.to(device=device, dtype=torch.float32),
+        data.task_ids.to(device=device, dtype=torch.long) if data.task_ids is not None else None,
+    )
+    trainable = nn.ModuleDict({"policy": policy})  # type: ignore[dict-item]  (every family is an nn.Module)
+    ema = recipe.ema(policy) if recipe.ema is not None else None
+    if ema is not None:
+        trainable["ema"] = ema
+    if recipe.parameter_groups is not None:
+        parameters = recipe.parameter_groups()
+    else:
+        parameters = [parameter for parameter in policy.parameters() if parameter.requires_grad]
+    optimizer = torch.optim.AdamW(
+        parameters, lr=recipe.learning_rate, betas=recipe.betas, weight_decay=recipe.weight_decay
+    )
+    steps_per_epoch = math.ceil(count / training.batch_size)
+    scheduler = make_scheduler(optimizer, epochs * steps_per_epoch, recipe.warmup_steps)
+    precision = resolve_precision(training.precision, device)
+    metadata = {
+        "identity": run_identity,
+        "loop": {
+            "epochs": epochs,
+            "batch_size": training.batch_size,
+            "seed": training.seed,
+            "precision": precision_name(precision),
+        },
+        "recipe": {key: value for key, value in vars(recipe).items() if not callable(value)}
+        | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
+        "data_sha256": data_digest(data),
+    }
+    checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
+    start_epoch, history = resume_training_state(
+        checkpoint_path, metadata, trainable, optimizer, scheduler, on_epoch_end
+    )
+    if start_epoch > 0:
+        logger.info("resuming %s training from %s at epoch %d", policy.policy_type, checkpoint_path, start_epoch)
+    for epoch in range(start_epoch, epochs):
+        policy.train()
+        started = time.perf_counter()
+        loss_sum = 0.0
+        order = epoch_order(training.seed, epoch, count).to(device)
+        progress = tqdm(
+            torch.split(order, training.batch_size),
+            desc=f"{policy.policy_type} epoch {epoch + 1}/{epochs}",
+            leave=False,
+        )
+        for step, indices in enumerate(progress):
+            with autocast_to(precision, device):
+                loss = policy.training_loss(data.batch(indices))
+            loss = loss.float()
+            loss_value = float(loss.detach())
+            if not math.isfinite(loss_value):
+                raise NonFiniteLossError(
+                    f"{policy.policy_type} training loss is {loss_value} at epoch {epoch + 1}, step {step + 1} of "
+                    f"{steps_per_epoch} (learning rate {optimizer.param_groups[0]['lr']:.3g})"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            scheduler.step()
+            if ema is not None:
+                ema.update_parameters(policy)
+            loss_sum += loss_value * indices.numel()
+            progress.set_postfix(loss=f"{loss_value:.4f}")
+        seconds = time.perf_counter() - started
+        metrics = {
+            "loss": loss_sum / count,
+            "learning_rate": optimizer.param_groups[0]["lr"],
+            "epoch_seconds": seconds,
+            "samples_per_second": count / seconds,
+        }
+        history.append(metrics)
+        if (epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs:
+            save_training_state(checkpoint_path, trainable, optimizer, scheduler, epoch + 1, metadata, history)
+        logger.info(
+            "%s epoch %d/%d: %s",
+            policy.policy_type,
+            epoch + 1,
+            epochs,
+            ", ".join(f"{key}={value:.4g}" for key, value in metrics.items()),
+        )
+        if on_epoch_end is not None:
+            on_epoch_end(epoch, metrics)
+    if ema is not None:
+        policy.load_state_dict(ema.module.state_dict())
+    return policy.train(False)

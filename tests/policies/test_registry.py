@@ -1,0 +1,214 @@
+"""The policy seam: every family builds from tiny params, trains, saves and loads through `load_policy` unchanged."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+
+from carp.config import TrainingConfig
+from carp.data.normalizer import MinMaxNormalizer
+from carp.evaluation.sources import PolicySource
+from carp.policies.carp.config import CarpConfig
+from carp.policies.context import PolicyContext
+from carp.policies.diffusion.config import DiffusionTransformerConfig, DiffusionUNetConfig
+from carp.policies.next_token.config import NextTokenConfig
+from carp.policies.registry import (
+    build_policy,
+    family_names,
+    get_family,
+    load_policy,
+    register_family,
+    train_policy,
+    unregister_family,
+)
+from carp.training.checkpoint import CheckpointError
+from carp.training.loop import PolicyTrainingData
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
+from tests.policies.stub_family import STUB_FAMILY, StubConfig
+
+TINY_CONFIGS = {
+    "carp": CarpConfig(depth=1, width=16, num_heads=2),
+    "diffusion_unet": DiffusionUNetConfig(
+        down_dims=(16, 32), kernel_size=3, num_groups=8, step_embedding_dim=16, num_train_steps=10, warmup_steps=0
+    ),
+    "diffusion_transformer": DiffusionTransformerConfig(
+        num_layers=1, num_heads=2, width=16, num_train_steps=10, warmup_steps=0, attention_dropout=0.0
+    ),
+    "next_token": NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=0),
+}
+TINY_INFERENCE = {
+    "diffusion_unet": {"sampler": "ddim", "num_inference_steps": 4},
+    "diffusion_transformer": {"sampler": "ddpm", "num_inference_steps": 10},
+    "next_token": {"top_k": 3},
+}
+
+
+def tiny_context() -> PolicyContext:
+    """Do = 3, To = 2, A = 2, H = 8, with the tiny tokenizer of `tests.policies.carp.factories`."""
+    policy = tiny_policy()
+    return PolicyContext(
+        obs_normalizer=policy.obs_normalizer,
+        action_normalizer=policy.action_normalizer,
+        obs_steps=OBS_STEPS,
+        action_horizon=8,
+        tokenizer_artifact=tiny_artifact(tiny_tokenizer()),
+        metadata={"task": "lift"},
+    )
+
+
+def tiny_data(count: int = 16) -> PolicyTrainingData:
+    """Normalized random windows of the tiny shapes: obs (N, 2, 3), actions (N, 8, 2) in [-1, 1]."""
+    generator = torch.Generator().manual_seed(0)
+    return PolicyTrainingData(
+        torch.rand(count, OBS_STEPS, OBS_DIM, generator=generator) * 2 - 1,
+        torch.rand(count, 8, 2, generator=generator) * 2 - 1,
+    )
+
+
+@pytest.fixture(autouse=True)
+def stub_registered():
+    register_family(STUB_FAMILY)
+    yield
+    unregister_family(STUB_FAMILY.name)
+
+
+@pytest.mark.parametrize("name", [*TINY_CONFIGS, STUB_FAMILY.name])
+def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp_path):
+    config = TINY_CONFIGS.get(name) or get_family(name).config_class()
+    training = TrainingConfig(epochs=2, batch_size=8, checkpoint_every=1)
+    history = []
+    policy = train_policy(
+        name,
+        config,
+        training,
+        tiny_context(),
+        tiny_data(),
+        tmp_path / "state",
+        on_epoch_end=lambda e, m: history.append(m),
+    )
+    assert len(history) == 2 and all(np.isfinite(epoch["loss"]) and epoch["epoch_seconds"] > 0 for epoch in history)
+    untrained = build_policy(name, config, tiny_context())
+    changed = [
+        not torch.equal(trained, fresh)
+        for trained, fresh in zip(policy.state_dict().values(), untrained.state_dict().values(), strict=True)
+    ]
+    assert any(changed), "training left every weight at its initial value"
+    policy.configure_inference(**TINY_INFERENCE.get(name, {}))
+    path = tmp_path / "policy.pt"
+    policy.save(path)
+    loaded = load_policy(path)
+    loaded.configure_inference(**TINY_INFERENCE.get(name, {}))
+    assert type(loaded) is type(policy) and loaded.policy_type == name
+    assert loaded.metadata == {"task": "lift"}
+    assert loaded.num_parameters == policy.num_parameters > 0
+    assert loaded.description == policy.description
+    obs = np.random.default_rng(1).normal(size=(4, OBS_STEPS, OBS_DIM)).astype(np.float32)
+    before = policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(3))
+    after = loaded.predict_action_timed(obs, generator=torch.Generator().manual_seed(3))
+    np.testing.assert_array_equal(after.actions, before.actions)
+    assert before.actions.shape == (4, 8, 2) and before.actions.dtype == np.float32
+    assert after.model_calls == loaded.model_calls_per_chunk >= 1
+    # An interrupted run of the same setup resumes from its state: a second call trains no further epochs.
+    replayed = []
+    train_policy(
+        name,
+        config,
+        training,
+        tiny_context(),
+        tiny_data(),
+        tmp_path / "state",
+        on_epoch_end=lambda e, m: replayed.append(m),
+    )
+    assert replayed == history
+
+
+def test_model_calls_per_chunk_are_the_familys_sequential_steps():
+    context = tiny_context()
+    expected = {"carp": 2, "diffusion_unet": 4, "diffusion_transformer": 10, "next_token": 2 * (1 + 2)}
+    for name, calls in expected.items():
+        policy = build_policy(name, TINY_CONFIGS[name], context)
+        policy.configure_inference(**TINY_INFERENCE.get(name, {}))
+        assert policy.model_calls_per_chunk == calls, name
+    assert build_policy("diffusion_unet", TINY_CONFIGS["diffusion_unet"], context).description == "DDPM-10"
+
+
+def test_the_stub_family_acts_through_the_evaluation_source(tmp_path):
+    policy = build_policy(STUB_FAMILY.name, STUB_FAMILY.config_class(), tiny_context())
+    path = tmp_path / "policy.pt"
+    policy.save(path)
+    deployment = policy.deployment(path, "onnxruntime", tmp_path / "graphs")
+    assert deployment.backend == "torch"
+    source = PolicySource(deployment.load, controller="delta", obs_steps=OBS_STEPS, action_steps=4)
+    source.reset(env=None, seed=0)
+    actions, timing = source.act(np.zeros((OBS_STEPS, OBS_DIM)), env=None)
+    assert actions.shape == (4, 2) and timing.prediction >= 0
+
+
+def test_carp_checkpoints_name_their_family(tmp_path):
+    path = tmp_path / "policy.pt"
+    tiny_policy().save(path)
+    checkpoint = torch.load(path, weights_only=True)
+    assert checkpoint["policy_type"] == "carp" and checkpoint["format_version"] == 3
+
+
+def test_an_unknown_family_is_refused_with_the_known_ones_named():
+    with pytest.raises(KeyError, match=r"unknown policy family 'lstm' \(known: carp"):
+        get_family("lstm")
+    assert family_names()[0] == "carp"
+
+
+def test_a_checkpoint_of_an_unknown_family_is_one_line_naming_the_file(tmp_path):
+    path = tmp_path / "policy.pt"
+    checkpoint = tiny_policy().to_checkpoint() | {"policy_type": "lstm"}
+    torch.save(checkpoint, path)
+    with pytest.raises(CheckpointError, match=r"policy_type='lstm': unknown policy family 'lstm'") as raised:
+        load_policy(path)
+    assert str(raised.value).startswith(f"{path}: ")
+
+
+def test_inference_settings_are_the_familys_own(tmp_path):
+    policy = tiny_policy()
+    policy.configure_inference(top_k=3)
+    assert policy.description == "top-3"
+    with pytest.raises(TypeError, match="num_inference_steps"):
+        policy.configure_inference(num_inference_steps=10)
+    path = tmp_path / "policy.pt"
+    policy.save(path)
+    source = functools.partial(PolicySource, functools.partial(load_policy, path), "delta", OBS_STEPS, 4)
+    with pytest.raises(ValueError, match="top_k"):
+        source(inference={"top_k": 99})
+
+
+@pytest.mark.slow
+def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
+    """Train, save and evaluate a family defined in a test file, in simulation, with no change outside that file."""
+    from carp import simulation
+    from carp.evaluation.runner import evaluate_policy
+
+    obs_keys = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]  # Do = 19 on Lift
+    shapes = PolicyContext(
+        obs_normalizer=MinMaxNormalizer(np.full(19, -1.0), np.full(19, 1.0)),
+        action_normalizer=MinMaxNormalizer(np.full(7, -0.05), np.full(7, 0.05)),  # small delta actions
+        obs_steps=2,
+        action_horizon=8,
+    )
+    data = PolicyTrainingData(torch.zeros(8, 2, 19), torch.zeros(8, 8, 7))
+    training = TrainingConfig(epochs=1, batch_size=8)
+    policy = train_policy(STUB_FAMILY.name, StubConfig(), training, shapes, data, tmp_path / "state")
+    path = tmp_path / "policy.pt"
+    policy.save(path)
+    summary, results = evaluate_policy(
+        path,
+        env_args=simulation.make_env_args("lift", controller="delta"),
+        controller="delta",
+        obs_keys=obs_keys,
+        obs_steps=2,
+        action_steps=4,
+        seeds=[100_000],
+        max_steps=12,
+        workers=1,
+    )
+    assert summary["episodes"] == 1 and summary["policy_type"] == "stub" and summary["backend"] == "torch"
+    assert summary["inference"] == "linear" and summary["model_calls_per_chunk"] == 1
+    assert results[0].steps == 12 and not results[0].error and len(results[0].prediction_seconds) == 3
