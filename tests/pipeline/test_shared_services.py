@@ -21,14 +21,21 @@ from carp.tracking.registry import fetch_registered_tokenizer
 from tests.pipeline.workspace import dvc, make_workspace, stages_run, tool_env
 from tests.services import object_store, s3_keys, service_directory, tool, tracking_server
 
-STAGES = {"collect@lift", "ingest@lift", "train_tokenizer", "register_tokenizer", "train_policy@lift", "evaluate@lift"}
+STAGES = {
+    "collect@lift",
+    "ingest@lift",
+    "train_tokenizer",
+    "register_tokenizer",
+    "train_policy@lift-carp",
+    "evaluate@lift-carp",
+}
 TIMEOUT_SECONDS = 1800
 # What `dvc pull` must bring back: demos, processed data, tokenizer and policy.
 RESTORED = (
     "data/raw/lift.hdf5",
     "data/processed/lift/normalization.json",
     "models/tokenizer/tokenizer.pt",
-    "models/policy/lift/policy.pt",
+    "models/policy/lift/carp/policy.pt",
 )
 
 
@@ -126,7 +133,9 @@ def test_two_queued_experiments_run_at_once_log_every_run_into_the_server(pipeli
     for name, size in sizes.items():
         tagged = [r for r in runs if r.data.tags.get("carp.dvc_experiment") == name]
         stages = sorted(r.data.tags["carp.dvc_stage"] for r in tagged)
-        assert stages == sorted({"train_tokenizer", "register_tokenizer", "train_policy@lift", "evaluate@lift"}), name
+        assert stages == sorted(
+            {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+        ), name
         assert {r.info.status for r in tagged} == {"FINISHED"}, name
         assert {r.data.params["codebook_size"] for r in tagged} == {str(size)}, name
 
@@ -144,7 +153,7 @@ def push_then_pull_into_a_fresh_clone(workspace: Path, clone: Path, env: dict | 
     run(["git", "commit", "-qm", "shared DVC remote"], workspace)
     run(dvc("push"), workspace, env)
     run(["git", "clone", "-q", str(workspace), str(clone)], clone.parent)
-    assert not (clone / "models/policy/lift/policy.pt").exists()
+    assert not (clone / "models/policy/lift/carp/policy.pt").exists()
     run(dvc("pull"), clone, env)
     for output in RESTORED:
         assert (clone / output).read_bytes() == (workspace / output).read_bytes(), output
