@@ -94,23 +94,7 @@ class CoarseToFineTransformer(nn.Module):
         self._initialize_weights()
 
     def _initialize_weights(self) -> None:
-        for module in self.modules():
-            if isinstance(module, nn.Linear):
-                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
-                nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.Embedding):
-                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
-        for parameter in (self.start_embedding, self.position_embedding, self.level_embedding):
-            nn.init.trunc_normal_(parameter, std=EMBEDDING_INIT_STD)
-        # GPT-2: residual branch outputs shrink with depth so the residual stream's variance stays bounded.
-        residual_gain = 1.0 / math.sqrt(2 * self.spec.depth)
-        for block in self.blocks:
-            block.attention.output.weight.data.mul_(residual_gain)
-            block.feed_forward.contract.weight.data.mul_(residual_gain)
-        width = self.spec.width
-        weight = self.modulation.weight.data.view(self.num_modulations, width, width)
-        weight[2 : MODULATIONS_PER_BLOCK * self.spec.depth : 3].mul_(GATE_INIT_GAIN)
-        self.head.weight.data.mul_(HEAD_INIT_GAIN)
+        initialize_adaptive_transformer(self, self.spec.depth, self.spec.width)
 
     def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Project observations (and task) to the condition vector.
@@ -240,3 +224,28 @@ class CoarseToFineTransformer(nn.Module):
             hidden = block(hidden, state.modulations[offset : offset + MODULATIONS_PER_BLOCK], None, state.cache)
         state.next_scale += 1
         return self._logits(hidden, state.modulations)  # (B, s_k * A, V)
+
+
+def initialize_adaptive_transformer(model: nn.Module, depth: int, width: int) -> None:
+    """Initialize a transformer of AdaLN blocks in place, as CARP does (VAR's scheme).
+
+    Shared by every family built on these blocks (CARP, next-token). ``model`` holds ``blocks``, ``modulation`` (its
+    ``num_modulations`` (D, D) matrices stacked), ``head``, ``start_embedding``, ``position_embedding`` and
+    ``level_embedding``. The order of the draws is fixed, so a seeded model is the same whichever family builds it.
+    """
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+            nn.init.zeros_(module.bias)
+        elif isinstance(module, nn.Embedding):
+            nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
+    for parameter in (model.start_embedding, model.position_embedding, model.level_embedding):
+        nn.init.trunc_normal_(parameter, std=EMBEDDING_INIT_STD)
+    # GPT-2: residual branch outputs shrink with depth so the residual stream's variance stays bounded.
+    residual_gain = 1.0 / math.sqrt(2 * depth)
+    for block in model.blocks:
+        block.attention.output.weight.data.mul_(residual_gain)
+        block.feed_forward.contract.weight.data.mul_(residual_gain)
+    weight = model.modulation.weight.data.view(model.num_modulations, width, width)
+    weight[2 : MODULATIONS_PER_BLOCK * depth : 3].mul_(GATE_INIT_GAIN)
+    model.head.weight.data.mul_(HEAD_INIT_GAIN)

@@ -21,7 +21,6 @@ defined one token at a time.
 Blocks, the kv-cache, the mask type and the head are CARP's, imported from `carp.policies.carp.blocks`.
 """
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -37,13 +36,8 @@ from carp.policies.carp.blocks import (
 )
 from carp.policies.carp.layout import TokenLayout
 from carp.policies.carp.spec import TASK_EMBEDDING_DIM
+from carp.policies.carp.transformer import initialize_adaptive_transformer
 from carp.policies.next_token.config import NextTokenConfig
-
-EMBEDDING_INIT_STD = 0.02
-GATE_INIT_GAIN = 1e-5
-"""Gates start near zero so every block starts close to the identity, as CARP's do."""
-HEAD_INIT_GAIN = 0.02
-"""Near-uniform initial logits, as CARP's."""
 
 
 @dataclass
@@ -142,23 +136,7 @@ class NextTokenTransformer(nn.Module):
         return self.layout.sequence_length
 
     def _initialize_weights(self) -> None:
-        for module in self.modules():
-            if isinstance(module, nn.Linear):
-                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
-                nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.Embedding):
-                nn.init.trunc_normal_(module.weight, std=EMBEDDING_INIT_STD)
-        for parameter in (self.start_embedding, self.position_embedding, self.level_embedding):
-            nn.init.trunc_normal_(parameter, std=EMBEDDING_INIT_STD)
-        # GPT-2: residual branch outputs shrink with depth so the residual stream's variance stays bounded.
-        residual_gain = 1.0 / math.sqrt(2 * self.config.depth)
-        for block in self.blocks:
-            block.attention.output.weight.data.mul_(residual_gain)
-            block.feed_forward.contract.weight.data.mul_(residual_gain)
-        width = self.config.width
-        weight = self.modulation.weight.data.view(self.num_modulations, width, width)
-        weight[2 : MODULATIONS_PER_BLOCK * self.config.depth : 3].mul_(GATE_INIT_GAIN)
-        self.head.weight.data.mul_(HEAD_INIT_GAIN)
+        initialize_adaptive_transformer(self, self.config.depth, self.config.width)
 
     def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Project observations (and task) to the condition vector.
