@@ -7,8 +7,9 @@ Measures, with randomly initialized weights (speed does not depend on the values
   and with top-k draws (`--top-k`);
 - the same at batch 64 (latency of one call and per chunk);
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
-  token targets, as `carp.policies.carp.trainer` runs it, in float32 and in the precision `policy.precision: auto`
-  picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two alternate.
+  token targets, as the shared loop runs CARP's step (`carp.policies.carp.trainer`), in float32 and in the precision
+  `training.precision: auto` picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two
+  alternate.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
@@ -30,12 +31,13 @@ from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
-from carp.policies.carp.trainer import make_optimizer, teacher_forced_loss
+from carp.policies.carp.trainer import optimizer_recipe, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.runtime import precision_name, resolve_precision
+from carp.training.loop import make_optimizer
+from carp.training.runtime import autocast_to, precision_name, resolve_precision
 
 OBS_DIM = 19  # Lift's low-dim observation width
 OBS_STEPS = 2
@@ -90,14 +92,17 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisi
     obs = torch.randn(batch_size, OBS_STEPS, OBS_DIM, generator=generator)
     teacher = torch.randn(batch_size, spec.sequence_length - spec.scales[0] * spec.action_dim, spec.latent_channels)
     targets = torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator)
+    batch = {"obs": obs, "teacher_inputs": teacher, "token_sequence": targets}
 
     def make_step(precision: torch.dtype):
         torch.manual_seed(0)
         transformer = CoarseToFineTransformer(spec).train()
-        optimizer = make_optimizer(transformer, CarpConfig().learning_rate, CarpConfig().weight_decay)
+        recipe = optimizer_recipe(transformer, CarpConfig())
+        optimizer = make_optimizer(recipe.parameter_groups(), recipe, torch.device("cpu"))
 
         def step() -> None:
-            loss, _ = teacher_forced_loss(transformer, obs, teacher, targets, None, precision)
+            with autocast_to(precision, torch.device("cpu")):
+                loss = teacher_forced_step(transformer, batch).loss
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

@@ -167,7 +167,7 @@ def test_a_truncated_training_state_is_discarded_with_one_warning_and_the_stage_
 @pytest.mark.slow
 def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipeline):
     workspace, reference = pipeline["workspace"], pipeline["reference"]
-    state = workspace / "checkpoints/policy/lift/carp/policy_training_state.pt"
+    state = workspace / "checkpoints/policy/lift/carp/training_state.pt"
     state.unlink()
     process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
     _kill_when(process, state.exists)
@@ -175,7 +175,7 @@ def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipelin
     assert 0 < killed_at < POLICY_EPOCHS
 
     log = _rerun(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
-    assert f"resuming policy training from {state}" in log
+    assert f"resuming carp training from {state}" in log
     resumed = torch.load(workspace / "models/policy/lift/carp/policy.pt", weights_only=True)
     expected = torch.load(reference / "models/policy/lift/carp/policy.pt", weights_only=True)
     _assert_same_tensors(expected.pop("transformer_state"), resumed.pop("transformer_state"))

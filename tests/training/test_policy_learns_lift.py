@@ -4,18 +4,18 @@ import numpy as np
 import pytest
 import torch
 
+from carp.config import TrainingConfig
 from carp.data.collect import collect_demonstrations
 from carp.data.dataset import load_task_windows
 from carp.data.ingest import ingest_demonstrations
 from carp.evaluation.offline import held_out_action_errors
-from carp.policies.carp.policy import CarpPolicy
-from carp.policies.carp.spec import PolicySpec
-from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.family import build_policy, train
+from carp.policies.context import PolicyContext
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.loop import PolicyTrainingData
 from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
-from tests.policies.carp.factories import train_transformer
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
@@ -40,37 +40,24 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
         TokenizerTrainingSettings(epochs=15, batch_size=64, device="cpu"),
         tmp_path / "tokenizer_state",
     ).cpu()
-    policy_spec = PolicySpec(
-        obs_dim=obs_normalizer.num_features,
+    context = PolicyContext(
+        obs_normalizer=obs_normalizer,
+        action_normalizer=action_normalizer,
         obs_steps=2,
-        action_dim=10,
-        scales=(1, 2, 4),
-        latent_channels=tokenizer_spec.latent_channels,
-        codebook_size=64,
-        depth=2,
-        width=32,
-        num_heads=4,
+        action_horizon=16,
+        tokenizer_artifact=TokenizerArtifact.build(tokenizer, {"lift": action_normalizer}, "panda-abs10"),
     )
+    config = CarpConfig(depth=2, width=32, num_heads=4, learning_rate=2e-3, warmup_steps=10)
     data = PolicyTrainingData(obs=normalized(obs_normalizer, windows.train_obs), actions=train_actions)
-    settings = dict(epochs=40, batch_size=32, learning_rate=2e-3, warmup_steps=10, device="cpu")
-    trained = train_transformer(policy_spec, tokenizer, data, settings, tmp_path / "policy_state").cpu()
+    trained = train(config, TrainingConfig(epochs=40, batch_size=32), context, data, tmp_path / "policy_state").cpu()
 
     torch.manual_seed(0)
-    untrained = CoarseToFineTransformer(policy_spec)
+    untrained = build_policy(config, context)
     errors = {
-        name: held_out_action_errors(
-            CarpPolicy(
-                TokenizerArtifact.build(tokenizer, {"lift": action_normalizer}, "panda-abs10"),
-                transformer,
-                obs_normalizer,
-                action_normalizer,
-            ),
-            windows.valid_obs,
-            windows.valid_actions,
-            obs_steps=2,
-            action_steps=8,
-        )["valid_executed_action_rmse"]
-        for name, transformer in (("trained", trained), ("untrained", untrained))
+        name: held_out_action_errors(policy, windows.valid_obs, windows.valid_actions, obs_steps=2, action_steps=8)[
+            "valid_executed_action_rmse"
+        ]
+        for name, policy in (("trained", trained), ("untrained", untrained))
     }
     # Executed actions of the trained policy are at least twice as close to the held-out demonstrations.
     assert errors["trained"] < 0.5 * errors["untrained"], errors

@@ -8,7 +8,7 @@ from carp.config import ConfigError
 from carp.policies.carp.blocks import _attention
 from carp.training import runtime
 from carp.training.runtime import autocast_to, resolve_precision
-from tests.policies.carp.factories import tiny_policy_spec, tiny_tokenizer, train_transformer, trainer_settings
+from tests.policies.carp.factories import tiny_tokenizer, train_carp, trainer_settings
 from tests.policies.carp.test_trainer import _data
 
 CPU = torch.device("cpu")
@@ -50,9 +50,7 @@ def _history(tmp_path, precision: str) -> list[dict]:
         epochs=6, batch_size=8, learning_rate=3e-3, weight_decay=0.0, warmup_steps=2, device="cpu", precision=precision
     )
     history = []
-    train_transformer(
-        tiny_policy_spec(), tiny_tokenizer(), _data(32), settings, tmp_path, lambda e, m: history.append(m)
-    )
+    train_carp(tiny_tokenizer(), _data(32), settings, tmp_path, lambda e, m: history.append(m))
     return history
 
 

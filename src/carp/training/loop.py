@@ -6,6 +6,11 @@ epoch (independent of earlier epochs, so a resumed run is exact), AdamW with lin
 optional EMA of the weights (the family's averaging rule), autocast precision, a progress bar, a training state every
 `checkpoint_every` epochs that an interrupted run of the same setup resumes from
 (`carp.training.checkpoint`), per-epoch metrics for tracking, and a clear error when the loss stops being finite.
+
+Two optional hooks cover what a family needs beyond a loss: `prepare_data` derives per-window tensors once before the
+first epoch (CARP tokenizes every window with its frozen tokenizer instead of once per batch), and `training_step`
+returns, besides the loss, sums of per-window metrics over the batch that the loop turns into epoch means (CARP's
+token accuracies).
 """
 
 import hashlib
@@ -13,7 +18,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +36,9 @@ logger = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "training_state.pt"
 FINAL_LEARNING_RATE_FRACTION = 0.01
+FUSED_ADAMW_DEVICES = ("cpu", "cuda")
+"""Device types with PyTorch's fused AdamW kernel, which updates every parameter in one pass instead of ~10 small
+operations per tensor."""
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -45,18 +53,47 @@ class PolicyTrainingData:
         obs: (N, To, Do) float normalized observations.
         actions: (N, H, A) float normalized actions.
         task_ids: (N,) long task indices for multi-task policies, else None.
+        extras: (N, ...) tensors a family derives from the windows once (`train_with_loss`'s `prepare_data`), by
+            name; every batch carries their rows under the same names.
     """
 
     obs: torch.Tensor
     actions: torch.Tensor
     task_ids: torch.Tensor | None = None
+    extras: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The windows at `indices` (b,) as a `training_loss` batch: `obs`, `actions` and, if any, `task_ids`."""
+        """The windows at `indices` (b,) as a training batch: `obs`, `actions`, `task_ids` if any, and the extras."""
         batch = {"obs": self.obs[indices], "actions": self.actions[indices]}
         if self.task_ids is not None:
             batch["task_ids"] = self.task_ids[indices]
+        for name, values in self.extras.items():
+            batch[name] = values[indices]
         return batch
+
+    def to(self, device: torch.device) -> "PolicyTrainingData":
+        """The windows on `device`: observations and actions float32, task ids long, extras in their own dtype."""
+        return PolicyTrainingData(
+            self.obs.to(device=device, dtype=torch.float32),
+            self.actions.to(device=device, dtype=torch.float32),
+            self.task_ids.to(device=device, dtype=torch.long) if self.task_ids is not None else None,
+            {name: values.to(device) for name, values in self.extras.items()},
+        )
+
+
+@dataclass(frozen=True)
+class TrainingStep:
+    """What a family's training step returns for one batch.
+
+    Attributes:
+        loss: scalar loss to minimize (float32, or cast to it by the loop).
+        metric_sums: name -> scalar tensor, the sum over the batch's windows of a per-window metric (e.g. the
+            fraction of a window's tokens predicted right); the loop reports each as its mean over the epoch's
+            windows. Accumulated on the device, so no step waits for them.
+    """
+
+    loss: torch.Tensor
+    metric_sums: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -80,6 +117,32 @@ class OptimizerRecipe:
     betas: tuple[float, float] = (0.9, 0.999)
     ema: Callable[[nn.Module], AveragedModel] | None = None
     parameter_groups: Callable[[], list[dict]] | None = None
+
+
+def matrix_decay_groups(module: nn.Module, weight_decay: float) -> list[dict]:
+    """AdamW parameter groups in which weight matrices decay and biases, norms and learned embeddings do not.
+
+    VAR's rule (its no-decay list), which CARP and the next-token baseline share: a parameter decays when it has
+    more than one dimension and its name does not contain `embedding`. Frozen parameters are left out.
+    """
+    decayed, undecayed = [], []
+    for name, parameter in module.named_parameters():
+        if not parameter.requires_grad:
+            continue
+        is_matrix = parameter.dim() > 1 and "embedding" not in name
+        (decayed if is_matrix else undecayed).append(parameter)
+    return [{"params": decayed, "weight_decay": weight_decay}, {"params": undecayed, "weight_decay": 0.0}]
+
+
+def make_optimizer(parameters: list, recipe: OptimizerRecipe, device: torch.device) -> torch.optim.AdamW:
+    """AdamW at the recipe's peak rate and betas over `parameters` (tensors or groups), fused where `device` has it."""
+    return torch.optim.AdamW(
+        parameters,
+        lr=recipe.learning_rate,
+        betas=recipe.betas,
+        weight_decay=recipe.weight_decay,
+        fused=device.type in FUSED_ADAMW_DEVICES,
+    )
 
 
 def make_scheduler(
@@ -111,6 +174,13 @@ def data_digest(data: PolicyTrainingData) -> str:
     return digest.hexdigest()
 
 
+def _loss_only(policy: Policy) -> Callable[[dict[str, torch.Tensor]], TrainingStep]:
+    def step(batch: dict[str, torch.Tensor]) -> TrainingStep:
+        return TrainingStep(policy.training_loss(batch))
+
+    return step
+
+
 def train_with_loss(
     policy: Policy,
     data: PolicyTrainingData,
@@ -121,6 +191,8 @@ def train_with_loss(
     epochs: int | None = None,
     device: str | torch.device = "cpu",
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    prepare_data: Callable[[PolicyTrainingData], PolicyTrainingData] | None = None,
+    training_step: Callable[[dict[str, torch.Tensor]], TrainingStep] | None = None,
 ) -> Policy:
     """Train `policy` on its own `training_loss`; resume from `checkpoint_dir` if a run of this setup left a state.
 
@@ -137,8 +209,13 @@ def train_with_loss(
         epochs: passes over the windows; None takes `training.epochs`.
         device: "auto", "cpu", "cuda" or "cuda:<index>".
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean over
-            windows), `learning_rate`, `epoch_seconds` and `samples_per_second`; a resumed run reports its stored
-            epochs first.
+            windows), the means of the training step's metric sums, `learning_rate`, `epoch_seconds` and
+            `samples_per_second`; a resumed run reports its stored epochs first.
+        prepare_data: called once with the windows on the training device (after the policy moved there), outside
+            autocast; returns them with the family's extras (e.g. token targets), or refuses them with ValueError.
+            None trains on the windows as given.
+        training_step: the loss and metric sums of one batch (see `PolicyTrainingData.batch`), run under the loop's
+            autocast; None takes `policy.training_loss` and no metrics.
 
     Returns:
         The trained policy in eval mode on `device`; with an EMA it holds the averaged weights.
@@ -152,11 +229,13 @@ def train_with_loss(
     count = data.obs.shape[0]
     if count == 0:
         raise ValueError("there are no training windows")
-    data = PolicyTrainingData(
-        data.obs.to(device=device, dtype=torch.float32),
-        data.actions.to(device=device, dtype=torch.float32),
-        data.task_ids.to(device=device, dtype=torch.long) if data.task_ids is not None else None,
-    )
+    data = data.to(device)
+    # Digest of the windows as given: whatever `prepare_data` derives from them follows from the run identity.
+    digest = data_digest(data)
+    if prepare_data is not None:
+        data = prepare_data(data)
+    if training_step is None:
+        training_step = _loss_only(policy)
     trainable = nn.ModuleDict({"policy": policy})  # type: ignore[dict-item]  (every family is an nn.Module)
     ema = recipe.ema(policy) if recipe.ema is not None else None
     if ema is not None:
@@ -165,9 +244,7 @@ def train_with_loss(
         parameters = recipe.parameter_groups()
     else:
         parameters = [parameter for parameter in policy.parameters() if parameter.requires_grad]
-    optimizer = torch.optim.AdamW(
-        parameters, lr=recipe.learning_rate, betas=recipe.betas, weight_decay=recipe.weight_decay
-    )
+    optimizer = make_optimizer(parameters, recipe, device)
     steps_per_epoch = math.ceil(count / training.batch_size)
     scheduler = make_scheduler(optimizer, epochs * steps_per_epoch, recipe.warmup_steps)
     precision = resolve_precision(training.precision, device)
@@ -181,7 +258,7 @@ def train_with_loss(
         },
         "recipe": {key: value for key, value in vars(recipe).items() if not callable(value)}
         | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
-        "data_sha256": data_digest(data),
+        "data_sha256": digest,
     }
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
     start_epoch, history = resume_training_state(
@@ -193,6 +270,7 @@ def train_with_loss(
         policy.train()
         started = time.perf_counter()
         loss_sum = 0.0
+        metric_sums: dict[str, torch.Tensor] = {}
         order = epoch_order(training.seed, epoch, count).to(device)
         progress = tqdm(
             torch.split(order, training.batch_size),
@@ -201,8 +279,8 @@ def train_with_loss(
         )
         for step, indices in enumerate(progress):
             with autocast_to(precision, device):
-                loss = policy.training_loss(data.batch(indices))
-            loss = loss.float()
+                step_result = training_step(data.batch(indices))
+            loss = step_result.loss.float()
             loss_value = float(loss.detach())
             if not math.isfinite(loss_value):
                 raise NonFiniteLossError(
@@ -216,10 +294,14 @@ def train_with_loss(
             if ema is not None:
                 ema.update_parameters(policy)
             loss_sum += loss_value * indices.numel()
+            for name, value in step_result.metric_sums.items():
+                # float64: an epoch's sum of per-window fractions stays exact to far below the reported digits.
+                metric_sums[name] = metric_sums.get(name, 0.0) + value.detach().to(torch.float64)
             progress.set_postfix(loss=f"{loss_value:.4f}")
         seconds = time.perf_counter() - started
         metrics = {
             "loss": loss_sum / count,
+            **{name: float(total) / count for name, total in metric_sums.items()},
             "learning_rate": optimizer.param_groups[0]["lr"],
             "epoch_seconds": seconds,
             "samples_per_second": count / seconds,

@@ -1,4 +1,4 @@
-"""Tiny tokenizer and transformer factories shared by the policy and policy-trainer tests."""
+"""Tiny tokenizer, transformer and training factories shared by the policy and policy-trainer tests."""
 
 import dataclasses
 
@@ -8,10 +8,11 @@ import torch
 from carp.config import TrainingConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.family import train
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
-from carp.policies.carp.trainer import train_policy
 from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.context import PolicyContext
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -85,13 +86,36 @@ def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, **overrides) ->
     )
 
 
-def train_transformer(spec, tokenizer, data, settings: dict, checkpoint_dir, on_epoch_end=None):
-    """`carp.policies.carp.trainer.train_policy` with its config and loop settings given as one flat mapping.
+TINY_ARCHITECTURE = dict(depth=1, width=16, num_heads=2)
+"""The CARP params of :func:`tiny_policy_spec`'s transformer."""
 
-    Keys of `CarpConfig` go to the config, keys of `TrainingConfig` to the loop, `device` (default cpu) to the device.
+
+def tiny_context(tokenizer: MultiScaleActionTokenizer, num_tasks: int = 0) -> PolicyContext:
+    """Do = 3, To = 2, observations and actions in [-1, 1], and `tokenizer` (A = 2) as the registered one."""
+    action_dim = tokenizer.spec.action_dim
+    return PolicyContext(
+        obs_normalizer=MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0)),
+        action_normalizer=MinMaxNormalizer(np.full(action_dim, -1.0), np.full(action_dim, 1.0)),
+        obs_steps=OBS_STEPS,
+        action_horizon=tokenizer.spec.action_horizon,
+        tokenizer_artifact=tiny_artifact(tokenizer),
+        num_tasks=num_tasks,
+    )
+
+
+def train_carp(tokenizer, data, settings: dict, checkpoint_dir, on_epoch_end=None, num_tasks: int = 0) -> CarpPolicy:
+    """The CARP family's `train` on :func:`tiny_context`, its config and loop settings given as one flat mapping.
+
+    Keys of `CarpConfig` go to the config (the architecture defaults to `TINY_ARCHITECTURE`), keys of
+    `TrainingConfig` to the loop, `device` (default cpu) to the device.
     """
-    return train_policy(
-        spec, tokenizer, data, checkpoint_dir=checkpoint_dir, on_epoch_end=on_epoch_end, **trainer_settings(**settings)
+    context = tiny_context(tokenizer, num_tasks)
+    return train(
+        context=context,
+        data=data,
+        checkpoint_dir=checkpoint_dir,
+        on_epoch_end=on_epoch_end,
+        **trainer_settings(**(TINY_ARCHITECTURE | settings)),
     )
 
 

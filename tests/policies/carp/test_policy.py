@@ -209,8 +209,8 @@ def test_batch_of_envs_equals_one_by_one():
         np.testing.assert_allclose(policy.predict_action(obs[index : index + 1]), batched[index : index + 1], atol=1e-5)
 
 
-def test_training_loss_is_the_trainers_teacher_forced_cross_entropy():
-    from carp.policies.carp.trainer import compute_token_targets, teacher_forced_loss
+def test_training_loss_and_accuracy_sums_are_those_of_the_plain_teacher_forced_forward():
+    from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 
     policy = tiny_policy()
     generator = torch.Generator().manual_seed(0)
@@ -219,9 +219,20 @@ def test_training_loss_is_the_trainers_teacher_forced_cross_entropy():
         "actions": torch.rand(6, 8, 2, generator=generator) * 2 - 1,
     }
     targets = compute_token_targets(policy.tokenizer, batch["actions"])
-    expected, _ = teacher_forced_loss(
-        policy.transformer, batch["obs"], targets.teacher_inputs, targets.token_sequence, None, torch.float32
+    logits = policy.transformer(batch["obs"], targets.teacher_inputs)  # (6, L, V) in sequence order
+    expected_loss = torch.nn.functional.cross_entropy(logits.flatten(0, 1), targets.token_sequence.flatten())
+    correct = (logits.argmax(dim=-1) == targets.token_sequence).double()  # (6, L)
+    step = teacher_forced_step(
+        policy.transformer,
+        batch | {"token_sequence": targets.token_sequence, "teacher_inputs": targets.teacher_inputs},
     )
-    torch.testing.assert_close(policy.training_loss(batch), expected)
+    torch.testing.assert_close(step.loss, expected_loss)
+    torch.testing.assert_close(policy.training_loss(batch), expected_loss)
+    # Sums over the six windows of each window's fraction of right tokens: in all, at scale 1 (A * s_1 = 2 tokens)
+    # and at scale 2 (4 tokens).
+    assert 0.0 < float(correct.mean()) < 1.0  # the scrambled weights get some tokens right, not all
+    torch.testing.assert_close(step.metric_sums["token_accuracy"], correct.mean(dim=1).sum())
+    torch.testing.assert_close(step.metric_sums["token_accuracy_scale_1"], correct[:, :2].mean(dim=1).sum())
+    torch.testing.assert_close(step.metric_sums["token_accuracy_scale_2"], correct[:, 2:].mean(dim=1).sum())
     with torch.autocast("cpu", dtype=torch.bfloat16):  # the tokens do not depend on the loop's autocast
         assert torch.isfinite(policy.training_loss(batch))

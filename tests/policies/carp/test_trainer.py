@@ -6,16 +6,9 @@ import torch
 
 from carp.config import ConfigError
 from carp.policies.carp.sampling import generate_chunk
-from carp.policies.carp.trainer import CHECKPOINT_NAME, compute_token_targets
-from carp.training.loop import NonFiniteLossError, PolicyTrainingData
-from tests.policies.carp.factories import (
-    OBS_DIM,
-    OBS_STEPS,
-    tiny_policy_spec,
-    tiny_tokenizer,
-    train_transformer,
-    trainer_settings,
-)
+from carp.policies.carp.trainer import compute_token_targets
+from carp.training.loop import CHECKPOINT_NAME, NonFiniteLossError, PolicyTrainingData
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_tokenizer, train_carp, trainer_settings
 
 SETTINGS = dict(
     epochs=4, batch_size=4, learning_rate=3e-3, weight_decay=0.0, warmup_steps=2, checkpoint_every=2, device="cpu"
@@ -41,23 +34,50 @@ def test_overfits_a_handful_of_windows_and_reproduces_their_tokens(tmp_path):
     targets = compute_token_targets(tokenizer, data.actions)
     assert targets.token_sequence.unique(dim=0).shape[0] >= 4  # several different token sequences to memorize
     history = []
-    settings = dict(epochs=60, batch_size=6, learning_rate=1e-2, weight_decay=0.0, warmup_steps=10, device="cpu")
-    transformer = train_transformer(
-        tiny_policy_spec(width=32), tokenizer, data, settings, tmp_path, lambda epoch, metrics: history.append(metrics)
+    settings = dict(
+        epochs=60, batch_size=6, learning_rate=1e-2, weight_decay=0.0, warmup_steps=10, width=32, device="cpu"
     )
+    policy = train_carp(tokenizer, data, settings, tmp_path, lambda epoch, metrics: history.append(metrics))
     assert history[0]["loss"] > 1.5  # ~ log(8) at the start
     assert history[-1]["loss"] < 0.05
+    losses = [metrics["loss"] for metrics in history]
+    assert all(later < earlier for earlier, later in zip(losses[:10], losses[1:11], strict=True))
     assert history[-1]["token_accuracy"] == 1.0
     with torch.inference_mode():
-        chunk = generate_chunk(transformer, tokenizer, data.obs)
+        chunk = generate_chunk(policy.transformer, tokenizer, data.obs)
     assert torch.equal(tokenizer.ids_to_sequence(chunk.token_ids), targets.token_sequence)
+
+
+# Per-epoch metrics and final weight sums of this setup as CARP's dedicated trainer computed them before CARP moved
+# onto the shared loop; any change of seeding, data order, dropout draws, parameter groups, AdamW, schedule, EMA, loss
+# or accuracy bookkeeping moves them.
+FORMER_TRAINER_SETTINGS = dict(
+    epochs=4, batch_size=4, learning_rate=3e-3, weight_decay=0.05, warmup_steps=2, dropout=0.1, use_ema=True,
+    ema_decay=0.9, checkpoint_every=2, precision="float32", device="cpu",
+)  # fmt: skip
+FORMER_TRAINER_LOSSES = [2.0698166847229005, 1.9403057098388672, 1.8212637186050415, 1.7625346899032592]
+FORMER_TRAINER_ACCURACIES = {
+    "token_accuracy": [0.25, 5 / 6, 5 / 6, 5 / 6],
+    "token_accuracy_scale_1": [0.2, 0.95, 0.95, 0.95],
+    "token_accuracy_scale_2": [0.275, 0.775, 0.775, 0.775],
+}
+FORMER_TRAINER_WEIGHT_SUM, FORMER_TRAINER_WEIGHT_ABS_SUM = -2.550896014538621, 81.61310652917595
+
+
+def test_training_repeats_the_former_dedicated_trainer(tmp_path):
+    history = []
+    policy = train_carp(tiny_tokenizer(), _data(10), FORMER_TRAINER_SETTINGS, tmp_path, lambda e, m: history.append(m))
+    assert [metrics["loss"] for metrics in history] == pytest.approx(FORMER_TRAINER_LOSSES, rel=1e-5)
+    for name, expected in FORMER_TRAINER_ACCURACIES.items():
+        assert [metrics[name] for metrics in history] == pytest.approx(expected, abs=1e-12), name
+    weights = [value.double() for value in policy.transformer.state_dict().values() if value.is_floating_point()]
+    assert sum(float(value.sum()) for value in weights) == pytest.approx(FORMER_TRAINER_WEIGHT_SUM, rel=1e-4)
+    assert sum(float(value.abs().sum()) for value in weights) == pytest.approx(FORMER_TRAINER_WEIGHT_ABS_SUM, rel=1e-5)
 
 
 def test_metrics_and_learning_rate_schedule(tmp_path):
     history = []
-    train_transformer(
-        tiny_policy_spec(), tiny_tokenizer(), _data(16), SETTINGS, tmp_path, lambda e, m: history.append((e, m))
-    )
+    train_carp(tiny_tokenizer(), _data(16), SETTINGS, tmp_path, lambda e, m: history.append((e, m)))
     assert [epoch for epoch, _ in history] == [0, 1, 2, 3]
     metrics = history[0][1]
     assert set(metrics) == {
@@ -76,13 +96,11 @@ def test_metrics_and_learning_rate_schedule(tmp_path):
 
 
 def test_resume_continues_from_the_saved_epoch(tmp_path):
-    spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(10)
+    tokenizer, data = tiny_tokenizer(), _data(10)
     settings = dict(**(SETTINGS | {"use_ema": True, "ema_decay": 0.9}))
     uninterrupted_losses = []
     uninterrupted = _weights(
-        train_transformer(
-            spec, tokenizer, data, settings, tmp_path / "full", lambda e, m: uninterrupted_losses.append(m["loss"])
-        )
+        train_carp(tokenizer, data, settings, tmp_path / "full", lambda e, m: uninterrupted_losses.append(m["loss"]))
     )
 
     def interrupt(epoch: int, metrics: dict) -> None:
@@ -90,12 +108,10 @@ def test_resume_continues_from_the_saved_epoch(tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        train_transformer(spec, tokenizer, data, settings, tmp_path / "resumed", interrupt)
+        train_carp(tokenizer, data, settings, tmp_path / "resumed", interrupt)
     assert (tmp_path / "resumed" / CHECKPOINT_NAME).exists()
     reported = []
-    resumed = train_transformer(
-        spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: reported.append((e, m))
-    )
+    resumed = train_carp(tokenizer, data, settings, tmp_path / "resumed", lambda e, m: reported.append((e, m)))
     # The two epochs of the saved state are reported again (so a resumed run's history is whole), then two trained.
     assert [epoch for epoch, _ in reported] == [0, 1, 2, 3]
     assert [metrics["loss"] for _, metrics in reported] == uninterrupted_losses
@@ -104,49 +120,52 @@ def test_resume_continues_from_the_saved_epoch(tmp_path):
     # A finished run is not repeated: the final state is loaded as is and its stored epochs are reported unchanged
     # (timings included, which a second training could not reproduce).
     replayed = []
-    finished = train_transformer(
-        spec, tokenizer, data, settings, tmp_path / "resumed", lambda e, m: replayed.append((e, m))
-    )
+    finished = train_carp(tokenizer, data, settings, tmp_path / "resumed", lambda e, m: replayed.append((e, m)))
     assert replayed == reported
     for name, value in _weights(finished).items():
         assert torch.equal(value, uninterrupted[name]), name
 
 
 def test_ema_returns_averaged_weights(tmp_path):
-    spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(10)
-    plain = _weights(train_transformer(spec, tokenizer, data, SETTINGS, tmp_path / "plain"))
+    tokenizer, data = tiny_tokenizer(), _data(10)
+    plain = _weights(train_carp(tokenizer, data, SETTINGS, tmp_path / "plain"))
     settings = dict(**(SETTINGS | {"use_ema": True, "ema_decay": 0.5}))
-    transformer = train_transformer(spec, tokenizer, data, settings, tmp_path / "ema")
-    averaged = _weights(transformer)
-    name = "blocks.0.feed_forward.expand.weight"
+    policy = train_carp(tokenizer, data, settings, tmp_path / "ema")
+    averaged = _weights(policy)
+    name = "transformer.blocks.0.feed_forward.expand.weight"
     assert not torch.equal(plain[name], averaged[name])
     assert (plain[name] - averaged[name]).abs().max() < 0.05
-    # The constant index buffers are not averaged.
+    # The frozen tokenizer is unchanged, and the constant index buffers are not averaged.
+    assert all(torch.equal(value, plain[name]) for name, value in averaged.items() if name.startswith("tokenizer."))
+    transformer = policy.transformer
     assert torch.equal(transformer.level_ids, transformer.layout.level_ids())
     assert torch.equal(transformer.attention_mask, transformer.layout.attention_mask())
 
 
 def test_checkpoint_of_another_setup_is_ignored(tmp_path, caplog):
-    spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(8)
-    train_transformer(spec, tokenizer, data, SETTINGS, tmp_path)
+    tokenizer, data = tiny_tokenizer(), _data(8)
+    train_carp(tokenizer, data, SETTINGS, tmp_path)
     epochs = []
     with caplog.at_level(logging.WARNING):
-        train_transformer(spec, tokenizer, _data(8, seed=1), SETTINGS, tmp_path, lambda e, m: epochs.append(e))
+        train_carp(tokenizer, _data(8, seed=1), SETTINGS, tmp_path, lambda e, m: epochs.append(e))
     assert epochs == [0, 1, 2, 3]
-    assert "written for another setup (different data_and_tokenizer_sha256)" in caplog.text
+    assert "written for another setup (different data_sha256)" in caplog.text
+    # Another tokenizer with the same windows is another setup too: its tokens are other targets.
+    with caplog.at_level(logging.WARNING):
+        train_carp(tiny_tokenizer(seed=1), _data(8, seed=1), SETTINGS, tmp_path, lambda e, m: epochs.append(e))
+    assert epochs == [0, 1, 2, 3] * 2
+    assert "written for another setup (different identity)" in caplog.text
 
 
 def test_a_truncated_state_is_discarded_and_training_starts_over(tmp_path, caplog):
-    spec, tokenizer, data = tiny_policy_spec(), tiny_tokenizer(), _data(8)
-    fresh = _weights(train_transformer(spec, tokenizer, data, SETTINGS, tmp_path / "fresh"))
-    train_transformer(spec, tokenizer, data, SETTINGS, tmp_path / "damaged")
+    tokenizer, data = tiny_tokenizer(), _data(8)
+    fresh = _weights(train_carp(tokenizer, data, SETTINGS, tmp_path / "fresh"))
+    train_carp(tokenizer, data, SETTINGS, tmp_path / "damaged")
     state = tmp_path / "damaged" / CHECKPOINT_NAME
     state.write_bytes(state.read_bytes()[:100])
     epochs = []
     with caplog.at_level(logging.WARNING):
-        retrained = train_transformer(
-            spec, tokenizer, data, SETTINGS, tmp_path / "damaged", lambda e, m: epochs.append(e)
-        )
+        retrained = train_carp(tokenizer, data, SETTINGS, tmp_path / "damaged", lambda e, m: epochs.append(e))
     assert epochs == [0, 1, 2, 3]
     assert f"discarding training state {state}: not a readable checkpoint" in caplog.text
     for name, value in _weights(retrained).items():
@@ -158,24 +177,26 @@ def test_non_finite_loss_names_epoch_and_step(tmp_path):
     data.obs[5] = float("nan")
     settings = dict(epochs=2, batch_size=8, device="cpu")
     with pytest.raises(NonFiniteLossError, match="loss is nan at epoch 1, step 1 of 1"):
-        train_transformer(tiny_policy_spec(), tiny_tokenizer(), data, settings, tmp_path)
+        train_carp(tiny_tokenizer(), data, settings, tmp_path)
 
 
 def test_multi_task_data_needs_task_ids(tmp_path):
-    spec = tiny_policy_spec(num_tasks=2)
     with pytest.raises(ValueError, match="needs task_ids of shape \\(N,\\) = \\(8,\\)"):
-        train_transformer(spec, tiny_tokenizer(), _data(8), SETTINGS, tmp_path)
+        train_carp(tiny_tokenizer(), _data(8), SETTINGS, tmp_path, num_tasks=2)
     with pytest.raises(ValueError, match="task_ids must be in \\[0, 2\\)"):
-        train_transformer(spec, tiny_tokenizer(), _data(8, task_ids=torch.full((8,), 2)), SETTINGS, tmp_path)
+        train_carp(tiny_tokenizer(), _data(8, task_ids=torch.full((8,), 2)), SETTINGS, tmp_path, num_tasks=2)
+    with pytest.raises(ValueError, match="task_ids were given but the policy is single-task"):
+        train_carp(tiny_tokenizer(), _data(8, task_ids=torch.arange(8) % 2), SETTINGS, tmp_path)
     history = []
     data = _data(8, task_ids=torch.arange(8) % 2)
-    train_transformer(spec, tiny_tokenizer(), data, SETTINGS, tmp_path, lambda e, m: history.append(m))
+    train_carp(tiny_tokenizer(), data, SETTINGS, tmp_path, lambda e, m: history.append(m), num_tasks=2)
     assert len(history) == 4
 
 
-def test_spec_must_match_tokenizer(tmp_path):
-    with pytest.raises(ValueError, match="scales: policy \\(1, 2, 3\\) vs tokenizer \\(1, 2\\)"):
-        train_transformer(tiny_policy_spec(scales=(1, 2, 3)), tiny_tokenizer(), _data(4), SETTINGS, tmp_path)
+def test_windows_of_another_shape_are_refused(tmp_path):
+    data = _data(4)
+    with pytest.raises(ValueError, match="actions must have shape \\(N, H, A\\) = \\(4, 8, 2\\), got \\(4, 7, 2\\)"):
+        train_carp(tiny_tokenizer(), PolicyTrainingData(data.obs, data.actions[:, :7]), SETTINGS, tmp_path)
 
 
 @pytest.mark.parametrize(

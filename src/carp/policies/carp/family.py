@@ -9,11 +9,12 @@ from carp.config import TrainingConfig
 from carp.policies.carp.config import CarpConfig, CarpInference
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
-from carp.policies.carp.trainer import train_policy
+from carp.policies.carp.trainer import train_carp
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
 from carp.policies.registry import PolicyFamily
 from carp.training.loop import PolicyTrainingData
+from carp.training.runtime import seed_everything
 
 
 def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
@@ -62,20 +63,10 @@ def train(
     epochs: int | None = None,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
 ) -> CarpPolicy:
-    """Train CARP's transformer on the frozen tokenizer's tokens (`carp.policies.carp.trainer`) and assemble it."""
-    spec = policy_spec(config, context)
-    tokenizer = context.tokenizer_artifact.tokenizer
-    transformer = train_policy(
-        spec, tokenizer, data, config, training, checkpoint_dir, on_epoch_end, epochs=epochs, device=device
-    )
-    tokenizer.cpu()
-    return CarpPolicy(
-        context.tokenizer_artifact,
-        transformer.cpu(),
-        context.obs_normalizer,
-        context.action_normalizer,
-        context.metadata,
-    ).eval()
+    """Build the policy after seeding (reproducible weights) and train its transformer in the shared loop."""
+    seed_everything(training.seed)
+    policy = build_policy(config, context)
+    return train_carp(policy, config, training, data, checkpoint_dir, device, epochs, on_epoch_end)
 
 
 FAMILY = PolicyFamily("carp", CarpConfig, CarpInference, build_policy, CarpPolicy.from_checkpoint, train)

@@ -28,11 +28,11 @@ from carp.policies.base import (
 )
 from carp.policies.carp.sampling import check_top_k, generate_chunk
 from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.checkpoint import CheckpointError, atomic_torch_save
-from carp.training.cross_entropy import blockwise_cross_entropy
 
 logger = logging.getLogger(__name__)
 
@@ -205,22 +205,15 @@ class CarpPolicy(nn.Module):
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Mean cross entropy of a teacher-forced forward pass over all L tokens (scalar float32).
 
-        The frozen tokenizer encodes the batch's actions into the ground-truth ids and the teacher-forcing inputs.
+        The frozen tokenizer encodes the batch's actions into the ground-truth ids and the teacher-forcing inputs
+        (training tokenizes every window once instead, `carp.policies.carp.trainer`).
 
         Args:
             batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) long when multi-task.
         """
-        actions = batch["actions"]
-        # The frozen tokenizer encodes in float32 whatever the loop's autocast: its ids must not depend on it.
-        with torch.no_grad(), torch.autocast(actions.device.type, enabled=False):
-            token_ids = self.tokenizer.encode_to_ids(actions.float())  # K x (b, A, s_k)
-            token_sequence = self.tokenizer.ids_to_sequence(token_ids)  # (b, L)
-            teacher_inputs = self.tokenizer.teacher_forcing_sequence(token_ids)  # (b, L - s_1 * A, C)
-        grouped_logits = self.transformer(
-            batch["obs"], teacher_inputs, batch.get("task_ids"), grouped_by_dimension=True
-        )  # (A, b * L / A, V)
-        grouped_targets = self.transformer.head.group(token_sequence)  # (A, b * L / A)
-        return blockwise_cross_entropy(grouped_logits.flatten(0, 1), grouped_targets.flatten())
+        targets = compute_token_targets(self.tokenizer, batch["actions"])
+        batch = batch | {"token_sequence": targets.token_sequence, "teacher_inputs": targets.teacher_inputs}
+        return teacher_forced_step(self.transformer, batch).loss
 
     def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
         """Workers run ONNX Runtime graphs exported into `directory` for `onnxruntime`, else this checkpoint in torch.

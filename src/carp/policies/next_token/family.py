@@ -19,7 +19,7 @@ from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
 from carp.policies.registry import PolicyFamily
-from carp.training.loop import OptimizerRecipe, PolicyTrainingData, train_with_loss
+from carp.training.loop import OptimizerRecipe, PolicyTrainingData, matrix_decay_groups, train_with_loss
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.9, 0.95)
@@ -42,15 +42,6 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
     return NextTokenPolicy(
         context.tokenizer_artifact, transformer, context.obs_normalizer, context.action_normalizer, context.metadata
     )
-
-
-def parameter_groups(transformer: nn.Module, weight_decay: float) -> list[dict]:
-    """Weight matrices decay; biases and the learned embeddings do not (CARP's and VAR's rule)."""
-    decayed, undecayed = [], []
-    for name, parameter in transformer.named_parameters():
-        is_matrix = parameter.dim() > 1 and "embedding" not in name
-        (decayed if is_matrix else undecayed).append(parameter)
-    return [{"params": decayed, "weight_decay": weight_decay}, {"params": undecayed, "weight_decay": 0.0}]
 
 
 def train(
@@ -77,7 +68,7 @@ def train(
         warmup_steps=config.warmup_steps,
         betas=ADAM_BETAS,
         ema=average if config.use_ema else None,
-        parameter_groups=lambda: parameter_groups(policy.transformer, config.weight_decay),
+        parameter_groups=lambda: matrix_decay_groups(policy.transformer, config.weight_decay),
     )
     identity = {
         "policy_type": POLICY_TYPE,
