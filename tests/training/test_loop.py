@@ -1,0 +1,117 @@
+"""The shared loop's family hooks: one-time data preparation, per-batch metric sums, the optimizer it builds."""
+
+import pytest
+import torch
+from torch import nn
+
+from carp.config import TrainingConfig
+from carp.training.loop import (
+    OptimizerRecipe,
+    PolicyTrainingData,
+    TrainingStep,
+    make_optimizer,
+    matrix_decay_groups,
+    train_with_loss,
+)
+
+COUNT = 10
+
+
+class LinearPolicy(nn.Module):
+    """The least a loop needs: a policy type and a loss."""
+
+    policy_type = "linear"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = nn.Linear(6, 8)
+
+    def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return nn.functional.mse_loss(self.linear(batch["obs"].flatten(1)), batch["actions"].flatten(1))
+
+
+def _data() -> PolicyTrainingData:
+    generator = torch.Generator().manual_seed(0)
+    return PolicyTrainingData(
+        torch.rand(COUNT, 2, 3, generator=generator), torch.rand(COUNT, 4, 2, generator=generator)
+    )
+
+
+def _train(tmp_path, prepare_data=None, training_step=None, on_epoch_end=None, epochs: int = 3) -> LinearPolicy:
+    torch.manual_seed(0)
+    training = TrainingConfig(epochs=epochs, batch_size=4, checkpoint_every=1)
+    recipe = OptimizerRecipe(learning_rate=1e-2)
+    return train_with_loss(
+        LinearPolicy(),
+        _data(),
+        recipe,
+        training,
+        tmp_path,
+        {"name": "linear"},
+        on_epoch_end=on_epoch_end,
+        prepare_data=prepare_data,
+        training_step=training_step,
+    )
+
+
+def test_prepared_extras_reach_every_batch_and_metric_sums_become_epoch_means(tmp_path):
+    prepared, seen, history = [], [], []
+
+    def prepare(data: PolicyTrainingData) -> PolicyTrainingData:
+        prepared.append(data)
+        return PolicyTrainingData(data.obs, data.actions, extras={"window": torch.arange(COUNT)})
+
+    policy = LinearPolicy()
+
+    def step(batch: dict[str, torch.Tensor]) -> TrainingStep:
+        seen.append(batch["window"])
+        # Per-window metric: the window's index / 10, so the epoch mean is 0.45 whatever the (ragged) batches.
+        return TrainingStep(policy.training_loss(batch), {"index_fraction": (batch["window"].double() / COUNT).sum()})
+
+    _train(tmp_path, prepare, step, lambda epoch, metrics: history.append(metrics))
+    assert len(prepared) == 1 and prepared[0].obs.dtype == torch.float32
+    # 3 epochs of batches 4, 4, 2: every window once per epoch, in a new order each epoch.
+    assert [batch.numel() for batch in seen] == [4, 4, 2] * 3
+    epochs = [torch.cat(seen[index : index + 3]) for index in (0, 3, 6)]
+    assert all(sorted(order.tolist()) == list(range(COUNT)) for order in epochs)
+    assert not torch.equal(epochs[0], epochs[1])
+    assert [metrics["index_fraction"] for metrics in history] == pytest.approx([0.45] * 3, abs=1e-15)
+    assert list(history[0]) == ["loss", "index_fraction", "learning_rate", "epoch_seconds", "samples_per_second"]
+
+
+def test_without_hooks_the_policy_loss_trains_and_resuming_repeats_the_metrics(tmp_path):
+    history, replayed = [], []
+    trained = _train(tmp_path, on_epoch_end=lambda epoch, metrics: history.append(metrics))
+    assert list(history[0]) == ["loss", "learning_rate", "epoch_seconds", "samples_per_second"]
+    assert history[-1]["loss"] < history[0]["loss"]
+    finished = _train(tmp_path, on_epoch_end=lambda epoch, metrics: replayed.append(metrics))
+    assert replayed == history
+    assert torch.equal(finished.linear.weight, trained.linear.weight)
+
+
+def test_adamw_is_fused_on_the_cpu():
+    recipe = OptimizerRecipe(learning_rate=1e-3, betas=(0.9, 0.95))
+    optimizer = make_optimizer(list(LinearPolicy().parameters()), recipe, torch.device("cpu"))
+    assert optimizer.defaults["fused"] is True
+    assert optimizer.defaults["betas"] == (0.9, 0.95)
+
+
+def test_matrix_decay_groups_decay_weight_matrices_only():
+    module = nn.ModuleDict(
+        {
+            "linear": nn.Linear(3, 4),
+            "norm": nn.LayerNorm(4),
+            "token_embedding": nn.Embedding(5, 4),
+            "frozen": nn.Linear(2, 2).requires_grad_(False),
+        }
+    )
+    decayed, undecayed = matrix_decay_groups(module, 0.1)
+    assert decayed["weight_decay"] == 0.1 and undecayed["weight_decay"] == 0.0
+    assert decayed["params"] == [module["linear"].weight]
+    names = {id(parameter): name for name, parameter in module.named_parameters()}
+    assert sorted(names[id(parameter)] for parameter in undecayed["params"]) == [
+        "linear.bias",
+        "norm.bias",
+        "norm.weight",
+        "token_embedding.weight",
+    ]
