@@ -31,12 +31,12 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from carp.config import TokenizerConfig
 from carp.tokenizer.per_dimension import split_into_single_dimension_tokenizers
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_action_episodes
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.runtime import resolve_device
-from carp.training.tokenizer_trainer import TokenizerTrainingSettings
 
 WARMUP_STEPS = 3
 
@@ -101,11 +101,11 @@ def device_description(device: torch.device) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--batch-size", type=int, default=TokenizerTrainingSettings().batch_size)
+    parser.add_argument("--batch-size", type=int, default=TokenizerConfig().batch_size)
     parser.add_argument("--episodes", type=int, default=40, help="synthetic demos (about 118 windows each)")
     parser.add_argument("--rounds", type=int, default=9, help="epochs per variant")
     parser.add_argument("--block", type=int, default=8, help="batches per variant's turn; 0: whole epochs in turn")
-    parser.add_argument("--device", default=TokenizerTrainingSettings().device, help='"auto", "cpu", "cuda", ...')
+    parser.add_argument("--device", default="auto", help='"auto", "cpu", "cuda", ...')
     arguments = parser.parse_args()
     if arguments.rounds < 1:
         parser.error(f"--rounds must be at least 1, got {arguments.rounds}")

@@ -33,7 +33,7 @@ from carp.tokenizer.artifact import (
 from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tracking.registry import fetch_registered_tokenizer
-from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
+from carp.training.tokenizer_trainer import train_tokenizer
 
 
 def main() -> None:
@@ -62,7 +62,6 @@ def main() -> None:
                 scales=params.scales,
                 codebook_size=params.codebook_size,
             )
-            settings = copy_fields(TokenizerTrainingSettings, config, device=str(select_device(params)))
 
             def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
                 history.append({"epoch": epoch + 1, **metrics})
@@ -79,9 +78,10 @@ def main() -> None:
                     spec,
                     normalized("train_actions"),
                     normalized("valid_actions"),
-                    settings,
+                    config,
                     CHECKPOINT_DIR / "tokenizer",
                     on_epoch_end=log_epoch,
+                    device=select_device(params),
                 ).cpu()
             except NonFiniteTokenizerError as error:
                 fail(str(error))

@@ -140,6 +140,13 @@ class TokenizerConfig:
         seed: Seeds weight initialization, shuffling, augmentation and code restarts; any integer.
         registry_alias: Alias the ``register_tokenizer`` stage sets on the registered version; not empty, not
             ``latest`` and not starting with a digit (both reserved by the MLflow registry).
+        warmup_fraction: Share of the optimizer steps with a linear learning-rate warm-up; a number in [0, 1].
+        restart_fraction: Share of the epochs, from the first, after which codes no training token used in that
+            epoch are re-seeded from the data; a number in [0, 1].
+        augment_probability: Chance, per training window, action dimension and epoch, that the window's values in
+            that dimension are rescaled and moved inside [-1, 1]; a number in [0, 1] (0 turns augmentation off).
+        augment_max_scale: Largest amplitude factor of that augmentation (``1 / augment_max_scale`` is the smallest,
+            1 only moves); a number >= 1.
     """
 
     source: str = "pipeline"
@@ -155,6 +162,10 @@ class TokenizerConfig:
     checkpoint_every: int = 5
     seed: int = 0
     registry_alias: str = "default"
+    warmup_fraction: float = 0.05
+    restart_fraction: float = 0.25
+    augment_probability: float = 0.5
+    augment_max_scale: float = 2.0
 
     def __post_init__(self) -> None:
         _require(
@@ -182,6 +193,9 @@ class TokenizerConfig:
             self.registry_alias,
             "'latest' and names starting with a digit are reserved by the MLflow registry",
         )
+        for name in ("warmup_fraction", "restart_fraction", "augment_probability"):
+            _require(0.0 <= getattr(self, name) <= 1.0, f"tokenizer.{name}", getattr(self, name), "must be in [0, 1]")
+        _require(self.augment_max_scale >= 1.0, "tokenizer.augment_max_scale", self.augment_max_scale, "must be >= 1")
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from carp.config import TrainingConfig
+from carp.config import TokenizerConfig, TrainingConfig
 from carp.data.collect import collect_demonstrations
 from carp.data.dataset import load_task_windows
 from carp.data.ingest import ingest_demonstrations
@@ -15,7 +15,7 @@ from carp.policies.context import PolicyContext
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.loop import PolicyTrainingData
-from carp.training.tokenizer_trainer import TokenizerTrainingSettings, train_tokenizer
+from carp.training.tokenizer_trainer import train_tokenizer
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
@@ -37,7 +37,7 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
         tokenizer_spec,
         train_actions,
         normalized(action_normalizer, windows.valid_actions),
-        TokenizerTrainingSettings(epochs=15, batch_size=64, device="cpu"),
+        TokenizerConfig(epochs=15, batch_size=64),
         tmp_path / "tokenizer_state",
     ).cpu()
     context = PolicyContext(

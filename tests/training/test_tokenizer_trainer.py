@@ -3,6 +3,7 @@ import logging
 import pytest
 import torch
 
+from carp.config import ConfigError, TokenizerConfig
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import reconstruction_metrics
 from carp.tokenizer.spec import TokenizerSpec
@@ -10,7 +11,6 @@ from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_
 from carp.training.checkpoint import read_training_state
 from carp.training.tokenizer_trainer import (
     CHECKPOINT_NAME,
-    TokenizerTrainingSettings,
     augment_windows,
     train_tokenizer,
 )
@@ -31,9 +31,10 @@ def windows():
     return train, valid
 
 
-def tiny_settings(**overrides) -> TokenizerTrainingSettings:
-    values = {"epochs": 4, "batch_size": 16, "learning_rate": 1e-2, "seed": 3, "checkpoint_every": 2, "device": "cpu"}
-    return TokenizerTrainingSettings(**{**values, **overrides})
+def tiny_settings(**overrides) -> TokenizerConfig:
+    """The `tokenizer` section's training settings for a few quick epochs (train on the cpu)."""
+    values = {"epochs": 4, "batch_size": 16, "learning_rate": 1e-2, "seed": 3, "checkpoint_every": 2}
+    return TokenizerConfig(**{**values, **overrides})
 
 
 def parameters_of(tokenizer):
@@ -218,16 +219,16 @@ def test_augmentation_is_reproducible_and_can_be_switched_off():
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"epochs": 0}, "epochs must be a positive integer"),
-        ({"batch_size": 2.0}, "batch_size must be a positive"),
-        ({"learning_rate": 0.0}, "learning_rate must be > 0"),
-        ({"restart_fraction": 1.5}, "restart_fraction must be"),
-        ({"augment_probability": -0.1}, "augment_probability must be in"),
-        ({"augment_max_scale": 0.5}, "augment_max_scale must be >= 1"),
+        ({"epochs": 0}, "tokenizer.epochs=0: must be >= 1"),
+        ({"learning_rate": 0.0}, "tokenizer.learning_rate=0.0: must be > 0"),
+        ({"warmup_fraction": -0.5}, "tokenizer.warmup_fraction=-0.5: must be in \\[0, 1\\]"),
+        ({"restart_fraction": 1.5}, "tokenizer.restart_fraction=1.5: must be in \\[0, 1\\]"),
+        ({"augment_probability": -0.1}, "tokenizer.augment_probability=-0.1: must be in \\[0, 1\\]"),
+        ({"augment_max_scale": 0.5}, "tokenizer.augment_max_scale=0.5: must be >= 1"),
     ],
 )
 def test_invalid_settings_are_rejected(overrides, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ConfigError, match=message):
         tiny_settings(**overrides)
 
 
@@ -248,7 +249,9 @@ def test_default_settings_meet_the_quality_bar_on_synthetic_demos(tmp_path):
     def normalize(values):
         return (torch.as_tensor(values) - low) / (high - low) * 2 - 1
 
-    tokenizer = train_tokenizer(spec, normalize(train_raw), normalize(valid_raw), TokenizerTrainingSettings(), tmp_path)
+    # Fewer epochs than the pipeline's default: the bar must hold for a short run too.
+    config = TokenizerConfig(epochs=30, checkpoint_every=10)
+    tokenizer = train_tokenizer(spec, normalize(train_raw), normalize(valid_raw), config, tmp_path, device="cpu")
     metrics = reconstruction_metrics(tokenizer, normalize(valid_raw), (high - low) / 2)
     assert metrics["rmse_percent_range/mean"] <= 2.0
     assert metrics["usage/all_scales/mean"] > 0.2

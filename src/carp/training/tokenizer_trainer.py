@@ -2,17 +2,20 @@
 
 Recipe: AdamW (no weight decay on biases, norms and the codebook), linear warm-up then cosine decay per step,
 random per-dimension rescaling and moving of training windows (`augment_windows`), shuffling, augmentation and code
-restarts drawn from generators seeded by (seed, epoch) so a resumed run repeats an uninterrupted one exactly. The
-defaults are sized for a 2-core CPU: about 5,000 windows of H = 16, A = 10 take 30 epochs of batch 64 (about 2,200
-steps, 1.5-2 minutes on one core) and reach a held-out RMSE of about 1.7% of each dimension's range on synthetic
-pick-and-place demos (`carp.tokenizer.synthetic`). A learning rate of 2e-2 or 3e-3, batch 128, or more restart epochs
-did no better per second of training; the paper's 300 epochs at batch 256 assume a GPU.
+restarts drawn from generators seeded by (seed, epoch) so a resumed run repeats an uninterrupted one exactly. Its
+settings are the `tokenizer` params section (`carp.config.TokenizerConfig`), sized for a 2-core CPU; the paper's 300
+epochs at batch 256 assume a GPU.
 
-Augmentation: on the scripted Lift demos (45 training, 5 held-out episodes) the held-out error was dominated by one
-held-out episode whose rotation columns sit beyond every training episode's level (min-max normalization maps that
-episode to -1): 2.5% mean RMSE of range at 60 and at 100 epochs, 8.9% on the worst column. Moving windows alone gave
-1.7% at 60 epochs; rescaling and moving half of the (window, dimension) pairs 1.6-1.9% (seeds 0 and 1) at 60 epochs
-and 1.4% at 100.
+Why it keeps its own loop rather than the policies' (`carp.training.loop`): besides a loss per batch it initializes
+the codebook from data before the first epoch (not on resuming), draws a new augmentation of all windows every
+epoch, re-seeds dead codes from each epoch's code counts, measures the held-out reconstruction after each epoch, and
+decays its learning rate to 5% rather than 1% of the peak. It shares the training-state files
+(`carp.training.checkpoint`), seeding and device selection (`carp.training.runtime`).
+
+Augmentation: min-max normalization puts the most extreme episode, possibly a held-out one, at -1 or 1, and a
+rotation column that is constant after the first steps sits at a new level in every episode; held-out error is
+then dominated by levels and amplitudes no training episode shows. Rescaled and moved copies teach each dimension's
+VQ-VAE to encode any level and a range of amplitudes.
 
 Dead codes: a VQ codebook trained from random codes leaves many codes unused, which wastes capacity and makes the
 reconstruction coarse. Two remedies, both per action dimension:
@@ -20,8 +23,8 @@ reconstruction coarse. Two remedies, both per action dimension:
   actually sees (the area-downsampled residual at some scale for some training window).
 - Restarts: after each epoch in the first `restart_fraction` of training, codes that no training token used during
   that epoch are re-seeded the same way. Restarts stop early so the final epochs fine-tune a stable codebook.
-On the synthetic demos both together lowered the held-out RMSE from 2.05% to 1.79% of range and raised the codebook
-perplexity from 87 to 113 (cosine search keeps even a random codebook partly alive, so the gain is moderate).
+Cosine search keeps even a random codebook partly alive, so the gain of the two is moderate, but it shows in both
+the held-out error and the codebook's perplexity.
 """
 
 import hashlib
@@ -29,12 +32,13 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 from tqdm.auto import tqdm
 
+from carp.config import TokenizerConfig
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
@@ -52,71 +56,24 @@ RESTART_CANDIDATE_WINDOWS = 1024
 EVALUATION_BATCH_SIZE = 2048
 
 
-@dataclass(frozen=True)
-class TokenizerTrainingSettings:
-    """Optimization settings of the tokenizer.
-
-    Attributes:
-        epochs: passes over the training windows.
-        batch_size: windows per step.
-        learning_rate: peak AdamW learning rate.
-        weight_decay: AdamW weight decay of convolution weights.
-        seed: seeds initialization, shuffling and code restarts.
-        checkpoint_every: epochs between training-state checkpoints (the last epoch is always saved).
-        device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
-        warmup_fraction: share of the steps with a linear learning-rate warm-up.
-        restart_fraction: share of the epochs after which unused codes are re-seeded.
-        augment_probability: chance, per window, dimension and epoch, that the window's values in that dimension are
-            rescaled and moved inside [-1, 1] (see `augment_windows`).
-        augment_max_scale: largest amplitude factor of the augmentation (and 1 / it the smallest).
-    """
-
-    epochs: int = 30
-    batch_size: int = 64
-    learning_rate: float = 1e-2
-    weight_decay: float = 0.0
-    seed: int = 0
-    checkpoint_every: int = 10
-    device: str = "auto"
-    warmup_fraction: float = 0.05
-    restart_fraction: float = 0.25
-    augment_probability: float = 0.5
-    augment_max_scale: float = 2.0
-
-    def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "checkpoint_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if not self.learning_rate > 0:
-            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
-        if not self.augment_max_scale >= 1.0:
-            raise ValueError(f"augment_max_scale must be >= 1, got {self.augment_max_scale}")
-        for name in ("warmup_fraction", "restart_fraction", "augment_probability"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-
-
 def _epoch_generator(seed: int, epoch: int, stream: int) -> torch.Generator:
     # Independent, reproducible streams per (epoch, purpose) that do not depend on how much randomness earlier
     # epochs consumed, which is what makes resuming exact. Epoch -1 is the initialization before training.
     return torch.Generator().manual_seed(seed * 1_000_003 + (epoch + 1) * 16 + stream)
 
 
-def _make_optimizer(tokenizer: MultiScaleActionTokenizer, settings: TokenizerTrainingSettings) -> torch.optim.AdamW:
+def _make_optimizer(tokenizer: MultiScaleActionTokenizer, config: TokenizerConfig) -> torch.optim.AdamW:
     decayed, undecayed = [], []
     for name, parameter in tokenizer.named_parameters():
         # Conv kernels decay; biases, norm affines and the codebook (whose scale is the latent's scale) do not.
         is_kernel = parameter.dim() > 1 and not name.endswith("codebook")
         (decayed if is_kernel else undecayed).append(parameter)
     groups = [
-        {"params": decayed, "weight_decay": settings.weight_decay},
+        {"params": decayed, "weight_decay": config.weight_decay},
         {"params": undecayed, "weight_decay": 0.0},
     ]
     # The fused kernel updates all tensors in one pass: ~7x cheaper per step on CPU than the default, same update.
-    return torch.optim.AdamW(groups, lr=settings.learning_rate, fused=True)
+    return torch.optim.AdamW(groups, lr=config.learning_rate, fused=True)
 
 
 def _make_scheduler(
@@ -177,9 +134,24 @@ def _check_windows(name: str, windows: torch.Tensor, spec: TokenizerSpec) -> Non
         )
 
 
-def _run_metadata(spec: TokenizerSpec, settings: TokenizerTrainingSettings, train_windows: torch.Tensor) -> dict:
-    # Everything that changes the result; device and checkpoint cadence do not.
-    relevant = {key: value for key, value in asdict(settings).items() if key not in ("device", "checkpoint_every")}
+NON_TRAINING_FIELDS = (
+    "source",
+    "tasks",
+    "registry_alias",
+    "checkpoint_every",
+    "latent_channels",
+    "base_channels",
+    "channel_mult",
+    "commitment_weight",
+)
+"""Fields of the params section outside a run's training settings: where the tokenizer comes from and is registered,
+the checkpoint cadence (neither changes the result), and the architecture, which the spec holds; the tasks count
+through the training windows."""
+
+
+def _run_metadata(spec: TokenizerSpec, config: TokenizerConfig, train_windows: torch.Tensor) -> dict:
+    # Everything that changes the result; the device does not.
+    relevant = {key: value for key, value in asdict(config).items() if key not in NON_TRAINING_FIELDS}
     data_hash = hashlib.sha256(train_windows.detach().cpu().contiguous().numpy().tobytes()).hexdigest()
     return {"spec": spec.to_dict(), "settings": relevant, "train_windows_sha256": data_hash}
 
@@ -284,9 +256,10 @@ def train_tokenizer(
     spec: TokenizerSpec,
     train_windows: torch.Tensor,
     valid_windows: torch.Tensor,
-    settings: TokenizerTrainingSettings,
+    config: TokenizerConfig,
     checkpoint_dir: Path,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    device: str | torch.device = "cpu",
 ) -> MultiScaleActionTokenizer:
     """Train a tokenizer, resuming from `checkpoint_dir` if an interrupted run of the same setup left a state there.
 
@@ -294,7 +267,7 @@ def train_tokenizer(
         spec: architecture.
         train_windows: (N, H, A) float normalized action windows.
         valid_windows: (M, H, A) float normalized held-out windows (M may be 0).
-        settings: optimization settings.
+        config: the `tokenizer` params section: its training settings (the architecture is `spec`'s).
         checkpoint_dir: directory for the training state (`tokenizer_training_state.pt`); created if missing. A state
             from a different spec, settings or training data is ignored and overwritten, an unusable one (truncated,
             another format version) deleted; either way with a warning, and training starts over.
@@ -302,6 +275,7 @@ def train_tokenizer(
             train_loss, train_reconstruction_mse, train_vq_loss, valid_reconstruction_mse (if M > 0),
             learning_rate, restarted_codes and epoch_seconds. Epochs restored from a training state are
             reported again first, so the callback sees every epoch of a resumed run.
+        device: "auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:<index>".
 
     Returns:
         The trained tokenizer in eval mode, on the training device.
@@ -314,44 +288,44 @@ def train_tokenizer(
     _check_windows("valid_windows", valid_windows, spec)
     if train_windows.shape[0] == 0:
         raise ValueError("train_windows is empty")
-    device = resolve_device(settings.device)
+    device = resolve_device(str(device))
     train_windows = train_windows.to(device=device, dtype=torch.float32)
     valid_windows = valid_windows.to(device=device, dtype=torch.float32)
 
-    seed_everything(settings.seed)
+    seed_everything(config.seed)
     tokenizer = MultiScaleActionTokenizer(spec).to(device)
-    optimizer = _make_optimizer(tokenizer, settings)
+    optimizer = _make_optimizer(tokenizer, config)
     num_windows = train_windows.shape[0]
-    steps_per_epoch = math.ceil(num_windows / settings.batch_size)
-    scheduler = _make_scheduler(optimizer, settings.epochs * steps_per_epoch, settings.warmup_fraction)
+    steps_per_epoch = math.ceil(num_windows / config.batch_size)
+    scheduler = _make_scheduler(optimizer, config.epochs * steps_per_epoch, config.warmup_fraction)
 
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
-    metadata = _run_metadata(spec, settings, train_windows)
+    metadata = _run_metadata(spec, config, train_windows)
     start_epoch, history = _resume_or_initialize(
-        tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, settings.seed, on_epoch_end
+        tokenizer, optimizer, scheduler, checkpoint_path, metadata, train_windows, config.seed, on_epoch_end
     )
 
-    restart_epochs = math.floor(settings.epochs * settings.restart_fraction)
+    restart_epochs = math.floor(config.epochs * config.restart_fraction)
     tokenizer.train()
-    for epoch in range(start_epoch, settings.epochs):
+    for epoch in range(start_epoch, config.epochs):
         started = time.perf_counter()
-        order = torch.randperm(num_windows, generator=_epoch_generator(settings.seed, epoch, 1)).to(device)
+        order = torch.randperm(num_windows, generator=_epoch_generator(config.seed, epoch, 1)).to(device)
         progress = tqdm(
-            torch.split(order, settings.batch_size),
-            desc=f"tokenizer epoch {epoch + 1}/{settings.epochs}",
+            torch.split(order, config.batch_size),
+            desc=f"tokenizer epoch {epoch + 1}/{config.epochs}",
             leave=False,
         )
         epoch_windows = augment_windows(
             train_windows,
-            settings.augment_probability,
-            settings.augment_max_scale,
-            _epoch_generator(settings.seed, epoch, 3),
+            config.augment_probability,
+            config.augment_max_scale,
+            _epoch_generator(config.seed, epoch, 3),
         )
         totals, code_counts = _train_epoch(tokenizer, optimizer, scheduler, epoch_windows, progress)
         restarted = 0
         if epoch < restart_epochs:
             restarted = _restart_unused_codes(
-                tokenizer, train_windows, (code_counts == 0).cpu(), _epoch_generator(settings.seed, epoch, 2)
+                tokenizer, train_windows, (code_counts == 0).cpu(), _epoch_generator(config.seed, epoch, 2)
             )
         metrics = dict(totals)
         if valid_windows.shape[0] > 0:
@@ -359,14 +333,14 @@ def train_tokenizer(
         metrics["learning_rate"] = optimizer.param_groups[0]["lr"]
         metrics["restarted_codes"] = float(restarted)
         metrics["epoch_seconds"] = time.perf_counter() - started
-        _require_finite_losses(metrics, epoch, settings.epochs)
+        _require_finite_losses(metrics, epoch, config.epochs)
         history.append(metrics)
-        if (epoch + 1) % settings.checkpoint_every == 0 or epoch + 1 == settings.epochs:
+        if (epoch + 1) % config.checkpoint_every == 0 or epoch + 1 == config.epochs:
             save_training_state(checkpoint_path, tokenizer, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "tokenizer epoch %d/%d: %s",
             epoch + 1,
-            settings.epochs,
+            config.epochs,
             ", ".join(f"{key}={value:.4g}" for key, value in metrics.items()),
         )
         if on_epoch_end is not None:
