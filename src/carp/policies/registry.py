@@ -48,8 +48,8 @@ class PolicyFamily:
         from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
             ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
         train: `train(config, training, context, data, checkpoint_dir, device=..., epochs=..., on_epoch_end=...)`
-            -> the trained policy in eval mode: builds the policy and runs the resumable loop on it (most families
-            through `carp.training.loop.train_with_loss`); see :func:`train_policy`.
+            -> the trained policy in eval mode: builds the policy and runs the shared resumable loop on it
+            (`carp.training.loop.train_with_loss`); see :func:`train_policy`.
     """
 
     name: str

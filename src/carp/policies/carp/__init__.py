@@ -7,5 +7,7 @@
 - `sampling`: greedy / top-k token choice and the coarse-to-fine generation loop.
 - `policy`: `CarpPolicy`, normalizers + frozen tokenizer + transformer, with `predict_action` and checkpoints.
 - `onnx_policy`: the batch-1 ONNX Runtime graphs evaluation runs (`CarpPolicy.deployment`).
+- `trainer`: CARP's part of the shared training loop: token targets computed once, the teacher-forced step with its
+  token accuracies, the optimizer recipe.
 - `family`: CARP's entry in `carp.policies.registry`.
 """
