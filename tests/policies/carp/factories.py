@@ -19,6 +19,8 @@ from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 OBS_STEPS = 2
 OBS_DIM = 3
+TINY_ARCHITECTURE = dict(depth=1, width=16, num_heads=2)
+"""The CARP params of :func:`tiny_policy_spec`'s transformer."""
 
 
 def tiny_tokenizer_spec(scales: tuple[int, ...] = (1, 2)) -> TokenizerSpec:
@@ -27,20 +29,13 @@ def tiny_tokenizer_spec(scales: tuple[int, ...] = (1, 2)) -> TokenizerSpec:
 
 
 def tiny_policy_spec(scales: tuple[int, ...] = (1, 2), **overrides) -> PolicySpec:
-    """Depth 1, D = 16, 2 heads, matching :func:`tiny_tokenizer_spec`."""
-    values = dict(
-        obs_dim=OBS_DIM,
-        obs_steps=OBS_STEPS,
-        action_dim=2,
-        scales=scales,
-        latent_channels=4,
-        codebook_size=8,
-        depth=1,
-        width=16,
-        num_heads=2,
-    )
-    values.update(overrides)
-    return PolicySpec(**values)
+    """Depth 1, D = 16, 2 heads, matching :func:`tiny_tokenizer_spec`; `CarpConfig` keys among `overrides` go to
+    the config, the others to the shapes."""
+    config_keys = {field.name for field in dataclasses.fields(CarpConfig)}
+    config = TINY_ARCHITECTURE | {key: value for key, value in overrides.items() if key in config_keys}
+    shapes = dict(obs_dim=OBS_DIM, obs_steps=OBS_STEPS, action_dim=2, scales=scales, latent_channels=4, codebook_size=8)
+    shapes.update({key: value for key, value in overrides.items() if key not in config_keys})
+    return PolicySpec(**shapes, config=CarpConfig(**config))
 
 
 def tiny_tokenizer(scales: tuple[int, ...] = (1, 2), seed: int = 0) -> MultiScaleActionTokenizer:
@@ -84,10 +79,6 @@ def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, **overrides) ->
         MinMaxNormalizer(action_min, np.array([3.0, 0.5])),
         metadata={"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}},
     )
-
-
-TINY_ARCHITECTURE = dict(depth=1, width=16, num_heads=2)
-"""The CARP params of :func:`tiny_policy_spec`'s transformer."""
 
 
 def tiny_context(tokenizer: MultiScaleActionTokenizer, num_tasks: int = 0) -> PolicyContext:

@@ -1,5 +1,6 @@
 import pytest
 
+from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.spec import PolicySpec
 from tests.policies.carp.factories import tiny_policy_spec
 
@@ -11,7 +12,7 @@ def test_derived_sizes_of_default_config():
     assert spec.num_scales == 4
     assert spec.condition_features == 38
     assert spec.hidden_width == 256
-    assert (spec.depth, spec.width, spec.num_heads) == (8, 64, 8)
+    assert spec.config == CarpConfig()  # the architecture is the params section's, defaults included
 
 
 def test_task_embedding_widens_condition():
@@ -21,8 +22,22 @@ def test_task_embedding_widens_condition():
 def test_dict_round_trip_and_unknown_keys():
     spec = tiny_policy_spec(num_tasks=2)
     assert PolicySpec.from_dict(spec.to_dict()) == spec
+    assert spec.to_dict()["config"]["width"] == 16 and spec.to_dict()["scales"] == [1, 2]
     with pytest.raises(ValueError, match="unknown PolicySpec keys: \\['heads'\\]"):
         PolicySpec.from_dict(spec.to_dict() | {"heads": 4})
+    with pytest.raises(TypeError, match="heads"):
+        PolicySpec.from_dict(spec.to_dict() | {"config": {"heads": 4}})
+
+
+def test_a_flat_spec_of_an_older_checkpoint_reads_its_architecture_into_the_config():
+    spec = tiny_policy_spec(dropout=0.1)
+    flat = {key: value for key, value in spec.to_dict().items() if key != "config"}
+    flat |= {"depth": 1, "width": 16, "num_heads": 2, "mlp_ratio": 4.0, "dropout": 0.1}
+    assert PolicySpec.from_dict(flat) == PolicySpec(
+        **(spec.to_dict() | {"config": CarpConfig(**spec.to_dict()["config"])})
+    )
+    with pytest.raises(ValueError, match="PolicySpec keys \\['width'\\] belong in its config"):
+        PolicySpec.from_dict(spec.to_dict() | {"width": 16})
 
 
 @pytest.mark.parametrize(
@@ -30,15 +45,20 @@ def test_dict_round_trip_and_unknown_keys():
     [
         ({"scales": (2, 1)}, "strictly increasing"),
         ({"scales": ()}, "must not be empty"),
-        ({"width": 10, "num_heads": 4}, "divisible by num_heads"),
+        ({"width": 10, "num_heads": 4}, "carp.num_heads=4: must divide carp.width=10"),
         ({"codebook_size": 1}, "codebook_size must be an integer >= 2"),
-        ({"depth": 0}, "depth must be a positive integer"),
+        ({"depth": 0}, "carp.depth=0: must be >= 1"),
         ({"obs_steps": True}, "obs_steps must be a positive integer"),
         ({"num_tasks": -1}, "num_tasks must be a non-negative integer"),
-        ({"dropout": 1.0}, "dropout must be in"),
-        ({"mlp_ratio": 0}, "mlp_ratio must be positive"),
+        ({"dropout": 1.0}, "carp.dropout=1.0: must be in"),
+        ({"mlp_ratio": 0}, "carp.mlp_ratio=0: must be > 0"),
     ],
 )
 def test_invalid_specs_are_rejected(overrides, message):
     with pytest.raises(ValueError, match=message):
         tiny_policy_spec(**overrides)
+
+
+def test_the_config_must_be_carps_section():
+    with pytest.raises(ValueError, match="PolicySpec.config must be a CarpConfig, got dict"):
+        PolicySpec(obs_dim=3, obs_steps=2, action_dim=2, scales=(1, 2), latent_channels=4, codebook_size=8, config={})

@@ -1,6 +1,6 @@
 """Coarse-to-fine autoregressive policy (DESIGN.md sections 4 and 5).
 
-- `spec`: `PolicySpec`, the validated transformer hyper-parameters.
+- `spec`: `PolicySpec`, the shapes of data and tokenizer with CARP's params section, which size the transformer.
 - `layout`: token order of a chunk, level ids and the block-causal mask.
 - `blocks`: attention with a kv-cache, the AdaLN block, the per-dimension head.
 - `transformer`: `CoarseToFineTransformer`, teacher-forced forward and K-step inference.

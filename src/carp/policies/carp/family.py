@@ -18,7 +18,7 @@ from carp.training.runtime import seed_everything
 
 
 def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
-    """The transformer's spec: `config`'s architecture, sized for the data and the tokenizer of `context`.
+    """The transformer's spec: `config` with the shapes of the data and the tokenizer of `context`.
 
     Raises:
         ValueError: `context` has no tokenizer (CARP predicts its tokens).
@@ -34,11 +34,7 @@ def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
         latent_channels=tokenizer_spec.latent_channels,
         codebook_size=tokenizer_spec.codebook_size,
         num_tasks=context.num_tasks,
-        depth=config.depth,
-        width=config.width,
-        num_heads=config.num_heads,
-        mlp_ratio=config.mlp_ratio,
-        dropout=config.dropout,
+        config=config,
     )
 
 

@@ -94,15 +94,15 @@ class PredictionGraph(nn.Module):
         uniforms = extra[-1] if self.top_k > 1 else None  # (1, L, k)
         transformer, quantizer = self.transformer, self.tokenizer.quantizer
         spec, layout = transformer.spec, transformer.layout
-        width, heads = spec.width, spec.num_heads
+        width, heads, depth = spec.config.width, spec.config.num_heads, spec.config.depth
         head_width = width // heads
         condition = transformer.encode_condition(obs * self.obs_scale + self.obs_offset, task_ids)  # (1, D)
         # One Split of the flat vector: M (D,) outputs, where unbinding (1, M, 1, D) adds a Squeeze and a Reshape each.
         modulations = transformer.modulation_vector(condition).reshape(-1).split(width)  # M x (D,)
         positions = transformer.position_and_level()[0]  # (L, D)
 
-        keys: list[torch.Tensor | None] = [None] * spec.depth  # (1, Nh, n, D / Nh) of the scales so far
-        values: list[torch.Tensor | None] = [None] * spec.depth
+        keys: list[torch.Tensor | None] = [None] * depth  # (1, Nh, n, D / Nh) of the scales so far
+        values: list[torch.Tensor | None] = [None] * depth
         latent = self.tokenizer.empty_latent(1)  # (1, A, C, l)
         chosen = []
         attention_scale = 1.0 / math.sqrt(head_width)

@@ -1,10 +1,15 @@
-"""Hyper-parameters of the coarse-to-fine transformer, validated at construction."""
+"""What the coarse-to-fine transformer is sized by: CARP's params section plus the shapes of the data and tokenizer."""
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from carp.policies.carp.config import CarpConfig
 
 TASK_EMBEDDING_DIM = 3
 """Width of the learned per-task embedding concatenated to the observation features (CARP's multi-task setting)."""
+
+ARCHITECTURE_FIELDS = ("depth", "width", "num_heads", "mlp_ratio", "dropout")
+"""`CarpConfig` fields that checkpoints written before the spec held the whole section stored beside the shapes."""
 
 
 def _require_positive_int(name: str, value: Any) -> None:
@@ -16,8 +21,9 @@ def _require_positive_int(name: str, value: Any) -> None:
 class PolicySpec:
     """Shape and size of a :class:`~carp.policies.carp.transformer.CoarseToFineTransformer`.
 
-    The last four fields repeat the tokenizer's spec; :class:`~carp.policies.carp.policy.CarpPolicy` checks that they
-    match.
+    The architecture is the `carp` params section itself (`config`, validated there); the other fields come from the
+    data and the tokenizer. The last four shape fields repeat the tokenizer's spec;
+    :class:`~carp.policies.carp.policy.CarpPolicy` checks that they match.
 
     Attributes:
         obs_dim: `Do`, low-dim observation features per step (not the flattened `To * Do`).
@@ -28,11 +34,8 @@ class PolicySpec:
         codebook_size: `V`, vocabulary size per dimension.
         num_tasks: 0 for a single-task policy; otherwise the number of task indices, each with a learned
             `TASK_EMBEDDING_DIM`-wide embedding concatenated to the observation features.
-        depth: number of transformer blocks.
-        width: `D`, token and conditioning width.
-        num_heads: `Nh`, attention heads; must divide `width`.
-        mlp_ratio: hidden width of the feed-forward layer relative to `width`.
-        dropout: dropout on attention weights and on the residual branches during training.
+        config: CARP's params section: depth, width `D`, heads, feed-forward ratio and dropout of the transformer
+            (and the optimizer settings it was trained with).
     """
 
     obs_dim: int
@@ -42,16 +45,12 @@ class PolicySpec:
     latent_channels: int
     codebook_size: int
     num_tasks: int = 0
-    depth: int = 8
-    width: int = 64
-    num_heads: int = 8
-    mlp_ratio: float = 4.0
-    dropout: float = 0.0
+    config: CarpConfig = field(default_factory=CarpConfig)
 
     def __post_init__(self) -> None:
         # Lists arrive from YAML/JSON; the frozen spec keeps a hashable tuple.
         object.__setattr__(self, "scales", tuple(self.scales))
-        for name in ("obs_dim", "obs_steps", "action_dim", "latent_channels", "depth", "width", "num_heads"):
+        for name in ("obs_dim", "obs_steps", "action_dim", "latent_channels"):
             _require_positive_int(name, getattr(self, name))
         if isinstance(self.num_tasks, bool) or not isinstance(self.num_tasks, int) or self.num_tasks < 0:
             raise ValueError(f"PolicySpec.num_tasks must be a non-negative integer, got {self.num_tasks!r}")
@@ -63,12 +62,8 @@ class PolicySpec:
             _require_positive_int("scales[...]", scale)
         if any(later <= earlier for earlier, later in zip(self.scales, self.scales[1:], strict=False)):
             raise ValueError(f"PolicySpec.scales must be strictly increasing, got {self.scales}")
-        if self.width % self.num_heads != 0:
-            raise ValueError(f"PolicySpec.width ({self.width}) must be divisible by num_heads ({self.num_heads})")
-        if not self.mlp_ratio > 0:
-            raise ValueError(f"PolicySpec.mlp_ratio must be positive, got {self.mlp_ratio!r}")
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"PolicySpec.dropout must be in [0, 1), got {self.dropout!r}")
+        if not isinstance(self.config, CarpConfig):
+            raise ValueError(f"PolicySpec.config must be a CarpConfig, got {type(self.config).__name__}")
 
     @property
     def num_scales(self) -> int:
@@ -89,18 +84,27 @@ class PolicySpec:
     @property
     def hidden_width(self) -> int:
         """Hidden width of the feed-forward layers."""
-        return round(self.width * self.mlp_ratio)
+        return round(self.config.width * self.config.mlp_ratio)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-types view for checkpoints and tracking (scales as a list)."""
+        """Plain-types view for checkpoints and tracking (scales as a list, the config as a dict)."""
         values = asdict(self)
         values["scales"] = list(self.scales)
         return values
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "PolicySpec":
-        """Inverse of :meth:`to_dict`; unknown keys are errors."""
+        """Inverse of :meth:`to_dict`; unknown keys are errors.
+
+        Also reads the flat form of older checkpoints, whose architecture fields sat beside the shapes without the
+        rest of the section; their optimizer settings are then the section's defaults.
+        """
+        values = dict(values)
+        legacy = {name: values.pop(name) for name in ARCHITECTURE_FIELDS if name in values}
         unknown = set(values) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown PolicySpec keys: {sorted(unknown)}")
-        return cls(**values)
+        if legacy and "config" in values:
+            raise ValueError(f"PolicySpec keys {sorted(legacy)} belong in its config")
+        config = CarpConfig(**values.pop("config", legacy))
+        return cls(**values, config=config)

@@ -176,9 +176,9 @@ def train_carp(
     Returns:
         The trained policy in eval mode on the training device; with `use_ema` it holds the EMA weights.
     """
+    # The spec holds the config (the architecture's and the optimizer's settings) and every shape.
     identity = {
         "policy_type": policy.policy_type,
-        "config": dataclasses.asdict(config),
         "spec": policy.spec.to_dict(),
         "tokenizer_sha256": policy.tokenizer_artifact.sha256,
     }

@@ -59,14 +59,15 @@ class CoarseToFineTransformer(nn.Module):
     """Predicts the token ids of every scale of an action chunk given observation features.
 
     Args:
-        spec: model hyper-parameters.
+        spec: the shapes of data and tokenizer, and CARP's params section (the architecture).
     """
 
     def __init__(self, spec: PolicySpec) -> None:
         super().__init__()
         self.spec = spec
         self.layout = TokenLayout(spec.action_dim, spec.scales)
-        width, length = spec.width, spec.sequence_length
+        config = spec.config
+        width, length = config.width, spec.sequence_length
         first_length = self.layout.scale_lengths[0]
 
         self.task_embedding = nn.Embedding(spec.num_tasks, TASK_EMBEDDING_DIM) if spec.num_tasks > 0 else None
@@ -76,16 +77,17 @@ class CoarseToFineTransformer(nn.Module):
         self.position_embedding = nn.Parameter(torch.empty(1, length, width))
         self.level_embedding = nn.Parameter(torch.empty(spec.num_scales, width))
 
-        self.num_modulations = MODULATIONS_PER_BLOCK * spec.depth + 2
+        self.num_modulations = MODULATIONS_PER_BLOCK * config.depth + 2
         self.modulation = nn.Linear(width, self.num_modulations * width)
         # Scale modulations are applied as (1 + scale); adding the one here once saves an op per use.
         scale_rows = torch.zeros(self.num_modulations, 1)
-        scale_rows[1 : MODULATIONS_PER_BLOCK * spec.depth : 3] = 1.0
+        scale_rows[1 : MODULATIONS_PER_BLOCK * config.depth : 3] = 1.0
         scale_rows[-1] = 1.0
         self.register_buffer("modulation_offset", scale_rows.expand(-1, width).reshape(-1), persistent=False)
 
         self.blocks = nn.ModuleList(
-            AdaptiveBlock(width, spec.num_heads, spec.hidden_width, spec.dropout, index) for index in range(spec.depth)
+            AdaptiveBlock(width, config.num_heads, spec.hidden_width, config.dropout, index)
+            for index in range(config.depth)
         )
         self.head = PerDimensionHead(spec.action_dim, width, spec.codebook_size)
 
@@ -94,7 +96,7 @@ class CoarseToFineTransformer(nn.Module):
         self._initialize_weights()
 
     def _initialize_weights(self) -> None:
-        initialize_adaptive_transformer(self, self.spec.depth, self.spec.width)
+        initialize_adaptive_transformer(self, self.spec.config.depth, self.spec.config.width)
 
     def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Project observations (and task) to the condition vector.
@@ -129,7 +131,7 @@ class CoarseToFineTransformer(nn.Module):
     def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
         modulation = self.modulation_vector(condition)  # (B, M * D)
-        return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.width).unbind(1)
+        return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.config.width).unbind(1)
 
     def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
         return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
@@ -194,7 +196,7 @@ class CoarseToFineTransformer(nn.Module):
             condition,
             self.modulations(condition),
             self.position_and_level(),
-            KeyValueCache(self.spec.depth, self.spec.sequence_length),
+            KeyValueCache(self.spec.config.depth, self.spec.sequence_length),
         )
 
     def next_scale_logits(self, state: InferenceState, scale_inputs: torch.Tensor | None = None) -> torch.Tensor:
