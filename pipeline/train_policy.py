@@ -4,10 +4,12 @@ With `training.num_processes` above 1 the script checks its inputs, then starts 
 under torchrun (`carp.training.distributed`); rank 0 logs to MLflow and writes the outputs, the others only train.
 """
 
+import argparse
 import logging
 import os
 import sys
-from dataclasses import asdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -28,11 +30,18 @@ from stage_support import (
     write_json,
 )
 
-from carp.data.dataset import load_task_windows
+from carp.config import Params
+from carp.data.dataset import TaskWindows, load_task_windows
 from carp.evaluation.offline import held_out_action_errors
+from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import train_policy
-from carp.tokenizer.artifact import TokenizerMismatchError, check_compatible, load_tokenizer_artifact
+from carp.tokenizer.artifact import (
+    TokenizerArtifact,
+    TokenizerMismatchError,
+    check_compatible,
+    load_tokenizer_artifact,
+)
 from carp.tracking.registry import TokenizerReference
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError
@@ -48,6 +57,46 @@ def torchrun_variables() -> dict[str, str] | None:
     return found if len(found) == len(TORCHRUN_VARIABLES) else None
 
 
+@dataclass(frozen=True)
+class StageInputs:
+    """The checked inputs of the stage: the tokenizer reference and artifact and the task's windows."""
+
+    reference: TokenizerReference
+    artifact: TokenizerArtifact
+    windows: TaskWindows
+
+
+def load_inputs(args: argparse.Namespace, params: Params) -> StageInputs:
+    """Read and check the tokenizer and the task's windows; exit with one `error:` line if they do not fit."""
+    reference = TokenizerReference.load(TOKENIZER_REF)
+    try:
+        # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
+        artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256, recorded_in=TOKENIZER_REF)
+        check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
+    except (CheckpointError, TokenizerMismatchError, FileNotFoundError) as error:
+        fail(str(error))
+    data = params.data
+    windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
+    return StageInputs(reference, artifact, windows)
+
+
+def launch_processes(args: argparse.Namespace, num_processes: int, device: torch.device) -> None:
+    """Run this stage again as `num_processes` torchrun processes and wait for them."""
+    if device.type == "cuda" and torch.cuda.device_count() < num_processes:
+        fail(
+            f"{args.params}: training.num_processes={num_processes}: one CUDA device per process, "
+            f"{torch.cuda.device_count()} visible"
+        )
+    # The processes' math libraries share the cores too (torchrun would give each one thread).
+    os.environ.setdefault("OMP_NUM_THREADS", str(distributed.cpu_threads_per_process(num_processes)))
+    logging.getLogger("torch.distributed").setLevel(logging.WARNING)
+    logging.getLogger("carp.pipeline").info("training on %d processes (torchrun)", num_processes)
+    try:
+        distributed.run_processes(Path(__file__), sys.argv[1:], num_processes)
+    except distributed.ProcessesFailed as error:
+        fail(str(error))
+
+
 def main() -> None:
     setup_logging()
     args = parse_args(__doc__, per_task=True, per_policy=True)
@@ -61,30 +110,10 @@ def main() -> None:
             f"{args.params}: training.num_processes={num_processes}: torchrun started {launched['WORLD_SIZE']} "
             "processes; run the stage without torchrun, it starts its own"
         )
-    reference = TokenizerReference.load(TOKENIZER_REF)
-    try:
-        # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
-        artifact = load_tokenizer_artifact(TOKENIZER_DIR, expected_sha256=reference.sha256, recorded_in=TOKENIZER_REF)
-        check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
-    except (CheckpointError, TokenizerMismatchError, FileNotFoundError) as error:
-        fail(str(error))
-    windows = load_task_windows(PROCESSED_DIR / args.task, params.data.action_horizon, params.data.obs_steps,
-                                params.data.action_steps)  # fmt: skip
+    inputs = load_inputs(args, params)
     device = select_device(params)
     if launched is None and num_processes > 1:
-        if device.type == "cuda" and torch.cuda.device_count() < num_processes:
-            fail(
-                f"{args.params}: training.num_processes={num_processes}: one CUDA device per process, "
-                f"{torch.cuda.device_count()} visible"
-            )
-        # The processes' math libraries share the cores too (torchrun would give each one thread).
-        os.environ.setdefault("OMP_NUM_THREADS", str(distributed.cpu_threads_per_process(num_processes)))
-        logging.getLogger("torch.distributed").setLevel(logging.WARNING)
-        logging.getLogger(__name__).info("training on %d processes (torchrun)", num_processes)
-        try:
-            distributed.run_processes(Path(__file__), sys.argv[1:], num_processes)
-        except distributed.ProcessesFailed as error:
-            fail(str(error))
+        launch_processes(args, num_processes, device)
         return
     rank = 0
     if launched is not None:
@@ -98,16 +127,23 @@ def main() -> None:
         )  # fmt: skip
     try:
         if rank == 0:
-            train_and_write(args, params, reference, artifact, windows, device)
+            train_and_write(args, params, inputs, device)
         else:
-            train(args, params, reference, artifact, windows, device, mlflow_run_id=None, on_epoch_end=None)
+            train(args, params, inputs, device, mlflow_run_id=None, on_epoch_end=None)
     finally:
         distributed.stop_process_group()
 
 
-def train(args, params, reference, artifact, windows, device, mlflow_run_id, on_epoch_end):
+def train(
+    args: argparse.Namespace,
+    params: Params,
+    inputs: StageInputs,
+    device: torch.device,
+    mlflow_run_id: str | None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None,
+) -> Policy:
     """The trained policy of this stage (every process of a multi-process run calls it)."""
-    data = params.data
+    data, windows = params.data, inputs.windows
     # The task's own statistics, as the tokenizer saw every training task's actions (carp.tokenizer.artifact).
     obs_normalizer, action_normalizer = windows.obs_normalizer, windows.action_normalizer
     train_data = PolicyTrainingData(
@@ -119,8 +155,8 @@ def train(args, params, reference, artifact, windows, device, mlflow_run_id, on_
         action_normalizer=action_normalizer,
         obs_steps=data.obs_steps,
         action_horizon=data.action_horizon,
-        tokenizer_artifact=artifact,
-        metadata={"task": args.task, "tokenizer": asdict(reference), "mlflow_run_id": mlflow_run_id},
+        tokenizer_artifact=inputs.artifact,
+        metadata={"task": args.task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": mlflow_run_id},
     )
     return train_policy(
         args.policy,
@@ -135,12 +171,16 @@ def train(args, params, reference, artifact, windows, device, mlflow_run_id, on_
     )
 
 
-def train_and_write(args, params, reference, artifact, windows, device) -> None:
+def train_and_write(args: argparse.Namespace, params: Params, inputs: StageInputs, device: torch.device) -> None:
     """Train in an MLflow run, evaluate on the held-out windows and write the stage's outputs (rank 0)."""
-    data = params.data
+    data, windows = params.data, inputs.windows
     precision = precision_name(resolve_precision(params.training.precision, device))
     history: list[dict] = []
-    tags = {"carp.tokenizer": reference.uri, "carp.training_precision": precision, "carp.policy_type": args.policy}
+    tags = {
+        "carp.tokenizer": inputs.reference.uri,
+        "carp.training_precision": precision,
+        "carp.policy_type": args.policy,
+    }
     stage = f"train_policy@{args.task}-{args.policy}"
     with mlflow_stage(params, stage, args.task, tags) as run:
 
@@ -148,7 +188,7 @@ def train_and_write(args, params, reference, artifact, windows, device) -> None:
             history.append({"epoch": epoch + 1, **metrics})
             run.log_metrics(metrics, step=epoch + 1)
 
-        policy = train(args, params, reference, artifact, windows, device, run.run_id, log_epoch)
+        policy = train(args, params, inputs, device, run.run_id, log_epoch)
         held_out = held_out_action_errors(
             policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
         )
