@@ -78,7 +78,8 @@ def current_processes() -> Processes:
 
 def cpu_threads_per_process(world_size: int) -> int:
     """An equal share (at least one) of the cores this process may run on: the processes must not oversubscribe them."""
-    return max(1, len(os.sched_getaffinity(0)) // world_size)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, cores // world_size)
 
 
 def start_process_group(
@@ -108,12 +109,17 @@ def start_process_group(
             raise ValueError(f"local process {local_rank} needs cuda:{local_rank}; {visible} CUDA devices are visible")
         device = torch.device("cuda", local_rank)
         torch.cuda.set_device(device)
-        backend = "nccl"
+        backend, device_id = "nccl", device  # NCCL binds its communicator to the device (and barriers to it)
     else:
         torch.set_num_threads(cpu_threads_per_process(world_size))
-        backend = "gloo"
+        backend, device_id = "gloo", None
     dist.init_process_group(
-        backend, init_method=f"tcp://{address}:{port}", rank=rank, world_size=world_size, timeout=COLLECTIVE_TIMEOUT
+        backend,
+        init_method=f"tcp://{address}:{port}",
+        rank=rank,
+        world_size=world_size,
+        timeout=COLLECTIVE_TIMEOUT,
+        device_id=device_id,
     )
     logger.info("process %d of %d joined the %s process group on %s", rank, world_size, backend, device)
     return device
