@@ -8,7 +8,8 @@ last batch of every epoch leaves one of two processes without a window) on two C
 - Diffusion Policy's transformer (noise, steps and dropout drawn in every process): a run killed with SIGKILL after
   its second training state resumes on two processes and ends with exactly the uninterrupted run's weights; killing
   the launcher takes its processes down too;
-- rank 0 alone has epochs reported to it.
+- rank 0 alone has epochs reported to it;
+- a process that fails makes the launcher (`run_processes`) fail with one line naming its rank and exit code.
 """
 
 import json
@@ -159,3 +160,24 @@ def test_a_killed_two_process_run_resumes_on_two_processes_to_the_uninterrupted_
         assert torch.equal(actual[name], value), name
     reference = _reported(tmp_path / "uninterrupted", 0)
     assert [epoch["loss"] for epoch in _reported(run, 0)] == [epoch["loss"] for epoch in reference]
+
+
+@pytest.mark.slow
+def test_a_failed_process_makes_the_launcher_fail_with_one_line_naming_it(tmp_path):
+    script = tmp_path / "fails_on_rank_1.py"
+    script.write_text("import os, sys\nsys.exit(3 if os.environ['RANK'] == '1' else 0)\n")
+    launcher = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "from carp.training.distributed import ProcessesFailed, run_processes\n"
+        "try:\n"
+        f"    run_processes(Path({str(script)!r}), ['--flag'], 2)\n"
+        "except ProcessesFailed as error:\n"
+        "    print(error)\n"
+        "    sys.exit(1)\n"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", launcher], env=_environment(), capture_output=True, text=True, timeout=300
+    )
+    assert completed.returncode == 1, completed.stderr[-3000:]
+    assert completed.stdout.strip() == "fails_on_rank_1.py on 2 processes failed (rank 1 exit code 3)"
