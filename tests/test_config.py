@@ -52,6 +52,9 @@ def test_defaults_follow_the_design():
         ({"training": {"precision": "half"}}, "training.precision='half': must be one of"),
         ({"training": {"epochs_per_task": {"kitchen": 5}}}, "training.epochs_per_task.kitchen='kitchen': task must"),
         ({"training": {"epochs_per_task": {"square": 0}}}, "training.epochs_per_task.square=0: must be >= 1"),
+        ({"training": {"num_processes": 0}}, "training.num_processes=0: must be >= 1"),
+        ({"training": {"num_processes": 1.5}}, "training.num_processes=1.5: "),
+        ({"training": {"batch_size": 4, "num_processes": 8}}, "training.num_processes=8: must be <= batch_size=4"),
         (
             {"inference": {"carp": {"top_k_per_task": {"kitchen": 3}}}},
             "inference.carp.top_k_per_task.kitchen='kitchen'",

@@ -201,6 +201,12 @@ class TrainingConfig:
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
             among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
             ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+        num_processes: Training processes, all on the machine that runs the stage; an integer >= 1, at most
+            ``batch_size``. Above 1, ``train_policy`` starts itself again under ``torchrun`` (DistributedDataParallel:
+            NCCL with one CUDA device per process, so at most the number of GPUs; gloo on the CPU, each process taking
+            an equal share of the cores). ``batch_size`` stays the windows of one optimizer step, split between the
+            processes, so the steps are one process's; rank 0 alone logs to MLflow and writes training states and
+            outputs.
     """
 
     epochs: int = 20
@@ -209,6 +215,7 @@ class TrainingConfig:
     seed: int = 0
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
+    num_processes: int = 1
 
     def epochs_for(self, task: str) -> int:
         """Policy epochs of `task`: its `epochs_per_task` entry, else `epochs`."""
@@ -225,6 +232,13 @@ class TrainingConfig:
             f"must be one of {TRAINING_PRECISIONS}",
         )
         _require_per_task_minimum(self.epochs_per_task, "training.epochs_per_task", "must be >= 1")
+        _require(self.num_processes >= 1, "training.num_processes", self.num_processes, "must be >= 1")
+        _require(
+            self.num_processes <= self.batch_size,
+            "training.num_processes",
+            self.num_processes,
+            f"must be <= batch_size={self.batch_size} (each process trains on a share of every batch)",
+        )
 
 
 def _require_per_task_minimum(mapping: dict[str, int], name: str, constraint: str) -> None:

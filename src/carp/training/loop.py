@@ -6,6 +6,7 @@ epoch (independent of earlier epochs, so a resumed run is exact), AdamW with lin
 optional EMA of the weights (the family's averaging rule), autocast precision, a progress bar, a training state every
 `checkpoint_every` epochs that an interrupted run of the same setup resumes from
 (`carp.training.checkpoint`), per-epoch metrics for tracking, and a clear error when the loss stops being finite.
+Under a process group (torchrun) the processes share every batch (`carp.training.distributed`).
 """
 
 import hashlib
@@ -24,6 +25,7 @@ from tqdm.auto import tqdm
 
 from carp.config import TrainingConfig
 from carp.policies.base import Policy
+from carp.training import distributed
 from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.runtime import autocast_to, precision_name, resolve_device, resolve_precision
 
@@ -138,7 +140,12 @@ def train_with_loss(
         device: "auto", "cpu", "cuda" or "cuda:<index>".
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean over
             windows), `learning_rate`, `epoch_seconds` and `samples_per_second`; a resumed run reports its stored
-            epochs first.
+            epochs first. Called on rank 0 only when several processes train.
+
+    Several processes (a process group started by `carp.training.distributed.start_process_group`, each process
+    calling this function with the same arguments) take the same optimizer steps as one: each trains on its share of
+    every batch of `training.batch_size` windows with its gradients averaged over the processes. Rank 0 alone
+    reports epochs and writes the training state; every process resumes from the same one.
 
     Returns:
         The trained policy in eval mode on `device`; with an EMA it holds the averaged weights.
@@ -183,27 +190,39 @@ def train_with_loss(
         | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
         "data_sha256": data_digest(data),
     }
+    processes = distributed.current_processes()
+    if processes.is_distributed:
+        # Per-process random draws make a state resume exactly only on as many processes as wrote it.
+        metadata["loop"]["processes"] = processes.world_size
+    if not processes.is_main:
+        on_epoch_end = None
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
-    start_epoch, history = resume_training_state(
-        checkpoint_path, metadata, trainable, optimizer, scheduler, on_epoch_end
+    start_epoch, history = distributed.main_process_first(
+        lambda: resume_training_state(checkpoint_path, metadata, trainable, optimizer, scheduler, on_epoch_end),
+        processes,
     )
+    distributed.require_same(start_epoch, "epoch to resume at", processes)
+    loss_of = distributed.loss_function(policy, processes)
     if start_epoch > 0:
         logger.info("resuming %s training from %s at epoch %d", policy.policy_type, checkpoint_path, start_epoch)
     for epoch in range(start_epoch, epochs):
         policy.train()
         started = time.perf_counter()
         loss_sum = 0.0
+        distributed.seed_epoch(training.seed, epoch, processes)
         order = epoch_order(training.seed, epoch, count).to(device)
         progress = tqdm(
             torch.split(order, training.batch_size),
             desc=f"{policy.policy_type} epoch {epoch + 1}/{epochs}",
             leave=False,
+            disable=not processes.is_main,
         )
         for step, indices in enumerate(progress):
+            share, weight = distributed.batch_share(indices, processes)
             with autocast_to(precision, device):
-                loss = policy.training_loss(data.batch(indices))
-            loss = loss.float()
-            loss_value = float(loss.detach())
+                loss = loss_of(data.batch(share))
+            loss = loss.float() * weight
+            loss_value = distributed.mean_over_processes(loss.detach(), processes)
             if not math.isfinite(loss_value):
                 raise NonFiniteLossError(
                     f"{policy.policy_type} training loss is {loss_value} at epoch {epoch + 1}, step {step + 1} of "
@@ -225,7 +244,7 @@ def train_with_loss(
             "samples_per_second": count / seconds,
         }
         history.append(metrics)
-        if (epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs:
+        if processes.is_main and ((epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs):
             save_training_state(checkpoint_path, trainable, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "%s epoch %d/%d: %s",
