@@ -9,11 +9,10 @@ from stage_support import (
     TOKENIZER_DIR,
     TOKENIZER_REF,
     fail,
-    load,
     mlflow_stage,
-    parse_args,
     policy_dir,
     policy_report_dir,
+    policy_stage_args,
     select_device,
     setup_logging,
     write_history,
@@ -33,10 +32,7 @@ from carp.training.runtime import precision_name, resolve_precision
 
 def main() -> None:
     setup_logging()
-    args = parse_args(__doc__, per_task=True, per_policy=True)
-    params = load(args.params)
-    if args.policy not in params.policies:
-        fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    args, params = policy_stage_args(__doc__)
     data = params.data
     reference = TokenizerReference.load(TOKENIZER_REF)
     try:
