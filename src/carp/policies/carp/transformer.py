@@ -39,21 +39,21 @@ HEAD_INIT_GAIN = 0.02
 
 @dataclass
 class InferenceState:
-    """What K-step inference carries from one scale to the next.
+    """What cached inference carries from one sequential call to the next (K scale steps or L token steps).
 
     Attributes:
         condition: (B, D) condition vector.
         modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
         position_and_level: (1, L, D) position plus level embedding of every token.
-        cache: keys and values of the scales processed so far.
-        next_scale: index (0-based) of the scale the next call predicts.
+        cache: keys and values of the tokens processed so far.
+        next_step: index (0-based) of the step the next call predicts: a scale for CARP, a token for next-token.
     """
 
     condition: torch.Tensor
     modulations: tuple[torch.Tensor, ...]
     position_and_level: torch.Tensor
     cache: KeyValueCache
-    next_scale: int = 0
+    next_step: int = 0
 
 
 class AdaptiveTransformer(nn.Module):
@@ -156,6 +156,19 @@ class AdaptiveTransformer(nn.Module):
         """A kv-cache for one chunk: every block's keys and values of up to L tokens."""
         return KeyValueCache(self.depth, self.position_embedding.shape[1])
 
+    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
+        """Encode the condition, its modulations and the position embeddings once, and open an empty kv-cache.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            State to pass to the subclass's step method once per sequential call.
+        """
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        return InferenceState(condition, self.modulations(condition), self.position_and_level(), self.empty_cache())
+
     def run_blocks(
         self,
         hidden: torch.Tensor,
@@ -232,24 +245,6 @@ class CoarseToFineTransformer(AdaptiveTransformer):
             return self.head.grouped_logits(hidden)  # (A, B * L / A, V)
         return self.head(hidden)  # (B, L, V)
 
-    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
-        """Encode the condition and open an empty kv-cache for K-step inference.
-
-        Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long, for multi-task policies.
-
-        Returns:
-            State to pass to :meth:`next_scale_logits` K times.
-        """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
-        return InferenceState(
-            condition,
-            self.modulations(condition),
-            self.position_and_level(),
-            self.empty_cache(),
-        )
-
     def next_scale_logits(self, state: InferenceState, scale_inputs: torch.Tensor | None = None) -> torch.Tensor:
         """Logits of the next scale's tokens, extending the kv-cache (no mask: cached keys are all coarser scales).
 
@@ -259,9 +254,9 @@ class CoarseToFineTransformer(AdaptiveTransformer):
                 accumulated from the predicted scales, in sequence order.
 
         Returns:
-            (B, s_k * A, V) logits of scale k = `state.next_scale`.
+            (B, s_k * A, V) logits of scale k = `state.next_step`.
         """
-        scale_index = state.next_scale
+        scale_index = state.next_step
         if scale_index >= self.layout.num_scales:
             raise RuntimeError(f"all {self.layout.num_scales} scales were already predicted")
         start, end = self.layout.scale_bounds[scale_index]
@@ -272,7 +267,7 @@ class CoarseToFineTransformer(AdaptiveTransformer):
                 raise ValueError(f"scale {scale_index + 1} needs the accumulated latent of the coarser scales")
             tokens = self.token_projection(scale_inputs)  # (B, s_k * A, D)
         hidden = self.run_blocks(tokens + state.position_and_level[:, start:end], state.modulations, None, state.cache)
-        state.next_scale += 1
+        state.next_step += 1
         return self.head(hidden)  # (B, s_k * A, V)
 
 

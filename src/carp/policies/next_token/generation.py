@@ -2,7 +2,7 @@
 
 Each step scores one token, chooses it (argmax, or a draw among the top k with CARP's Gumbel-max helpers from
 `carp.policies.carp.sampling`, the chunk's uniforms drawn up front) and feeds it back. The condition, the AdaLN
-modulations and the position embeddings are computed once per chunk by `start_generation`.
+modulations and the position embeddings are computed once per chunk by `start_inference`.
 """
 
 import torch
@@ -37,7 +37,7 @@ def generate_tokens(
     uniforms = (
         sampling_uniforms(batch, length, top_k, generator, obs_features.device) if top_k > 1 else None
     )  # (B, L, k)
-    state = transformer.start_generation(obs_features, task_ids)
+    state = transformer.start_inference(obs_features, task_ids)
     token_ids = torch.empty(batch, length, dtype=torch.long, device=obs_features.device)
     previous = None
     for position in range(length):

@@ -22,34 +22,12 @@ The conditioning, the position and level embeddings, the blocks, the kv-cache an
 class extends `carp.policies.carp.transformer.AdaptiveTransformer` and adds only its token inputs and causal mask.
 """
 
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
-from carp.policies.carp.blocks import KeyValueCache
 from carp.policies.carp.layout import TokenLayout
-from carp.policies.carp.transformer import AdaptiveTransformer
+from carp.policies.carp.transformer import AdaptiveTransformer, InferenceState
 from carp.policies.next_token.config import NextTokenConfig
-
-
-@dataclass
-class GenerationState:
-    """What token-by-token inference carries from one step to the next.
-
-    Attributes:
-        condition: (B, D) condition vector.
-        modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
-        position_and_level: (1, L, D) position plus level embedding of every token.
-        cache: keys and values of the tokens processed so far.
-        next_position: index of the token the next call predicts.
-    """
-
-    condition: torch.Tensor
-    modulations: tuple[torch.Tensor, ...]
-    position_and_level: torch.Tensor
-    cache: KeyValueCache
-    next_position: int = 0
 
 
 class NextTokenTransformer(AdaptiveTransformer):
@@ -130,35 +108,17 @@ class NextTokenTransformer(AdaptiveTransformer):
         hidden = self.run_blocks(hidden, modulations, self.causal_mask, None)  # (B, L, D)
         return self.head(hidden)  # (B, L, V)
 
-    def start_generation(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> GenerationState:
-        """Encode the condition and open an empty kv-cache for L-step inference.
-
-        Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long, for multi-task policies.
-
-        Returns:
-            State to pass to :meth:`next_token_logits` L times.
-        """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
-        return GenerationState(
-            condition,
-            self.modulations(condition),
-            self.position_and_level(),
-            self.empty_cache(),
-        )
-
-    def next_token_logits(self, state: GenerationState, previous_ids: torch.Tensor | None = None) -> torch.Tensor:
+    def next_token_logits(self, state: InferenceState, previous_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Logits of the next token, extending the kv-cache (no mask: every cached key precedes the query).
 
         Args:
-            state: from :meth:`start_generation`, advanced by one token per call.
+            state: from :meth:`start_inference`, advanced by one token per call.
             previous_ids: None for the first token; afterwards (B,) long, the id chosen at the previous position.
 
         Returns:
-            (B, V) logits of token i = `state.next_position`, over dimension `i % A`'s vocabulary.
+            (B, V) logits of token i = `state.next_step`, over dimension `i % A`'s vocabulary.
         """
-        position = state.next_position
+        position = state.next_step
         if position >= self.sequence_length:
             raise RuntimeError(f"all {self.sequence_length} tokens were already predicted")
         if position == 0:
@@ -169,6 +129,6 @@ class NextTokenTransformer(AdaptiveTransformer):
             tokens = self.token_embedding(previous_ids + self.vocabulary_offsets[position - 1]).unsqueeze(1)
         hidden = tokens + state.position_and_level[:, position : position + 1]  # (B, 1, D)
         hidden = self.run_blocks(hidden, state.modulations, None, state.cache)  # (B, 1, D)
-        state.next_position += 1
+        state.next_step += 1
         dimension = position % self.action_dim
         return torch.addmm(self.head.bias[dimension, 0], hidden[:, 0], self.head.weight[dimension])  # (B, V)
