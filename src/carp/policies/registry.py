@@ -173,15 +173,13 @@ def train_policy(
     Args:
         name: registered family.
         config: the family's params section.
-        training: the shared loop settings (`carp.config.TrainingConfig`).
-        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
-            goes into the checkpoint.
-        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
-        checkpoint_dir: where the resumable training state lives.
-        device: training device ("auto", "cpu", "cuda", ...).
-        epochs: passes over the windows; None takes `training.epochs`.
-        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
-            `loss` and `epoch_seconds`.
+        training: see :class:`TrainingRun`, whose fields the remaining arguments are.
+        context: see :class:`TrainingRun`.
+        data: see :class:`TrainingRun`.
+        checkpoint_dir: see :class:`TrainingRun`.
+        device: see :class:`TrainingRun`.
+        epochs: see :class:`TrainingRun`.
+        on_epoch_end: see :class:`TrainingRun`.
 
     Returns:
         The trained policy in eval mode on the CPU.

@@ -17,7 +17,13 @@ import torch
 from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policies.base import POLICY_FORMAT_VERSION, TORCH_BACKEND, Deployment, count_parameters
+from carp.policies.base import (
+    POLICY_FORMAT_VERSION,
+    TORCH_BACKEND,
+    Deployment,
+    check_observation_shape,
+    count_parameters,
+)
 from carp.policies.carp.sampling import check_top_k
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -34,6 +40,22 @@ def checkpoint_normalizers(checkpoint: dict[str, Any]) -> tuple[MinMaxNormalizer
     """The (observation, action) normalizers a checkpoint written by :meth:`PolicyModule.to_checkpoint` holds."""
     normalizers = checkpoint["normalizers"]
     return MinMaxNormalizer.from_dict(normalizers["obs"]), MinMaxNormalizer.from_dict(normalizers["action"])
+
+
+def check_tokenizer_fit(pairs: dict[str, tuple[Any, Any]], label: str, what: str) -> None:
+    """Raise ValueError naming every size a model and the tokenizer disagree on.
+
+    Args:
+        pairs: size name -> (the model's value, the tokenizer's value).
+        label: what the model's values are called in the message (`policy`, `model`).
+        what: the start of the message, e.g. `policy spec does not match the tokenizer spec`.
+    """
+    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
+    if mismatched:
+        details = ", ".join(
+            f"{name}: {label} {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
+        )
+        raise ValueError(f"{what} ({details})")
 
 
 class PolicyModule(nn.Module):
@@ -98,10 +120,7 @@ class PolicyModule(nn.Module):
             ValueError: `obs` has another shape.
         """
         observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
-        if observations.dim() != 3 or tuple(observations.shape[1:]) != (obs_steps, obs_dim):
-            raise ValueError(
-                f"obs must have shape (B, To, Do) = (B, {obs_steps}, {obs_dim}), got {tuple(observations.shape)}"
-            )
+        check_observation_shape(observations, obs_steps, obs_dim, "obs")
         return self.obs_normalizer.normalize(observations)  # (B, To, Do)
 
     def predict_action(

@@ -22,7 +22,13 @@ from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPredictio
 from carp.policies.carp.sampling import generate_chunk
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.transformer import CoarseToFineTransformer
-from carp.policies.wrapper import TokenizedPolicy, check_policy_type, checkpoint_normalizers, checkpoint_tokenizer
+from carp.policies.wrapper import (
+    TokenizedPolicy,
+    check_policy_type,
+    check_tokenizer_fit,
+    checkpoint_normalizers,
+    checkpoint_tokenizer,
+)
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.checkpoint import CheckpointError
@@ -42,12 +48,7 @@ def check_specs_match(policy_spec: PolicySpec, tokenizer_spec: TokenizerSpec) ->
         "latent_channels": (policy_spec.latent_channels, tokenizer_spec.latent_channels),
         "codebook_size": (policy_spec.codebook_size, tokenizer_spec.codebook_size),
     }
-    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
-    if mismatched:
-        details = ", ".join(
-            f"{name}: policy {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
-        )
-        raise ValueError(f"policy spec does not match the tokenizer spec ({details})")
+    check_tokenizer_fit(pairs, "policy", "policy spec does not match the tokenizer spec")
 
 
 class CarpPolicy(TokenizedPolicy):

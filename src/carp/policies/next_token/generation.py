@@ -9,6 +9,7 @@ import torch
 
 from carp.policies.carp.sampling import check_top_k, sampling_uniforms, select_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
+from carp.policies.wrapper import check_tokenizer_fit
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 
@@ -58,12 +59,7 @@ def check_tokenizer_matches(transformer: NextTokenTransformer, tokenizer: MultiS
         "scales": (transformer.layout.scales, tuple(spec.scales)),
         "codebook_size": (transformer.codebook_size, spec.codebook_size),
     }
-    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
-    if mismatched:
-        details = ", ".join(
-            f"{name}: model {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
-        )
-        raise ValueError(f"next-token transformer does not match the tokenizer ({details})")
+    check_tokenizer_fit(pairs, "model", "next-token transformer does not match the tokenizer")
 
 
 @torch.inference_mode()

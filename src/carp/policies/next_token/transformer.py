@@ -25,6 +25,7 @@ class extends `carp.policies.carp.transformer.AdaptiveTransformer` and adds only
 import torch
 from torch import nn
 
+from carp.policies.base import check_dimensions
 from carp.policies.carp.layout import TokenLayout
 from carp.policies.carp.transformer import AdaptiveTransformer, InferenceState
 from carp.policies.next_token.config import NextTokenConfig
@@ -54,9 +55,7 @@ class NextTokenTransformer(AdaptiveTransformer):
         num_tasks: int = 0,
     ) -> None:
         super().__init__()
-        for name, value in (("obs_dim", obs_dim), ("obs_steps", obs_steps), ("action_dim", action_dim)):
-            if value < 1:
-                raise ValueError(f"{name} must be >= 1, got {value}")
+        check_dimensions(obs_dim=obs_dim, obs_steps=obs_steps, action_dim=action_dim)
         if codebook_size < 2:
             raise ValueError(f"codebook_size must be >= 2, got {codebook_size}")
         if num_tasks < 0:
