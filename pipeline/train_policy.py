@@ -19,11 +19,10 @@ from stage_support import (
     TOKENIZER_DIR,
     TOKENIZER_REF,
     fail,
-    load,
     mlflow_stage,
-    parse_args,
     policy_dir,
     policy_report_dir,
+    policy_stage_args,
     select_device,
     setup_logging,
     write_history,
@@ -99,10 +98,7 @@ def launch_processes(args: argparse.Namespace, num_processes: int, device: torch
 
 def main() -> None:
     setup_logging()
-    args = parse_args(__doc__, per_task=True, per_policy=True)
-    params = load(args.params)
-    if args.policy not in params.policies:
-        fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    args, params = policy_stage_args(__doc__)
     num_processes = params.training.num_processes
     launched = torchrun_variables()
     if launched is not None and int(launched["WORLD_SIZE"]) != num_processes:

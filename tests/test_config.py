@@ -41,7 +41,7 @@ def test_defaults_follow_the_design():
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
         ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
-        ({"carp": {"width": 64, "num_heads": 5}}, "carp.num_heads=5: must divide carp.width=64"),
+        ({"carp": {"width": 64, "num_heads": 5}}, "carp.num_heads=5: must divide width=64"),
         ({"carp": {"depth": "deep"}}, "carp.depth='deep': expected an integer"),
         ({"carp": {"use_ema": "yes"}}, "carp.use_ema='yes': expected true or false"),
         ({"carp": {"learning_rate": 0}}, "carp.learning_rate=0.0: must be > 0"),

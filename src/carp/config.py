@@ -34,6 +34,31 @@ def _require(condition: bool, key: str, value: Any, constraint: str) -> None:
         raise ConfigError(f"{key}={value!r}: {constraint}")
 
 
+def require_positive_int(key: str, value: Any) -> None:
+    """Refuse anything but an integer >= 1 at `key` (a bool or a whole float such as 8.0 included)."""
+    _require(
+        isinstance(value, int) and not isinstance(value, bool) and value >= 1, key, value, "must be an integer >= 1"
+    )
+
+
+def require_optimizer_settings(section: str, config: Any) -> None:
+    """Check the optimizer fields every policy family's section has, naming them under `section`.
+
+    Args:
+        section: the params section, e.g. `carp` or `diffusion_unet`.
+        config: a family config with `learning_rate`, `weight_decay`, `warmup_steps` and `use_ema`.
+    """
+    _require(config.learning_rate > 0, f"{section}.learning_rate", config.learning_rate, "must be > 0")
+    _require(config.weight_decay >= 0, f"{section}.weight_decay", config.weight_decay, "must be >= 0")
+    _require(
+        isinstance(config.warmup_steps, int) and not isinstance(config.warmup_steps, bool) and config.warmup_steps >= 0,
+        f"{section}.warmup_steps",
+        config.warmup_steps,
+        "must be an integer >= 0",
+    )
+    _require(isinstance(config.use_ema, bool), f"{section}.use_ema", config.use_ema, "must be true or false")
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """Demonstrations, ingestion and the time convention (DESIGN.md sections 1 and 2).

@@ -1,19 +1,12 @@
 """CARP's entry in the policy registry (`carp.policies.registry`): its config, builder, loader and trainer."""
 
-from collections.abc import Callable
-from pathlib import Path
-
-import torch
-
-from carp.config import TrainingConfig
 from carp.policies.carp.config import CarpConfig, CarpInference
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import train_policy
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
-from carp.policies.registry import PolicyFamily
-from carp.training.loop import PolicyTrainingData
+from carp.policies.registry import PolicyFamily, TrainingRun
 
 
 def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
@@ -52,21 +45,21 @@ def build_policy(config: CarpConfig, context: PolicyContext) -> CarpPolicy:
     )
 
 
-def train(
-    config: CarpConfig,
-    training: TrainingConfig,
-    context: PolicyContext,
-    data: PolicyTrainingData,
-    checkpoint_dir: Path,
-    device: str | torch.device = "cpu",
-    epochs: int | None = None,
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
-) -> CarpPolicy:
+def train(config: CarpConfig, run: TrainingRun) -> CarpPolicy:
     """Train CARP's transformer on the frozen tokenizer's tokens (`carp.policies.carp.trainer`) and assemble it."""
+    context = run.context
     spec = policy_spec(config, context)
     tokenizer = context.tokenizer_artifact.tokenizer
     transformer = train_policy(
-        spec, tokenizer, data, config, training, checkpoint_dir, on_epoch_end, epochs=epochs, device=device
+        spec,
+        tokenizer,
+        run.data,
+        config,
+        run.training,
+        run.checkpoint_dir,
+        run.on_epoch_end,
+        epochs=run.epochs,
+        device=run.device,
     )
     tokenizer.cpu()
     return CarpPolicy(
