@@ -78,7 +78,7 @@ class RenderSettings:
 
 
 def offscreen_backend() -> str:
-    """The ``MUJOCO_GL`` value for headless rendering on this machine: ``egl`` if libEGL loads, else ``osmesa``.
+    """The ``MUJOCO_GL`` value for headless rendering here: ``egl`` if libEGL is installed, else ``osmesa``.
 
     Raises:
         RenderingError: neither library is installed; names the Debian packages that provide them.
