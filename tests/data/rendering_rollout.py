@@ -1,5 +1,6 @@
 """Run in a fresh interpreter with MUJOCO_GL set (mujoco reads it at import): a short scripted rollout rendered live,
-the same states rendered again from a new env, and the first state as robosuite's own camera observation and as our
+the same states rendered again in a new env (its model rebuilt from the seed, and loaded from the model XML as
+robomimic stores it), and the first state as robosuite's own camera observation and as our
 renderer with robosuite's settings (shadows, reflections, skybox, anti-aliasing).
 
 Usage: python tests/data/rendering_rollout.py TASK STEPS SEED OUTPUT.npz; also writes OUTPUT.json with the messages
@@ -34,6 +35,7 @@ def main() -> None:
     expert = make_expert(task, env)
     simulation.reset_env(env, seed)
     expert.reset()
+    model_xml = env.sim.model.get_xml()  # what robomimic stores as a demo's model_file
     live: dict[str, list[np.ndarray]] = {key: [] for key in settings.image_keys}
     states = []
     with CameraRenderer(env.sim.model._model, settings) as renderer:
@@ -48,7 +50,9 @@ def main() -> None:
             "no model": _message(lambda: load_demo_model(env, {})),
         }
     env.close()
-    [from_states] = render_demos(env_args, [({"seed": seed}, np.stack(states))], settings)
+    from_seed, from_xml = render_demos(
+        env_args, [({"seed": seed}, np.stack(states)), ({"model_file": model_xml}, np.stack(states))], settings
+    )
     camera_env = simulation.make_env(env_args, camera_names=settings.cameras, image_size=settings.image_size)
     observation = simulation.reset_env(camera_env, seed)
     same_first_state = bool(np.array_equal(camera_env.sim.get_state().flatten(), states[0]))
@@ -59,7 +63,8 @@ def main() -> None:
     arrays = {}
     for key in settings.image_keys:
         arrays[f"live_{key}"] = np.stack(live[key])
-        arrays[f"states_{key}"] = from_states[key]
+        arrays[f"states_{key}"] = from_seed[key]
+        arrays[f"xml_{key}"] = from_xml[key]
         arrays[f"robosuite_{key}"] = observation[key]
         arrays[f"extras_{key}"] = with_extras[key]
     np.savez(output, **arrays)

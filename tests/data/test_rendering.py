@@ -57,8 +57,13 @@ def test_stored_states_render_the_live_frames_exactly_and_upright(tmp_path, task
         live, from_states = frames[f"live_{key}"], frames[f"states_{key}"]
         assert live.dtype == from_states.dtype == np.uint8
         assert live.shape == from_states.shape == (12, 84, 84, 3)
-        # Pixel-exact: the stored state and the model rebuilt from the demo's seed reproduce what was seen live.
+        # Pixel-exact: the stored states, in the model rebuilt from the demo's seed, reproduce what was seen live.
         np.testing.assert_array_equal(from_states, live)
+        # The model XML (robomimic's model_file) writes numbers with fewer digits than the model holds, so poses move
+        # by a rounding error: pixels on edges and fine textures may change, the pictures stay the same. Tolerance:
+        # under 2% of the pixels differ, by 0.25 intensity levels (of 255) on average over the images.
+        difference = np.abs(frames[f"xml_{key}"].astype(np.float64) - live)
+        assert (difference.max(axis=-1) > 0).mean() < 0.02 and difference.mean() < 0.25
         assert (live[0] != live[-1]).any(axis=-1).sum() > 50  # the arm moved: the frames are not all the same
         assert len(np.unique(live[0].reshape(-1, 3), axis=0)) > 20  # a rendered scene, not a blank frame
     checks = json.loads(output.with_suffix(".json").read_text())

@@ -193,7 +193,9 @@ def load_demo_model(env, attrs: Mapping):
     robosuite rebuilds its model at every reset with random object sizes and placements, so stored states are only
     meaningful in their own model. A robomimic file stores that model's XML per demo (attribute ``model_file``; its
     asset paths are rebased on this robosuite install as robomimic does); carp's collection stores the reset seed
-    instead (attribute ``seed``), from which :func:`carp.simulation.reset_env` rebuilds the same model.
+    instead (attribute ``seed``), from which :func:`carp.simulation.reset_env` rebuilds the same model. The seed gives
+    the recorded model exactly; an XML holds its numbers to fewer digits, so poses differ by a rounding error and a
+    few pixels on edges and fine textures may differ by some intensity levels.
 
     Args:
         env: a robosuite env built from the demo file's ``env_args``.
