@@ -147,3 +147,26 @@ def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_c
     assert all(match[8] == match[9] == "-" for match in row.findall(single.stdout))
     failed = run_benchmark("policy_families.py", "--rounds", "0")
     assert failed.returncode == 1 and failed.stderr.startswith("error: --rounds")
+
+
+@pytest.mark.slow
+def test_rendering_cost_prints_both_settings_per_task_and_saves_a_frame_grid(tmp_path):
+    completed = run_benchmark(
+        "rendering_cost.py", *("--tasks", "lift", "--steps", "3", "--repeats", "2", "--grid-dir", str(tmp_path))
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    rows = [line for line in completed.stdout.splitlines() if line.startswith("| lift")]
+    assert [row.split("|")[2].strip() for row in rows] == ["lean", "robosuite"]
+    for row in rows:
+        frames, setup, median, p90, per_second = (float(cell) for cell in row.split("|")[3:8])
+        assert frames == 6 and setup > 0 and 0 < median <= p90
+        assert per_second == pytest.approx(1e3 / median, rel=0.01, abs=0.1)
+    assert (tmp_path / "lift_frames.png").stat().st_size > 0
+
+
+def test_rendering_cost_refuses_an_unknown_task_in_one_line():
+    completed = run_benchmark("rendering_cost.py", "--tasks", "stack")
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [
+        "error: --tasks ['stack']: unknown; expected some of ['can', 'lift', 'square']"
+    ]
