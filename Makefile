@@ -8,8 +8,8 @@ STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup repro test test-fast lint docs benchmark ui sweep exps tracking-server tracking-server-stop object-store \
-	object-store-stop dvc-remote
+.PHONY: setup render-deps repro test test-fast lint docs benchmark ui sweep exps tracking-server tracking-server-stop \
+	object-store object-store-stop dvc-remote
 
 setup: $(STAMP)
 
@@ -20,6 +20,15 @@ $(STAMP): requirements.lock requirements-binaries.lock pyproject.toml
 	$(BIN)/python -m pip install --quiet --require-hashes --no-deps -r requirements-binaries.lock
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
+
+# Headless offscreen rendering (camera observations, evaluation videos) through EGL with Mesa: installs the Debian
+# packages that are missing (needs root); does nothing when all are present.
+RENDER_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+render-deps:
+	@missing="$$(for package in $(RENDER_PACKAGES); do dpkg -s $$package > /dev/null 2>&1 || echo $$package; done)"; \
+	if [ -n "$$missing" ]; then \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
 
 repro: setup
 	dvc repro
@@ -51,6 +60,7 @@ benchmark: setup
 	$(BIN)/python benchmarks/tokenizer_throughput.py
 	$(BIN)/python benchmarks/policy_speed.py
 	$(BIN)/python benchmarks/policy_families.py
+	$(BIN)/python benchmarks/rendering_cost.py
 
 ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000

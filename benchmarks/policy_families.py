@@ -3,17 +3,18 @@
 Builds each registered family at its default params section for Lift's shapes (Do = 19, To = 2, H = 16, A = 10; the
 default tokenizer for the token families) with randomly initialized weights (speed does not depend on the values),
 and times `predict_action_timed` at batch 1 and at batch 64 in one interleaved run: every round calls each
-configuration once, in the same process on the same threads, so that a slower or busier stretch of the machine
-affects every row alike. Rows:
+configuration once, in the same process on the same threads, and the batch-64 rounds are spread among the batch-1
+ones, so that a slower or busier stretch of the machine affects every row and both batch sizes alike. Rows:
 
 - `carp` on ONNX Runtime (what evaluation runs) and in PyTorch;
 - `diffusion_unet` (DP-C) and `diffusion_transformer` (DP-T) with DDIM-10 and DDPM-100, in PyTorch under inference
   mode (the sampler loop holds one denoiser call and one scheduler update per step);
 - `next_token`, greedy, in PyTorch with its kv-cache.
 
-The ratio column divides a row's batch-1 median by CARP's ONNX Runtime median. The issue's targets on the 2-core CPU
-are CARP at least 10x faster than DP-T with DDIM-10 and at least 100x faster than DP-C with DDPM-100; this script
-prints the numbers and asserts nothing.
+Each batch size has its ratio column: a row's median over CARP's at that batch size (CARP on ONNX Runtime at batch
+1, CARP in PyTorch at batch 64, as the ONNX Runtime graphs are exported for batch 1). The issue's targets on the
+2-core CPU are CARP at least 10x faster than DP-T with DDIM-10 and at least 100x faster than DP-C with DDPM-100;
+this script prints the numbers and asserts nothing.
 
 Usage: python benchmarks/policy_families.py [--rounds 20] [--batched-rounds 3] [--threads 1] [--skip-batched]
                                             [--tiny]
@@ -53,6 +54,8 @@ INFERENCE_VARIANTS = {
 }
 """Inference settings timed per family (the family's defaults when absent): both samplers of the issue's targets."""
 REFERENCE = "carp"
+BATCH = 64
+"""The batched size: evaluation's many environments stepped together, as a vectorized executor would."""
 
 
 def context(tiny: bool) -> PolicyContext:
@@ -98,23 +101,43 @@ def configurations(tiny: bool, directory: Path) -> list[tuple[str, str, object]]
     return rows
 
 
-def time_rows(rows: list, batch_size: int, rounds: int) -> list[list[float]]:
-    """Interleaved timing: every round calls each row once on the same (B, To, Do) observations; ms per call (an
-    empty list for a row that does not run at this batch size)."""
-    obs = np.random.default_rng(0).uniform(-1, 1, size=(batch_size, OBS_STEPS, OBS_DIM)).astype(np.float32)
-    # The ONNX Runtime graphs are exported for one environment (batch 1), as evaluation runs them.
-    timed = [batch_size == 1 or backend == "torch" for _, backend, _ in rows]
-    for (_, _, policy), included in zip(rows, timed, strict=True):  # warm-up: first-call allocations
-        if included:
-            policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(0))
-    timings = [[] for _ in rows]
-    for round_index in range(rounds):
-        for index, (_, _, policy) in enumerate(rows):
-            if not timed[index]:
+def spread(count: int, total: int) -> set[int]:
+    """`count` round indices spread evenly over `total` rounds (`count` <= `total`)."""
+    return {index * total // count for index in range(count)}
+
+
+def time_rows(rows: list, rounds: int, batched_rounds: int | None) -> dict[int, list[list[float]]]:
+    """Interleaved timing at batch 1 and 64: ms per call, per batch size and row.
+
+    Every round calls each row once on the same (B, To, Do) observations; the batch-64 calls are spread evenly over
+    the batch-1 rounds, so both batch sizes are measured over the same stretch of the machine's load. A row that
+    does not run at a batch size gets an empty list (CARP's ONNX Runtime graphs are exported for one environment,
+    batch 1, as evaluation runs them). `batched_rounds` None times batch 1 only.
+    """
+    counts = {1: rounds} if batched_rounds is None else {1: rounds, BATCH: batched_rounds}
+    total = max(counts.values())
+    schedule = {batch_size: spread(count, total) for batch_size, count in counts.items()}
+    generator = np.random.default_rng(0)
+    observations = {
+        batch_size: generator.uniform(-1, 1, size=(batch_size, OBS_STEPS, OBS_DIM)).astype(np.float32)
+        for batch_size in counts
+    }
+    runs = {batch_size: [batch_size == 1 or backend == "torch" for _, backend, _ in rows] for batch_size in counts}
+    for batch_size, obs in observations.items():  # warm-up: first-call allocations
+        for (_, _, policy), included in zip(rows, runs[batch_size], strict=True):
+            if included:
+                policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(0))
+    timings = {batch_size: [[] for _ in rows] for batch_size in counts}
+    for round_index in range(total):
+        for batch_size, obs in observations.items():
+            if round_index not in schedule[batch_size]:
                 continue
-            started = time.perf_counter()
-            policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(round_index))
-            timings[index].append(1e3 * (time.perf_counter() - started))
+            for index, (_, _, policy) in enumerate(rows):
+                if not runs[batch_size][index]:
+                    continue
+                started = time.perf_counter()
+                policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(round_index))
+                timings[batch_size][index].append(1e3 * (time.perf_counter() - started))
     return timings
 
 
@@ -138,29 +161,42 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory(prefix="carp-families-") as directory:
         rows = configurations(args.tiny, Path(directory))
-        single = time_rows(rows, 1, args.rounds)
-        batched = None if args.skip_batched else time_rows(rows, 64, args.batched_rounds)
+        timings = time_rows(rows, args.rounds, None if args.skip_batched else args.batched_rounds)
+    single, batched = timings[1], timings.get(BATCH)
+    # CARP's fastest row at each batch size: ONNX Runtime at batch 1 (first row), PyTorch at 64 (no batched graphs).
     reference = statistics.median(single[0])
+    batched_reference = None
+    if batched is not None:
+        carp_batched = [times for (name, _, _), times in zip(rows, batched, strict=True) if name == REFERENCE and times]
+        batched_reference = statistics.median(carp_batched[0])
     size = "tiny configs" if args.tiny else "default configs"
     print(
         f"policy families, {size}, Lift shapes (Do={OBS_DIM}, To={OBS_STEPS}, H={ACTION_HORIZON}, A={ACTION_DIM}), "
         f"{args.threads} thread(s), torch {torch.__version__}, {args.rounds} interleaved rounds at batch 1"
-        + ("" if batched is None else f", {args.batched_rounds} at batch 64")
+        + ("" if batched is None else f", {args.batched_rounds} at batch {BATCH} among them")
     )
     header = (
         f"| {'family':<22} | {'inference':<9} | {'backend':<11} | {'parameters':>11} | {'calls':>5} | "
-        f"{'B=1 median ms':>13} | {'B=1 p90 ms':>10} | {'B=64 ms/chunk':>13} | {'x CARP':>8} |"
+        f"{'B=1 median ms':>13} | {'B=1 p90 ms':>10} | {'B=1 x CARP':>10} | {f'B={BATCH} ms/chunk':>13} | "
+        f"{f'B={BATCH} x CARP':>11} |"
     )
     print(header)
     print("|" + "|".join("-" * len(cell) for cell in header.split("|")[1:-1]) + "|")
     for index, (name, backend, policy) in enumerate(rows):
         median = statistics.median(single[index])
-        per_chunk = "-" if batched is None or not batched[index] else f"{statistics.median(batched[index]) / 64:13.3f}"
+        per_chunk, batched_ratio = "-", "-"
+        if batched is not None and batched[index]:
+            batched_median = statistics.median(batched[index])
+            per_chunk, batched_ratio = f"{batched_median / BATCH:.3f}", f"{batched_median / batched_reference:.1f}"
         print(
             f"| {name:<22} | {policy.description:<9} | {backend:<11} | {policy.num_parameters:>11,} | "
             f"{policy.model_calls_per_chunk:>5} | {median:13.3f} | {percentile(single[index], 0.9):10.3f} | "
-            f"{per_chunk:>13} | {median / reference:8.1f} |"
+            f"{median / reference:10.1f} | {per_chunk:>13} | {batched_ratio:>11} |"
         )
+    print(
+        f"x CARP: the row's median over CARP's at the same batch size (batch 1: CARP on ONNX Runtime, the first row; "
+        f"batch {BATCH}: CARP in PyTorch, as its ONNX Runtime graphs are exported for batch 1)."
+    )
     return 0
 
 

@@ -7,10 +7,9 @@ from stage_support import (
     PROCESSED_DIR,
     evaluation_report,
     fail,
-    load,
     mlflow_stage,
-    parse_args,
     policy_dir,
+    policy_stage_args,
     setup_logging,
     write_json,
 )
@@ -23,10 +22,7 @@ from carp.training.checkpoint import CheckpointError
 
 def main() -> None:
     setup_logging()
-    args = parse_args(__doc__, per_task=True, per_policy=True)
-    params = load(args.params)
-    if args.policy not in params.policies:
-        fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    args, params = policy_stage_args(__doc__)
     data, config = params.data, params.eval
     if config.video:
         # Headless offscreen rendering through EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; `make render-deps`).

@@ -66,6 +66,15 @@ def parse_args(description: str, per_task: bool = False, per_policy: bool = Fals
     return parser.parse_args()
 
 
+def policy_stage_args(description: str) -> tuple[argparse.Namespace, Params]:
+    """Command line and params of a per-(task, family) stage; exit with one line when ``--policy`` is not listed."""
+    args = parse_args(description, per_task=True, per_policy=True)
+    params = load(args.params)
+    if args.policy not in params.policies:
+        fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    return args, params
+
+
 def policy_dir(task: str, policy: str) -> Path:
     """``models/policy/<task>/<policy>``: the checkpoint ``policy.pt`` of one (task, family) pair."""
     return POLICY_DIR / task / policy

@@ -10,6 +10,7 @@ from carp.data.robomimic_io import Episode, write_demonstrations
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 OBS_WIDTHS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
+IMAGE_KEYS = ("agentview_image", "robot0_eye_in_hand_image")
 
 
 @pytest.fixture(autouse=True)
@@ -42,10 +43,20 @@ def make_episode(steps: int, rng: np.random.Generator) -> Episode:
     )
 
 
-def write_synthetic_file(path: Path, lengths=(30, 25, 40, 20), seed: int = 0) -> list[Episode]:
-    """Write a robomimic-schema file with one synthetic episode per length; returns the episodes."""
+def write_synthetic_file(
+    path: Path, lengths=(30, 25, 40, 20), seed: int = 0, image_size: int | None = None
+) -> list[Episode]:
+    """Write a robomimic-schema file with one synthetic episode per length; returns the episodes.
+
+    With ``image_size``, every episode also has uint8 (T, image_size, image_size, 3) noise images under
+    :data:`IMAGE_KEYS`, drawn after the other values so that those stay the same.
+    """
     rng = np.random.default_rng(seed)
     episodes = [make_episode(length, rng) for length in lengths]
+    if image_size is not None:
+        for episode in episodes:
+            for key in IMAGE_KEYS:
+                episode.obs[key] = rng.integers(0, 256, (episode.length, image_size, image_size, 3), dtype=np.uint8)
     env_args = {"env_name": "Lift", "type": 1, "env_kwargs": {"robots": ["Panda"]}}
     write_demonstrations(path, episodes, env_args, file_attrs={"expert": "synthetic"}, valid_fraction=0.25)
     return episodes

@@ -114,12 +114,13 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
 
 
-def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_carp():
+@pytest.mark.slow
+def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_carp_at_both_batch_sizes():
     completed = run_benchmark("policy_families.py", "--tiny", "--rounds", "2", "--batched-rounds", "1")
     assert completed.returncode == 0, completed.stderr[-2000:]
     row = re.compile(
-        rf"^\| (\w+)\s+\| ([\w-]+)\s+\| (\w+)\s+\|\s+([\d,]+) \|\s+(\d+) \|\s+{NUMBER} \|\s+{NUMBER} \|\s+(\S+) \|"
-        rf"\s+{NUMBER} \|$",
+        rf"^\| (\w+)\s+\| ([\w-]+)\s+\| (\w+)\s+\|\s+([\d,]+) \|\s+(\d+) \|\s+{NUMBER} \|\s+{NUMBER} \|"
+        rf"\s+{NUMBER} \|\s+(\S+) \|\s+(\S+) \|$",
         flags=re.MULTILINE,
     )
     rows = [match.groups() for match in row.finditer(completed.stdout)]
@@ -133,9 +134,39 @@ def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_c
         ("next_token", "greedy", "torch"),
     ], completed.stdout
     reference = float(rows[0][5])
-    for family, _, backend, _, _, median, _, per_chunk, ratio in rows:
+    batched_reference = float(rows[1][8])  # CARP in PyTorch: the ONNX Runtime graphs are batch 1 only
+    for family, _, backend, _, _, median, _, ratio, per_chunk, batched_ratio in rows:
         assert float(ratio) == pytest.approx(float(median) / reference, rel=0.02, abs=0.06), family
-        assert (per_chunk == "-") == (backend == "onnxruntime")
+        assert (per_chunk == "-") == (batched_ratio == "-") == (backend == "onnxruntime")
+        if backend == "torch":
+            assert float(batched_ratio) == pytest.approx(float(per_chunk) / batched_reference, rel=0.02, abs=0.06)
+    assert rows[1][9] == "1.0"
     assert rows[-1][4] == str(10 * (1 + 2 + 3 + 4))  # next_token: one call per token, L = A * sum(scales)
+    single = run_benchmark("policy_families.py", "--tiny", "--rounds", "1", "--skip-batched")
+    assert single.returncode == 0 and len(row.findall(single.stdout)) == len(rows)
+    assert all(match[8] == match[9] == "-" for match in row.findall(single.stdout))
     failed = run_benchmark("policy_families.py", "--rounds", "0")
     assert failed.returncode == 1 and failed.stderr.startswith("error: --rounds")
+
+
+@pytest.mark.slow
+def test_rendering_cost_prints_both_settings_per_task_and_saves_a_frame_grid(tmp_path):
+    completed = run_benchmark(
+        "rendering_cost.py", *("--tasks", "lift", "--steps", "3", "--repeats", "2", "--grid-dir", str(tmp_path))
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    rows = [line for line in completed.stdout.splitlines() if line.startswith("| lift")]
+    assert [row.split("|")[2].strip() for row in rows] == ["lean", "robosuite"]
+    for row in rows:
+        frames, setup, median, p90, per_second = (float(cell) for cell in row.split("|")[3:8])
+        assert frames == 6 and setup > 0 and 0 < median <= p90
+        assert per_second == pytest.approx(1e3 / median, rel=0.01, abs=0.1)
+    assert (tmp_path / "lift_frames.png").stat().st_size > 0
+
+
+def test_rendering_cost_refuses_an_unknown_task_in_one_line():
+    completed = run_benchmark("rendering_cost.py", "--tasks", "stack")
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [
+        "error: --tasks ['stack']: unknown; expected some of ['can', 'lift', 'square']"
+    ]

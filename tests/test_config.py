@@ -41,7 +41,7 @@ def test_defaults_follow_the_design():
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
         ({"data": {"action_steps": 16}}, "data.action_steps=16: must be between 1 and"),
-        ({"carp": {"width": 64, "num_heads": 5}}, "carp.num_heads=5: must divide carp.width=64"),
+        ({"carp": {"width": 64, "num_heads": 5}}, "carp.num_heads=5: must divide width=64"),
         ({"carp": {"depth": "deep"}}, "carp.depth='deep': expected an integer"),
         ({"carp": {"use_ema": "yes"}}, "carp.use_ema='yes': expected true or false"),
         ({"carp": {"learning_rate": 0}}, "carp.learning_rate=0.0: must be > 0"),
@@ -52,6 +52,9 @@ def test_defaults_follow_the_design():
         ({"training": {"precision": "half"}}, "training.precision='half': must be one of"),
         ({"training": {"epochs_per_task": {"kitchen": 5}}}, "training.epochs_per_task.kitchen='kitchen': task must"),
         ({"training": {"epochs_per_task": {"square": 0}}}, "training.epochs_per_task.square=0: must be >= 1"),
+        ({"training": {"num_processes": 0}}, "training.num_processes=0: must be >= 1"),
+        ({"training": {"num_processes": 1.5}}, "training.num_processes=1.5: "),
+        ({"training": {"batch_size": 4, "num_processes": 8}}, "training.num_processes=8: must be <= batch_size=4"),
         (
             {"inference": {"carp": {"top_k_per_task": {"kitchen": 3}}}},
             "inference.carp.top_k_per_task.kitchen='kitchen'",

@@ -127,3 +127,37 @@ def test_params_defaults_render_as_yaml():
     assert "- `eval.max_steps` (mapping of task to integer, default `{lift: 400, can: 400, square: 400}`)" in (
         params_reference(Params)
     )
+
+
+@dataclass(frozen=True)
+class _Base:
+    """A base section.
+
+    Attributes:
+        shared: Documented once, here.
+        changed: The base's description.
+    """
+
+    shared: int = 1
+    changed: int = 2
+
+
+@dataclass(frozen=True)
+class _Derived(_Base):
+    """A section that adds one field and redescribes another.
+
+    Attributes:
+        changed: The subclass's description.
+        added: A field of the subclass.
+    """
+
+    added: int = 3
+
+
+def test_a_subclass_inherits_its_bases_descriptions_and_may_replace_them():
+    assert field_descriptions(_Derived) == {
+        "shared": "Documented once, here.",
+        "changed": "The subclass's description.",
+        "added": "A field of the subclass.",
+    }
+    assert documentation_problems(_Derived) == []

@@ -26,12 +26,14 @@ from service_support import (
     process_alive,
     read_state,
     require_free_port,
+    saved_state,
     start_detached,
-    stop_group,
-    wait_until,
+    stop_recorded,
+    wait_or_stop,
     write_state,
 )
 
+STATE_FILE = "object_store.json"
 STARTUP_SECONDS = 120
 # SeaweedFS's internal servers, each with an HTTP and a gRPC port; loopback ports are picked for all of them, so that
 # several stores (tests running side by side) never meet on a fixed default port.
@@ -103,17 +105,21 @@ def bucket_ready(state: dict) -> bool:
     return False
 
 
+def store_marker(state: dict) -> str:
+    """What the store's command line contains: its S3 port option."""
+    return f"-s3.port={state.get('port')} "
+
+
 def running(state: dict) -> bool:
     """Whether the store recorded in ``state`` is alive and serves its bucket."""
-    pid = state.get("pid")
-    return process_alive(pid, f"-s3.port={state.get('port')} ") and bucket_ready(state)
+    return process_alive(state.get("pid"), store_marker(state)) and bucket_ready(state)
 
 
 def start(arguments: argparse.Namespace) -> None:
     """Start the store unless it already answers; create credentials and the bucket on the first start."""
     if not arguments.dir:
         fail("--dir is empty: name the directory that keeps the stored objects, e.g. DIR=/srv/carp-s3")
-    state_path = Path(arguments.dir).expanduser().absolute() / "object_store.json"
+    state_path = Path(arguments.dir).expanduser().absolute() / STATE_FILE
     state = read_state(state_path)
     if state and running(state):
         print(f"object store already running at {state['endpoint']} (bucket {state['bucket']})")
@@ -167,34 +173,21 @@ def start(arguments: argparse.Namespace) -> None:
     state["pid"] = store.pid
     write_state(state_path, state)
     state_path.chmod(0o600)  # it holds the secret key
-    try:
-        wait_until(lambda: bucket_ready(state), STARTUP_SECONDS, store, log_path, "SeaweedFS")
-    except SystemExit:
-        stop_group(store.pid)
-        raise
+    wait_or_stop(lambda: bucket_ready(state), STARTUP_SECONDS, store, log_path, "SeaweedFS")
     print(f"S3 object store at {state['endpoint']}, bucket {state['bucket']} (data in {directory / 'data'})")
     print(f"client settings: eval $(python tools/object_store.py env --dir {directory})")
 
 
 def stop(arguments: argparse.Namespace) -> None:
     """Stop the store (idempotent)."""
-    directory = Path(arguments.dir).expanduser().absolute()
-    state_path = directory / "object_store.json"
-    state = read_state(state_path)
-    if not state:
-        fail(f"--dir={arguments.dir}: no object store was started there (no {state_path.name})")
-    pid = state.get("pid")
-    stopped = process_alive(pid, f"-s3.port={state.get('port')} ") and stop_group(pid)
-    state["pid"] = None
-    write_state(state_path, state)
+    state_path, state = saved_state(arguments.dir, STATE_FILE, "object store")
+    stopped = stop_recorded(state_path, state, "pid", store_marker(state))
     print(f"object store {'stopped' if stopped else 'was not running'}")
 
 
 def print_env(arguments: argparse.Namespace) -> None:
     """Print ``export NAME=value`` lines for S3 clients."""
-    state = read_state(Path(arguments.dir).expanduser().absolute() / "object_store.json")
-    if not state:
-        fail(f"--dir={arguments.dir}: no object store was started there")
+    _, state = saved_state(arguments.dir, STATE_FILE, "object store")
     for name, value in client_env(state).items():
         print(f"export {name}={value}")
 

@@ -109,6 +109,19 @@ def wait_until(condition, timeout: float, process=None, log_path: Path | None = 
         time.sleep(0.5)
 
 
+def wait_or_stop(condition, timeout: float, process: subprocess.Popen, log_path: Path, what: str) -> None:
+    """:func:`wait_until` for a service just started: one that fails to come up is stopped before the exit.
+
+    A half-started service left behind would hold its ports and make the next ``start`` fail for a reason the user
+    cannot see.
+    """
+    try:
+        wait_until(condition, timeout, process, log_path, what)
+    except SystemExit:
+        stop_group(process.pid)
+        raise
+
+
 def log_tail(log_path: Path | None, characters: int = 3000) -> str:
     """The last characters of a log file (empty when there is none)."""
     if log_path is None or not log_path.exists():
@@ -159,6 +172,27 @@ def write_state(path: Path, state: dict) -> None:
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_text(json.dumps(state, indent=2, sort_keys=True))
     os.replace(temporary, path)
+
+
+def saved_state(directory_text: str, file_name: str, what: str) -> tuple[Path, dict]:
+    """(path, state) of the service saved as ``file_name`` in ``--dir``; one-line failure when it never started."""
+    state_path = Path(directory_text).expanduser().absolute() / file_name
+    state = read_state(state_path)
+    if not state:
+        fail(f"--dir={directory_text}: no {what} was started there (no {file_name})")
+    return state_path, state
+
+
+def stop_recorded(state_path: Path, state: dict, pid_key: str, marker: str) -> bool:
+    """Stop the process group recorded under ``state[pid_key]`` and forget its pid; whether it was running.
+
+    ``marker`` is what the process's command line must contain (see :func:`process_alive`).
+    """
+    pid = state.get(pid_key)
+    stopped = process_alive(pid, marker) and stop_group(pid)
+    state[pid_key] = None
+    write_state(state_path, state)
+    return stopped
 
 
 def prepare_directory(text: str, variable: str) -> Path:

@@ -38,15 +38,17 @@ from service_support import (
     process_alive,
     read_state,
     require_free_port,
+    saved_state,
     start_detached,
-    stop_group,
-    wait_until,
+    stop_recorded,
+    wait_or_stop,
     write_state,
 )
 
 DATABASE = "mlflow"
 DATABASE_ROLE = "mlflow"
 # A cold `mlflow server` imports a lot and migrates a new database's schema; two cores shared with training is slow.
+STATE_FILE = "tracking.json"
 STARTUP_SECONDS = 240
 POSTGRES_STARTUP_SECONDS = 60
 PREFERRED_POSTGRES_MAJOR = 15
@@ -246,7 +248,7 @@ def start(arguments: argparse.Namespace) -> None:
     if not arguments.dir:
         fail("--dir is empty: name the directory that keeps the database and artifacts, e.g. DIR=/srv/carp-tracking")
     directory = Path(arguments.dir).expanduser().absolute()
-    state_path = directory / "tracking.json"
+    state_path = directory / STATE_FILE
     state = read_state(state_path)
     binaries = find_postgres_binaries(arguments.pg_bin)
     account = database_account(arguments.db_user or state.get("db_user"))
@@ -321,26 +323,16 @@ def start(arguments: argparse.Namespace) -> None:
     server = start_detached(command, log_path, env=environment, cwd=directory)
     state.update(url=url, host=arguments.host, port=port, artifacts_destination=destination, mlflow_pid=server.pid)
     write_state(state_path, state)
-    try:
-        wait_until(lambda: answers(f"{url}/health"), STARTUP_SECONDS, server, log_path, "the MLflow server")
-    except SystemExit:
-        stop_group(server.pid)
-        raise
+    wait_or_stop(lambda: answers(f"{url}/health"), STARTUP_SECONDS, server, log_path, "the MLflow server")
     print(f"MLflow tracking server at {url} (PostgreSQL on {LOOPBACK}:{db_port}, artifacts in {destination})")
     print(f"point carp at it with the param  tracking.uri: {url}")
 
 
 def stop(arguments: argparse.Namespace) -> None:
     """Stop the MLflow server, then PostgreSQL; a service already down is skipped."""
-    directory = Path(arguments.dir).expanduser().absolute()
-    state_path = directory / "tracking.json"
-    state = read_state(state_path)
-    if not state:
-        fail(f"--dir={arguments.dir}: no tracking server was started there (no {state_path.name})")
-    pid = state.get("mlflow_pid")
-    stopped_server = process_alive(pid, server_marker(state)) and stop_group(pid)
-    state["mlflow_pid"] = None
-    write_state(state_path, state)
+    state_path, state = saved_state(arguments.dir, STATE_FILE, "tracking server")
+    directory = state_path.parent
+    stopped_server = stop_recorded(state_path, state, "mlflow_pid", server_marker(state))
     binaries = Path(state["pg_bin"])
     account = pwd.getpwnam(state["db_user"]) if state.get("db_user") else None
     stopped_database = stop_postgres(binaries, directory / "postgres", account, directory)
@@ -353,7 +345,7 @@ def stop(arguments: argparse.Namespace) -> None:
 def status(arguments: argparse.Namespace) -> None:
     """Print the server's URL and exit 0 when it answers, else say so and exit 3."""
     directory = Path(arguments.dir).expanduser().absolute()
-    state = read_state(directory / "tracking.json")
+    state = read_state(directory / STATE_FILE)
     if state and mlflow_running(state):
         print(state["url"])
         return

@@ -34,6 +34,31 @@ def _require(condition: bool, key: str, value: Any, constraint: str) -> None:
         raise ConfigError(f"{key}={value!r}: {constraint}")
 
 
+def require_positive_int(key: str, value: Any) -> None:
+    """Refuse anything but an integer >= 1 at `key` (a bool or a whole float such as 8.0 included)."""
+    _require(
+        isinstance(value, int) and not isinstance(value, bool) and value >= 1, key, value, "must be an integer >= 1"
+    )
+
+
+def require_optimizer_settings(section: str, config: Any) -> None:
+    """Check the optimizer fields every policy family's section has, naming them under `section`.
+
+    Args:
+        section: the params section, e.g. `carp` or `diffusion_unet`.
+        config: a family config with `learning_rate`, `weight_decay`, `warmup_steps` and `use_ema`.
+    """
+    _require(config.learning_rate > 0, f"{section}.learning_rate", config.learning_rate, "must be > 0")
+    _require(config.weight_decay >= 0, f"{section}.weight_decay", config.weight_decay, "must be >= 0")
+    _require(
+        isinstance(config.warmup_steps, int) and not isinstance(config.warmup_steps, bool) and config.warmup_steps >= 0,
+        f"{section}.warmup_steps",
+        config.warmup_steps,
+        "must be an integer >= 0",
+    )
+    _require(isinstance(config.use_ema, bool), f"{section}.use_ema", config.use_ema, "must be true or false")
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """Demonstrations, ingestion and the time convention (DESIGN.md sections 1 and 2).
@@ -215,6 +240,12 @@ class TrainingConfig:
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
             among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
             ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+        num_processes: Training processes, all on the machine that runs the stage; an integer >= 1, at most
+            ``batch_size``. Above 1, ``train_policy`` starts itself again under ``torchrun`` (DistributedDataParallel:
+            NCCL with one CUDA device per process, so at most the number of GPUs; gloo on the CPU, each process taking
+            an equal share of the cores). ``batch_size`` stays the windows of one optimizer step, split between the
+            processes, so the steps are one process's; rank 0 alone logs to MLflow and writes training states and
+            outputs.
     """
 
     epochs: int = 20
@@ -223,6 +254,7 @@ class TrainingConfig:
     seed: int = 0
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
+    num_processes: int = 1
 
     def epochs_for(self, task: str) -> int:
         """Policy epochs of `task`: its `epochs_per_task` entry, else `epochs`."""
@@ -239,6 +271,13 @@ class TrainingConfig:
             f"must be one of {TRAINING_PRECISIONS}",
         )
         _require_per_task_minimum(self.epochs_per_task, "training.epochs_per_task", "must be >= 1")
+        _require(self.num_processes >= 1, "training.num_processes", self.num_processes, "must be >= 1")
+        _require(
+            self.num_processes <= self.batch_size,
+            "training.num_processes",
+            self.num_processes,
+            f"must be <= batch_size={self.batch_size} (each process trains on a share of every batch)",
+        )
 
 
 def _require_per_task_minimum(mapping: dict[str, int], name: str, constraint: str) -> None:

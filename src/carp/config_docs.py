@@ -21,12 +21,24 @@ _ENTRY = re.compile(r"^(\w+):\s*(.*)$")
 
 
 def field_descriptions(cls: type) -> dict[str, str]:
-    """Field name -> description from the ``Attributes:`` section of a dataclass's docstring (empty if none).
+    """Field name -> description from the ``Attributes:`` sections of a dataclass's docstring and its bases'.
+
+    A subclass documents only the fields it adds or whose description it changes: an entry in a class's docstring
+    replaces the one of its base. Empty when no class of the hierarchy has an ``Attributes:`` section.
+    """
+    descriptions: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        descriptions.update(_own_descriptions(klass))
+    return descriptions
+
+
+def _own_descriptions(cls: type) -> dict[str, str]:
+    """The entries of `cls`'s own ``Attributes:`` section.
 
     Entries are indented one level below ``Attributes:`` (``name: text``); deeper-indented lines continue the
     entry before them; the section ends at the first line indented no deeper than ``Attributes:`` itself.
     """
-    lines = inspect.cleandoc(cls.__doc__ or "").splitlines()
+    lines = inspect.cleandoc(cls.__dict__.get("__doc__") or "").splitlines()
     descriptions: dict[str, str] = {}
     try:
         start = next(index for index, line in enumerate(lines) if line.strip() == "Attributes:")

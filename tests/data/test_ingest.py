@@ -72,9 +72,21 @@ def test_bad_input_names_file_demo_and_key_and_writes_nothing(tmp_path, name):
     raw = tmp_path / "raw.hdf5"
     output = tmp_path / "processed"
     with corrupt_file(name, raw) as case, pytest.raises(DatasetError) as error:
-        ingest_demonstrations(raw, output, OBS_KEYS, staging_dir=tmp_path / "staging")
+        ingest_demonstrations(raw, output, case.obs_keys, staging_dir=tmp_path / "staging")
     text = str(error.value)
     assert text.startswith(expected_message(case, raw)) and case.problem in text and "\n" not in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.hdf5"]
+
+
+def test_camera_images_are_refused_by_the_low_dim_buffer_and_nothing_is_written(tmp_path):
+    raw = tmp_path / "raw.hdf5"
+    write_synthetic_file(raw, image_size=8)
+    with pytest.raises(DatasetError) as error:
+        ingest_demonstrations(raw, tmp_path / "processed", (*OBS_KEYS, "agentview_image"), staging_dir=tmp_path / "s")
+    assert str(error.value) == (
+        f"{raw}: obs keys ['agentview_image']: camera images are not stored in the low-dimensional replay buffer; "
+        "list only low-dimensional obs keys"
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.hdf5"]
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from carp.data.robomimic_io import DatasetError, import_demonstrations, read_demonstrations
-from tests.conftest import OBS_KEYS, write_synthetic_file
+from tests.conftest import IMAGE_KEYS, OBS_KEYS, write_synthetic_file
 from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expected_message
 
 
@@ -16,20 +16,22 @@ from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expecte
 def test_every_damage_is_one_line_naming_file_demo_and_key(tmp_path, name):
     path = tmp_path / "raw.hdf5"
     with corrupt_file(name, path) as case, pytest.raises(DatasetError) as error:
-        read_demonstrations(path, OBS_KEYS, action_dim=7)
+        read_demonstrations(path, case.obs_keys, action_dim=7)
     text = str(error.value)
     assert text.startswith(expected_message(case, path)), text
     assert case.problem in text and "\n" not in text
 
 
-@pytest.mark.parametrize("name", ["obs widths differ between demos", "action overflows float32", "truncated"])
+@pytest.mark.parametrize(
+    "name", ["obs widths differ between demos", "action overflows float32", "truncated", "image of floats"]
+)
 def test_import_refuses_before_copying_and_keeps_the_destination(tmp_path, name):
     destination = tmp_path / "raw" / "lift.hdf5"
     destination.parent.mkdir()
     destination.write_bytes(b"previous")
     staging = tmp_path / "staging"
     with corrupt_file(name, tmp_path / "user.hdf5") as case, pytest.raises(DatasetError, match=re.escape(case.problem)):
-        import_demonstrations(tmp_path / "user.hdf5", destination, OBS_KEYS, action_dim=7, staging_dir=staging)
+        import_demonstrations(tmp_path / "user.hdf5", destination, case.obs_keys, action_dim=7, staging_dir=staging)
     assert destination.read_bytes() == b"previous"
     assert not staging.exists() or not list(staging.iterdir())
 
@@ -42,6 +44,17 @@ def test_import_copies_a_valid_file_byte_for_byte(tmp_path):
     assert demos.names == ["demo_0", "demo_1", "demo_2", "demo_3"]
     assert destination.read_bytes() == source.read_bytes()
     assert list((tmp_path / "staging").iterdir()) == []
+
+
+def test_camera_images_are_read_as_stored(tmp_path):
+    path = tmp_path / "raw.hdf5"
+    episodes = write_synthetic_file(path, image_size=84)
+    demos = read_demonstrations(path, (*OBS_KEYS, *IMAGE_KEYS), action_dim=7)
+    for episode, written in zip(demos.episodes, episodes, strict=True):
+        for key in IMAGE_KEYS:
+            assert episode.obs[key].dtype == np.uint8 and episode.obs[key].shape == (episode.length, 84, 84, 3)
+            assert np.array_equal(episode.obs[key], written.obs[key])
+        assert episode.obs["object"].dtype == np.float64 and episode.obs["object"].shape == (episode.length, 10)
 
 
 def test_every_mask_is_checked_whichever_filter_key_is_used(tmp_path):

@@ -2,6 +2,8 @@
 
 import dataclasses
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -68,3 +70,22 @@ def test_every_default_family_section_is_in_params_yaml():
     for name in family_names():
         assert name in raw and name in raw["inference"], name
         assert params.family_config(name) == get_family(name).config_class(**raw[name])
+
+
+@pytest.mark.parametrize("script", ["train_policy.py", "evaluate.py"])
+def test_a_per_family_stage_refuses_a_family_missing_from_policies_in_one_line(script, tmp_path):
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["policies"] = ["carp"]
+    params_path = tmp_path / "params.yaml"
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    completed = subprocess.run(
+        [sys.executable, str(REPO / "pipeline" / script), "--params", str(params_path), "--task", "lift"]
+        + ["--policy", "next_token"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [
+        f"error: {params_path}: policies=['carp']: --policy next_token is not listed"
+    ]

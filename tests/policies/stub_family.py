@@ -15,7 +15,7 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction, count_parameters
 from carp.policies.registry import PolicyFamily, load_policy
 from carp.training.checkpoint import atomic_torch_save
-from carp.training.loop import OptimizerRecipe, train_with_loss
+from carp.training.loop import OptimizerRecipe
 from carp.training.runtime import seed_everything
 
 
@@ -91,11 +91,9 @@ def build(config: StubConfig, context) -> StubPolicy:
                       context.action_horizon, context.metadata)  # fmt: skip
 
 
-def train(config, training, context, data, checkpoint_dir, device="cpu", epochs=None, on_epoch_end=None):
-    seed_everything(training.seed)
-    recipe = OptimizerRecipe(learning_rate=1e-2)
-    return train_with_loss(build(config, context), data, recipe, training, checkpoint_dir, asdict(config), epochs,
-                           device, on_epoch_end)  # fmt: skip
+def train(config, run):
+    seed_everything(run.training.seed)
+    return run.train_with_loss(build(config, run.context), OptimizerRecipe(learning_rate=1e-2), asdict(config))
 
 
 STUB_FAMILY = PolicyFamily("stub", StubConfig, StubInference, build, from_checkpoint, train)

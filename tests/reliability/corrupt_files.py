@@ -3,7 +3,8 @@
 Used by the unit tests of the checks (`tests/data/test_robomimic_schema.py`, `tests/data/test_ingest.py`) and by the
 stage-level suite (`tests/reliability/test_corrupt_data_stages.py`), so every damage is exercised at both levels.
 The valid file is `tests.conftest.write_synthetic_file`: demos demo_0..demo_3 of 30, 25, 40 and 20 steps, obs keys
-`OBS_KEYS`, 7-D actions, `mask/train` = demo_0..demo_2 and `mask/valid` = demo_3.
+`OBS_KEYS`, 7-D actions, `mask/train` = demo_0..demo_2 and `mask/valid` = demo_3. The cases on camera images damage
+the same file written with `IMAGE_SIZE` x `IMAGE_SIZE` images under `IMAGE_KEYS`, read with those keys too.
 """
 
 import subprocess
@@ -16,7 +17,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from tests.conftest import write_synthetic_file
+from tests.conftest import IMAGE_KEYS, OBS_KEYS, write_synthetic_file
+
+IMAGE_SIZE = 8
 
 
 @dataclass(frozen=True)
@@ -28,12 +31,19 @@ class CorruptCase:
         location: the demo and key the message must name, as it follows the file's path ("" for the whole file).
         problem: what the message must say after the location.
         hold_open: a writer process keeps the file open for writing while it is read.
+        with_images: the valid file has camera images, and they are read (:attr:`obs_keys`).
     """
 
     damage: Callable[[Path], None] | None
     location: str
     problem: str
     hold_open: bool = False
+    with_images: bool = False
+
+    @property
+    def obs_keys(self) -> tuple[str, ...]:
+        """The obs keys the file is read with."""
+        return (*OBS_KEYS, *IMAGE_KEYS) if self.with_images else OBS_KEYS
 
 
 def _edit(change: Callable[[h5py.File], None]) -> Callable[[Path], None]:
@@ -199,6 +209,36 @@ CORRUPT_FILES: dict[str, CorruptCase] = {
     "mask of numbers": CorruptCase(
         _replace("mask/valid", np.array([3])), "mask 'mask/valid'", "expected demo names (strings)"
     ),
+    "image of floats": CorruptCase(
+        _replace("data/demo_1/obs/agentview_image", np.zeros((25, IMAGE_SIZE, IMAGE_SIZE, 3), dtype=np.float32)),
+        "demo 'demo_1': obs key 'agentview_image'",
+        "shape=(25, 8, 8, 3), dtype=float32: expected uint8 RGB images (T, H, W, 3)",
+        with_images=True,
+    ),
+    "grey image without a channel axis": CorruptCase(
+        _replace("data/demo_2/obs/robot0_eye_in_hand_image", np.zeros((40, IMAGE_SIZE, IMAGE_SIZE), dtype=np.uint8)),
+        "demo 'demo_2': obs key 'robot0_eye_in_hand_image'",
+        "shape=(40, 8, 8), dtype=uint8: expected uint8 RGB images (T, H, W, 3)",
+        with_images=True,
+    ),
+    "RGBA image": CorruptCase(
+        _replace("data/demo_0/obs/agentview_image", np.zeros((30, IMAGE_SIZE, IMAGE_SIZE, 4), dtype=np.uint8)),
+        "demo 'demo_0': obs key 'agentview_image'",
+        "shape=(30, 8, 8, 4), dtype=uint8: expected uint8 RGB images (T, H, W, 3)",
+        with_images=True,
+    ),
+    "image steps differ from actions": CorruptCase(
+        _replace("data/demo_3/obs/agentview_image", np.zeros((19, IMAGE_SIZE, IMAGE_SIZE, 3), dtype=np.uint8)),
+        "demo 'demo_3': obs key 'agentview_image'",
+        "shape=(19, 8, 8, 3): has 19 steps but 'actions' has 20",
+        with_images=True,
+    ),
+    "image sizes differ between demos": CorruptCase(
+        _replace("data/demo_2/obs/robot0_eye_in_hand_image", np.zeros((40, 6, 6, 3), dtype=np.uint8)),
+        "demo 'demo_2': obs key 'robot0_eye_in_hand_image'",
+        "shape=(40, 6, 6, 3): image size differs from demo 'demo_0' (T, 8, 8, 3)",
+        with_images=True,
+    ),
     "env_args not JSON": CorruptCase(
         _edit(lambda h: h["data"].attrs.__setitem__("env_args", "{'env_name': Lift")),
         "data.attrs['env_args']",
@@ -226,7 +266,7 @@ def corrupt_file(name: str, path: Path) -> Iterator[CorruptCase]:
     case = CORRUPT_FILES[name]
     path.parent.mkdir(parents=True, exist_ok=True)
     if not case.hold_open:
-        write_synthetic_file(path)
+        write_synthetic_file(path, image_size=IMAGE_SIZE if case.with_images else None)
         case.damage(path)
         yield case
         return

@@ -2,6 +2,7 @@
 
 Each case runs the real script in a subprocess of a temporary workspace (the one-line contract is the script's, not
 only the library's): collect imports the file named by `data.raw_files.lift`, ingest reads `data/raw/lift.hdf5`.
+The cases on camera images run in a workspace whose `data.obs_keys` lists the image keys as well.
 """
 
 import shutil
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import write_synthetic_file
+from tests.conftest import IMAGE_KEYS, OBS_KEYS, write_synthetic_file
 from tests.pipeline.workspace import make_workspace, run
 from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expected_message
 
@@ -25,6 +26,12 @@ def workspace(tmp_path_factory) -> Path:
     return make_workspace(tmp_path_factory.mktemp("corrupt"), {"data": {"raw_files": {"lift": USER_FILE}}})
 
 
+@pytest.fixture(scope="module")
+def image_workspace(tmp_path_factory) -> Path:
+    data = {"raw_files": {"lift": USER_FILE}, "obs_keys": [*OBS_KEYS, *IMAGE_KEYS]}
+    return make_workspace(tmp_path_factory.mktemp("corrupt-images"), {"data": data})
+
+
 def _paths(workspace: Path, stage: str) -> tuple[Path, Path]:
     """(where the corrupt file goes, the stage's output) for one stage."""
     if stage == "collect":
@@ -34,7 +41,8 @@ def _paths(workspace: Path, stage: str) -> tuple[Path, Path]:
 
 @pytest.mark.parametrize("name", sorted(CORRUPT_FILES))
 @pytest.mark.parametrize("stage", ["collect", "ingest"])
-def test_stage_refuses_corrupt_file_with_one_line_and_writes_nothing(workspace, stage, name):
+def test_stage_refuses_corrupt_file_with_one_line_and_writes_nothing(request, stage, name):
+    workspace = request.getfixturevalue("image_workspace" if CORRUPT_FILES[name].with_images else "workspace")
     path, output = _paths(workspace, stage)
     try:
         with corrupt_file(name, path) as case:

@@ -12,6 +12,7 @@ from carp.evaluation.offline import held_out_action_errors
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.family import build_policy, train
 from carp.policies.context import PolicyContext
+from carp.policies.registry import TrainingRun
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.loop import PolicyTrainingData
@@ -49,7 +50,8 @@ def test_short_training_on_lift_beats_an_untrained_policy(tmp_path):
     )
     config = CarpConfig(depth=2, width=32, num_heads=4, learning_rate=2e-3, warmup_steps=10)
     data = PolicyTrainingData(obs=normalized(obs_normalizer, windows.train_obs), actions=train_actions)
-    trained = train(config, TrainingConfig(epochs=40, batch_size=32), context, data, tmp_path / "policy_state").cpu()
+    run = TrainingRun(TrainingConfig(epochs=40, batch_size=32), context, data, tmp_path / "policy_state")
+    trained = train(config, run).cpu()
 
     torch.manual_seed(0)
     untrained = build_policy(config, context)

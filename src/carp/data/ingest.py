@@ -19,6 +19,7 @@ import numpy as np
 from carp.data.normalizer import MinMaxNormalizer, save_normalizers
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.robomimic_io import DatasetError, read_demonstrations
+from carp.data.robomimic_schema import is_image_key
 from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
 from carp.data.staging import staged
 
@@ -67,6 +68,13 @@ def ingest_demonstrations(
     """
     raw_path, output_dir = Path(raw_path), Path(output_dir)
     demos = read_demonstrations(raw_path, obs_keys, action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key)
+    images = [key for key in obs_keys if is_image_key(key)]
+    if images:
+        # Checked after reading, so that a damaged file is reported as such first.
+        raise DatasetError(
+            f"{raw_path}: obs keys {images}: camera images are not stored in the low-dimensional replay buffer; "
+            "list only low-dimensional obs keys"
+        )
     valid_names = _valid_demo_names(demos.names, demos.masks.get("valid", []), valid_fraction)
 
     obs_parts, action_parts, ends = [], [], []

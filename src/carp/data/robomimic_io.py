@@ -4,7 +4,7 @@ Schema (robomimic's ``dataset_states_to_obs`` output)::
 
     data/                     attrs: env_args (JSON: env_name, env_version, type, env_kwargs), total
     data/demo_<i>/            attrs: num_samples (T), optional model_file
-    data/demo_<i>/obs/<key>   (T, ...) observations
+    data/demo_<i>/obs/<key>   (T, ...) observations; camera images <camera>_image are uint8 (T, H, W, 3)
     data/demo_<i>/actions     (T, action_dim)
     data/demo_<i>/states      (T, S) flattened mujoco states
     data/demo_<i>/rewards     (T,)
@@ -34,7 +34,9 @@ from carp.data.robomimic_schema import (
     check_same_widths,
     check_stored_ranges,
     hdf5_errors,
+    is_image_key,
     open_hdf5,
+    read_images,
     read_masks,
     read_values,
     require_group,
@@ -47,7 +49,8 @@ class Episode:
     """One demonstration.
 
     Attributes:
-        obs: observation key -> array (T, ...) float.
+        obs: observation key -> array: (T, D_key) float for low-dimensional keys, (T, H, W, 3) uint8 for camera
+            images (keys ending in ``_image``).
         actions: (T, action_dim) float actions as the controller received them.
         states: (T, S) simulator states (may be empty (T, 0) when unknown).
         rewards: (T,) rewards.
@@ -173,7 +176,8 @@ def read_demonstrations(
         episodes = [_read_episode(group, f"{path}: demo '{name}'", obs_keys) for name, group in zip(names, groups)]
         check_stored_ranges(path, names, "key 'actions'", [episode.actions for episode in episodes])
         for key in obs_keys:
-            check_stored_ranges(path, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
+            if not is_image_key(key):
+                check_stored_ranges(path, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
         attrs = {key: _decode_attr(value) for key, value in data.attrs.items() if key != "env_args"}
     return Demonstrations(path=path, env_args=env_args, names=names, episodes=episodes, attrs=attrs, masks=masks)
 
@@ -252,7 +256,11 @@ def _read_episode(group: h5py.Group, where: str, obs_keys: Sequence[str]) -> Epi
     actions = read_values(group["actions"], f"{where}: key 'actions'")
     obs = {}
     for key in obs_keys:
-        values = read_values(group[f"obs/{key}"], f"{where}: obs key '{key}'")
+        label = f"{where}: obs key '{key}'"
+        if is_image_key(key):
+            obs[key] = read_images(group[f"obs/{key}"], label)
+            continue
+        values = read_values(group[f"obs/{key}"], label)
         obs[key] = values.reshape(values.shape[0], -1)
     with hdf5_errors(where):
         optional = {key: group[key][()] if key in group else None for key in OPTIONAL_KEYS}

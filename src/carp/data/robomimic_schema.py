@@ -5,11 +5,12 @@ never inside numpy or h5py:
 
 1. the file opens (missing, not HDF5, truncated, locked by a writer and damaged files each get their own line);
 2. every dataset a demo must have is a dataset (not a group), holds numbers (not strings or objects) and has the
-   schema's shape (T steps in every key, the expected action width, the same obs widths in every demo), all checked
-   from the file's metadata before any value is read;
-3. values are finite in float32, the dtype the replay buffer stores (1e39 is finite in float64 but ``inf`` in the
-   buffer), and every column's range across the demos, squared, is finite in float32 (normalization divides by
-   the range; errors in original units are squared multiples of it);
+   schema's shape (T steps in every key, the expected action width, the same obs widths in every demo; camera images,
+   the obs keys ending in ``_image``, are uint8 (T, H, W, 3) of one size in every demo), all checked from the file's
+   metadata before any value is read;
+3. low-dimensional values are finite in float32, the dtype the replay buffer stores (1e39 is finite in float64 but
+   ``inf`` in the buffer), and every column's range across the demos, squared, is finite in float32 (normalization
+   divides by the range; errors in original units are squared multiples of it);
 4. every ``mask/<name>`` list names existing demos, whichever of them ``filter_key`` selects.
 
 Any OSError or h5py error raised while a check reads the file becomes a :class:`DatasetError` naming where it happened.
@@ -28,6 +29,16 @@ import numpy as np
 STORED_DTYPE = np.float32
 # Per-demo datasets that are read when present but not used by ingestion (only their kind and steps are checked).
 OPTIONAL_KEYS = ("states", "rewards", "dones")
+# robomimic's RGB observations: obs keys ending in "_image", uint8 (T, H, W, 3) upright RGB images. They are stored
+# as they are (never converted to float), so the finiteness and range checks do not apply to them.
+IMAGE_KEY_SUFFIX = "_image"
+IMAGE_DTYPE = np.uint8
+IMAGE_CHANNELS = 3
+
+
+def is_image_key(key: str) -> bool:
+    """Whether an obs key holds camera images (robomimic's ``<camera>_image``)."""
+    return key.endswith(IMAGE_KEY_SUFFIX)
 
 
 class DatasetError(ValueError):
@@ -41,10 +52,12 @@ class DemoLayout:
     Attributes:
         steps: T, the number of actions.
         obs_widths: obs key -> features per step (the product of the dataset's trailing dimensions).
+        obs_shapes: obs key -> the dataset's shape per step, e.g. (H, W, 3) for images.
     """
 
     steps: int
     obs_widths: dict[str, int]
+    obs_shapes: dict[str, tuple[int, ...]]
 
 
 @contextmanager
@@ -138,7 +151,8 @@ def check_demo_layout(group: h5py.Group, where: str, obs_keys: Sequence[str], ac
         action_dim: expected action width; ``None`` accepts any.
 
     Raises:
-        DatasetError: a missing key, a group where a dataset belongs, a non-numeric dtype or a wrong shape.
+        DatasetError: a missing key, a group where a dataset belongs, a non-numeric dtype, a wrong shape, or an image
+            key that is not uint8 (T, H, W, 3).
     """
     label = f"{where}: key 'actions'"
     shape = require_numeric_dataset(group, "actions", label).shape
@@ -151,12 +165,15 @@ def check_demo_layout(group: h5py.Group, where: str, obs_keys: Sequence[str], ac
         raise DatasetError(f"{label}: shape={shape}: expected width {action_dim}, i.e. {expected}")
     steps = shape[0]
     obs = require_group(group, "obs", f"{where}: group 'obs'")
-    widths = {}
+    widths, shapes = {}, {}
     for key in obs_keys:
         label = f"{where}: obs key '{key}'"
-        shape = require_numeric_dataset(obs, key, label).shape
+        dataset = require_numeric_dataset(obs, key, label)
+        shape = dataset.shape
+        if is_image_key(key):
+            _require_images(dataset, label)
         _require_steps(shape, steps, label)
-        widths[key] = math.prod(shape[1:])
+        widths[key], shapes[key] = math.prod(shape[1:]), tuple(shape[1:])
         if widths[key] == 0:
             raise DatasetError(f"{label}: shape={shape}: the dataset is empty")
     for key in OPTIONAL_KEYS:
@@ -165,7 +182,17 @@ def check_demo_layout(group: h5py.Group, where: str, obs_keys: Sequence[str], ac
         if present:
             label = f"{where}: key '{key}'"
             _require_steps(require_numeric_dataset(group, key, label).shape, steps, label)
-    return DemoLayout(steps=steps, obs_widths=widths)
+    return DemoLayout(steps=steps, obs_widths=widths, obs_shapes=shapes)
+
+
+def _require_images(dataset: h5py.Dataset, label: str) -> None:
+    with hdf5_errors(label):
+        dtype, shape = dataset.dtype, dataset.shape
+    if dtype != IMAGE_DTYPE or len(shape) != 4 or shape[-1] != IMAGE_CHANNELS:
+        raise DatasetError(
+            f"{label}: shape={shape}, dtype={dtype}: expected {np.dtype(IMAGE_DTYPE).name} RGB images "
+            f"(T, H, W, {IMAGE_CHANNELS}) as robomimic stores them"
+        )
 
 
 def _require_steps(shape: tuple[int, ...], steps: int, label: str) -> None:
@@ -176,19 +203,31 @@ def _require_steps(shape: tuple[int, ...], steps: int, label: str) -> None:
 
 
 def check_same_widths(path: Path, names: Sequence[str], layouts: Sequence[DemoLayout]) -> None:
-    """Every demo's obs keys must have the first demo's widths (ingestion stacks all demos into one array).
+    """Every demo's obs keys must have the first demo's widths, and images its size (ingestion stacks all demos).
 
     Raises:
-        DatasetError: names both demos, the key and both widths.
+        DatasetError: names both demos, the key and both widths (both shapes for images).
     """
     first_name, first = names[0], layouts[0]
     for name, layout in zip(names[1:], layouts[1:]):
         for key, width in layout.obs_widths.items():
+            if is_image_key(key) and layout.obs_shapes[key] != first.obs_shapes[key]:
+                raise DatasetError(
+                    f"{path}: demo '{name}': obs key '{key}': shape=({layout.steps}, "
+                    f"{', '.join(map(str, layout.obs_shapes[key]))}): image size differs from demo '{first_name}' "
+                    f"(T, {', '.join(map(str, first.obs_shapes[key]))}); every demo must have the same image size"
+                )
             if width != first.obs_widths[key]:
                 raise DatasetError(
                     f"{path}: demo '{name}': obs key '{key}': width={width}: differs from demo '{first_name}' "
                     f"(width {first.obs_widths[key]}); every demo must have the same obs widths"
                 )
+
+
+def read_images(dataset: h5py.Dataset, label: str) -> np.ndarray:
+    """A checked image dataset's values, (T, H, W, 3) uint8 as stored."""
+    with hdf5_errors(label):
+        return np.asarray(dataset[()], dtype=IMAGE_DTYPE)
 
 
 def read_values(dataset: h5py.Dataset, label: str) -> np.ndarray:

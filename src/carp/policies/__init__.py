@@ -4,6 +4,7 @@
   version.
 - `context`: `PolicyContext`, what a family is sized by besides its own params section (shapes, normalizers,
   tokenizer).
+- `wrapper`: `PolicyModule` and `TokenizedPolicy`, the family-independent parts of the PyTorch policies.
 - `registry`: family name -> `PolicyFamily` (config class, builder, loader), one line per family, and `load_policy`,
   which dispatches on the `policy_type` stored in every checkpoint.
 - One folder per family: `carp/` (coarse-to-fine autoregressive), `diffusion/` (Diffusion Policy U-Net and

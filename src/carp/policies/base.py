@@ -154,3 +154,25 @@ class Policy(Protocol):
 def count_parameters(module: torch.nn.Module) -> int:
     """Parameters of `module` that require gradients."""
     return sum(parameter.numel() for parameter in module.parameters() if parameter.requires_grad)
+
+
+def check_dimensions(**dimensions: int) -> None:
+    """Raise ValueError naming the first of the keyword `dimensions` (e.g. `obs_dim=...`) that is below 1."""
+    for name, value in dimensions.items():
+        if value < 1:
+            raise ValueError(f"{name} must be >= 1, got {value}")
+
+
+def check_observation_shape(observations: Any, obs_steps: int, obs_dim: int, name: str) -> None:
+    """Raise ValueError unless `observations` is a (B, To, Do) tensor with these `To` and `Do`.
+
+    Args:
+        observations: the tensor to check.
+        obs_steps: `To`.
+        obs_dim: `Do`.
+        name: the argument's name in the message.
+    """
+    if observations.dim() != 3 or tuple(observations.shape[1:]) != (obs_steps, obs_dim):
+        raise ValueError(
+            f"{name} must have shape (B, To, Do) = (B, {obs_steps}, {obs_dim}), got {tuple(observations.shape)}"
+        )

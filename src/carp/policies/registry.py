@@ -47,9 +47,9 @@ class PolicyFamily:
             by a :class:`~carp.policies.context.PolicyContext` (the data's shapes, normalizers, tokenizer).
         from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
             ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
-        train: `train(config, training, context, data, checkpoint_dir, device=..., epochs=..., on_epoch_end=...)`
-            -> the trained policy in eval mode: builds the policy and runs the shared resumable loop on it
-            (`carp.training.loop.train_with_loss`); see :func:`train_policy`.
+        train: `train(config, run)` -> the trained policy in eval mode, given a :class:`TrainingRun`: builds the
+            policy and runs the resumable loop on it (the shared loop, through :meth:`TrainingRun.train_with_loss`);
+            see :func:`train_policy`.
     """
 
     name: str
@@ -58,6 +58,66 @@ class PolicyFamily:
     build: Callable[..., Policy]
     from_checkpoint: Callable[[dict[str, Any]], Policy]
     train: Callable[..., Policy]
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """What a family's `train` gets besides its own params section.
+
+    The data, the shared loop's settings, where the resumable state lives, and the epoch callback.
+
+    Attributes:
+        training: the shared loop settings (`carp.config.TrainingConfig`).
+        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
+            goes into the checkpoint.
+        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
+        checkpoint_dir: where the resumable training state lives.
+        device: training device ("auto", "cpu", "cuda", ...).
+        epochs: passes over the windows; None takes `training.epochs`.
+        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
+            `loss` and `epoch_seconds`.
+    """
+
+    training: Any
+    context: Any
+    data: Any
+    checkpoint_dir: Path
+    device: str | torch.device = "cpu"
+    epochs: int | None = None
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None
+
+    def train_with_loss(
+        self,
+        policy: Policy,
+        recipe: Any,
+        identity: dict[str, Any],
+        prepare_data: Callable[[Any], Any] | None = None,
+        training_step: Callable[[dict[str, Any]], Any] | None = None,
+    ) -> Policy:
+        """Train `policy` in the shared resumable loop (`carp.training.loop.train_with_loss`).
+
+        Args:
+            policy: the freshly built policy.
+            recipe: its optimizer (`carp.training.loop.OptimizerRecipe`).
+            identity: plain values that must match for a saved state to be resumed (family, config, shapes).
+            prepare_data: the family's one-time derivation from the windows (e.g. their token targets), or None.
+            training_step: the family's loss and metric sums of a batch; None trains on `policy.training_loss`.
+        """
+        from carp.training.loop import train_with_loss
+
+        return train_with_loss(
+            policy,
+            self.data,
+            recipe,
+            self.training,
+            self.checkpoint_dir,
+            identity,
+            self.epochs,
+            self.device,
+            self.on_epoch_end,
+            prepare_data=prepare_data,
+            training_step=training_step,
+        )
 
 
 def family_names() -> tuple[str, ...]:
@@ -124,24 +184,19 @@ def train_policy(
     Args:
         name: registered family.
         config: the family's params section.
-        training: the shared loop settings (`carp.config.TrainingConfig`).
-        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
-            goes into the checkpoint.
-        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
-        checkpoint_dir: where the resumable training state lives.
-        device: training device ("auto", "cpu", "cuda", ...).
-        epochs: passes over the windows; None takes `training.epochs`.
-        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
-            `loss` and `epoch_seconds`.
+        training: see :class:`TrainingRun`, whose fields the remaining arguments are.
+        context: see :class:`TrainingRun`.
+        data: see :class:`TrainingRun`.
+        checkpoint_dir: see :class:`TrainingRun`.
+        device: see :class:`TrainingRun`.
+        epochs: see :class:`TrainingRun`.
+        on_epoch_end: see :class:`TrainingRun`.
 
     Returns:
         The trained policy in eval mode on the CPU.
     """
-    family = get_family(name)
-    policy = family.train(
-        config, training, context, data, checkpoint_dir, device=device, epochs=epochs, on_epoch_end=on_epoch_end
-    )
-    return policy.to("cpu").train(False)
+    run = TrainingRun(training, context, data, Path(checkpoint_dir), device, epochs, on_epoch_end)
+    return get_family(name).train(config, run).to("cpu").train(False)
 
 
 def unregister_family(name: str) -> None:

@@ -6,6 +6,7 @@ epoch (independent of earlier epochs, so a resumed run is exact), AdamW with lin
 optional EMA of the weights (the family's averaging rule), autocast precision, a progress bar, a training state every
 `checkpoint_every` epochs that an interrupted run of the same setup resumes from
 (`carp.training.checkpoint`), per-epoch metrics for tracking, and a clear error when the loss stops being finite.
+Under a process group (torchrun) the processes share every batch (`carp.training.distributed`).
 
 Two optional hooks cover what a family needs beyond a loss: `prepare_data` derives per-window tensors once before the
 first epoch (CARP tokenizes every window with its frozen tokenizer instead of once per batch), and `training_step`
@@ -29,6 +30,7 @@ from tqdm.auto import tqdm
 
 from carp.config import TrainingConfig
 from carp.policies.base import Policy
+from carp.training import distributed
 from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.runtime import autocast_to, precision_name, resolve_device, resolve_precision
 
@@ -210,12 +212,19 @@ def train_with_loss(
         device: "auto", "cpu", "cuda" or "cuda:<index>".
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean over
             windows), the means of the training step's metric sums, `learning_rate`, `epoch_seconds` and
-            `samples_per_second`; a resumed run reports its stored epochs first.
+            `samples_per_second`; a resumed run reports its stored epochs first. Called on rank 0 only when several
+            processes train.
         prepare_data: called once with the windows on the training device (after the policy moved there), outside
             autocast; returns them with the family's extras (e.g. token targets), or refuses them with ValueError.
             None trains on the windows as given.
         training_step: the loss and metric sums of one batch (see `PolicyTrainingData.batch`), run under the loop's
             autocast; None takes `policy.training_loss` and no metrics.
+
+    Several processes (a process group started by `carp.training.distributed.start_process_group`, each process
+    calling this function with the same arguments) take the same optimizer steps as one: each trains on its share of
+    every batch of `training.batch_size` windows with its gradients averaged over the processes, and the metric sums
+    are added over the processes. Rank 0 alone reports epochs and writes the training state; every process resumes
+    from the same one.
 
     Returns:
         The trained policy in eval mode on `device`; with an EMA it holds the averaged weights.
@@ -234,8 +243,6 @@ def train_with_loss(
     digest = data_digest(data)
     if prepare_data is not None:
         data = prepare_data(data)
-    if training_step is None:
-        training_step = _loss_only(policy)
     trainable = nn.ModuleDict({"policy": policy})  # type: ignore[dict-item]  (every family is an nn.Module)
     ema = recipe.ema(policy) if recipe.ema is not None else None
     if ema is not None:
@@ -260,10 +267,19 @@ def train_with_loss(
         | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
         "data_sha256": digest,
     }
+    processes = distributed.current_processes()
+    if processes.is_distributed:
+        # Per-process random draws make a state resume exactly only on as many processes as wrote it.
+        metadata["loop"]["processes"] = processes.world_size
+    if not processes.is_main:
+        on_epoch_end = None
     checkpoint_path = Path(checkpoint_dir) / CHECKPOINT_NAME
-    start_epoch, history = resume_training_state(
-        checkpoint_path, metadata, trainable, optimizer, scheduler, on_epoch_end
+    start_epoch, history = distributed.main_process_first(
+        lambda: resume_training_state(checkpoint_path, metadata, trainable, optimizer, scheduler, on_epoch_end),
+        processes,
     )
+    distributed.require_same(start_epoch, "epoch to resume at", processes)
+    step_of = distributed.step_function(policy, training_step or _loss_only(policy), processes)
     if start_epoch > 0:
         logger.info("resuming %s training from %s at epoch %d", policy.policy_type, checkpoint_path, start_epoch)
     for epoch in range(start_epoch, epochs):
@@ -271,17 +287,20 @@ def train_with_loss(
         started = time.perf_counter()
         loss_sum = 0.0
         metric_sums: dict[str, torch.Tensor] = {}
+        distributed.seed_epoch(training.seed, epoch, processes)
         order = epoch_order(training.seed, epoch, count).to(device)
         progress = tqdm(
             torch.split(order, training.batch_size),
             desc=f"{policy.policy_type} epoch {epoch + 1}/{epochs}",
             leave=False,
+            disable=not processes.is_main,
         )
         for step, indices in enumerate(progress):
+            share, weight = distributed.batch_share(indices, processes)
             with autocast_to(precision, device):
-                step_result = training_step(data.batch(indices))
-            loss = step_result.loss.float()
-            loss_value = float(loss.detach())
+                step_result = step_of(data.batch(share))
+            loss = step_result.loss.float() * weight
+            loss_value = distributed.mean_over_processes(loss.detach(), processes)
             if not math.isfinite(loss_value):
                 raise NonFiniteLossError(
                     f"{policy.policy_type} training loss is {loss_value} at epoch {epoch + 1}, step {step + 1} of "
@@ -295,19 +314,20 @@ def train_with_loss(
                 ema.update_parameters(policy)
             loss_sum += loss_value * indices.numel()
             for name, value in step_result.metric_sums.items():
-                # float64: an epoch's sum of per-window fractions stays exact to far below the reported digits.
-                metric_sums[name] = metric_sums.get(name, 0.0) + value.detach().to(torch.float64)
+                # float64: an epoch's sum of per-window fractions stays exact to far below the reported digits. A
+                # process without windows in this batch (weight 0) stood in with one window; it adds nothing.
+                metric_sums[name] = metric_sums.get(name, 0.0) + value.detach().to(torch.float64) * (weight > 0)
             progress.set_postfix(loss=f"{loss_value:.4f}")
         seconds = time.perf_counter() - started
         metrics = {
             "loss": loss_sum / count,
-            **{name: float(total) / count for name, total in metric_sums.items()},
+            **{name: total / count for name, total in distributed.sums_over_processes(metric_sums, processes).items()},
             "learning_rate": optimizer.param_groups[0]["lr"],
             "epoch_seconds": seconds,
             "samples_per_second": count / seconds,
         }
         history.append(metrics)
-        if (epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs:
+        if processes.is_main and ((epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs):
             save_training_state(checkpoint_path, trainable, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(
             "%s epoch %d/%d: %s",

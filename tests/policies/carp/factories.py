@@ -13,6 +13,7 @@ from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
+from carp.policies.registry import TrainingRun
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -100,14 +101,10 @@ def train_carp(tokenizer, data, settings: dict, checkpoint_dir, on_epoch_end=Non
     Keys of `CarpConfig` go to the config (the architecture defaults to `TINY_ARCHITECTURE`), keys of
     `TrainingConfig` to the loop, `device` (default cpu) to the device.
     """
-    context = tiny_context(tokenizer, num_tasks)
-    return train(
-        context=context,
-        data=data,
-        checkpoint_dir=checkpoint_dir,
-        on_epoch_end=on_epoch_end,
-        **trainer_settings(**(TINY_ARCHITECTURE | settings)),
-    )
+    settings = trainer_settings(**(TINY_ARCHITECTURE | settings))
+    data_and_state = dict(context=tiny_context(tokenizer, num_tasks), data=data, checkpoint_dir=checkpoint_dir)
+    run = TrainingRun(settings["training"], device=settings["device"], on_epoch_end=on_epoch_end, **data_and_state)
+    return train(settings["config"], run)
 
 
 def trainer_settings(device: str = "cpu", **values) -> dict:

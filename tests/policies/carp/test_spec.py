@@ -11,7 +11,7 @@ def test_derived_sizes_of_default_config():
     assert spec.sequence_length == 100
     assert spec.num_scales == 4
     assert spec.condition_features == 38
-    assert spec.hidden_width == 256
+    assert spec.config.hidden_width == 256
     assert spec.config == CarpConfig()  # the architecture is the params section's, defaults included
 
 
@@ -45,9 +45,9 @@ def test_a_flat_spec_of_an_older_checkpoint_reads_its_architecture_into_the_conf
     [
         ({"scales": (2, 1)}, "strictly increasing"),
         ({"scales": ()}, "must not be empty"),
-        ({"width": 10, "num_heads": 4}, "carp.num_heads=4: must divide carp.width=10"),
+        ({"width": 10, "num_heads": 4}, "carp.num_heads=4: must divide width=10"),
         ({"codebook_size": 1}, "codebook_size must be an integer >= 2"),
-        ({"depth": 0}, "carp.depth=0: must be >= 1"),
+        ({"depth": 0}, "carp.depth=0: must be an integer >= 1"),
         ({"obs_steps": True}, "obs_steps must be a positive integer"),
         ({"num_tasks": -1}, "num_tasks must be a non-negative integer"),
         ({"dropout": 1.0}, "carp.dropout=1.0: must be in"),

@@ -203,7 +203,7 @@ def test_windows_of_another_shape_are_refused(tmp_path):
     ("overrides", "message"),
     [
         ({"epochs": 0}, "training.epochs=0: must be >= 1"),
-        ({"warmup_steps": -1}, "carp.warmup_steps=-1: must be >= 0"),
+        ({"warmup_steps": -1}, "carp.warmup_steps=-1: must be an integer >= 0"),
         ({"learning_rate": 0.0}, "carp.learning_rate=0.0: must be > 0"),
         ({"ema_decay": 1.0}, "carp.ema_decay=1.0: must be in \\(0, 1\\)"),
     ],

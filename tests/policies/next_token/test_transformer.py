@@ -42,7 +42,7 @@ def test_default_initialization_gives_near_uniform_logits():
 def test_cached_greedy_generation_equals_the_argmax_of_a_teacher_forced_forward_at_every_position():
     model = _model()
     obs = _obs(3)
-    state = model.start_generation(obs)
+    state = model.start_inference(obs)
     previous, generated, stepwise_logits = None, [], []
     with torch.inference_mode():
         for _ in range(L):
@@ -110,7 +110,7 @@ def test_multi_task_models_need_task_ids():
 
 def test_generation_past_the_last_token_is_refused():
     model = _model()
-    state = model.start_generation(_obs(1))
+    state = model.start_inference(_obs(1))
     previous = None
     with torch.inference_mode():
         for _ in range(L):

@@ -6,9 +6,9 @@ precision of the training loop are the shared `training` section (`carp.config.T
 """
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
-from carp.config import TASK_NAMES, ConfigError, _require
+from carp.config import TASK_NAMES, ConfigError, _require, require_optimizer_settings, require_positive_int
 
 SECTION = "carp"
 
@@ -45,22 +45,24 @@ class CarpConfig:
     use_ema: bool = False
     ema_decay: float = 0.999
 
+    SECTION: ClassVar[str] = SECTION
+
     def __post_init__(self) -> None:
-        _require(self.depth >= 1, f"{SECTION}.depth", self.depth, "must be >= 1")
-        _require(self.width >= 1, f"{SECTION}.width", self.width, "must be >= 1")
-        _require(self.num_heads >= 1, f"{SECTION}.num_heads", self.num_heads, "must be >= 1")
+        section = self.SECTION
+        for name in ("depth", "width", "num_heads"):
+            require_positive_int(f"{section}.{name}", getattr(self, name))
         _require(
-            self.width % self.num_heads == 0,
-            f"{SECTION}.num_heads",
-            self.num_heads,
-            f"must divide {SECTION}.width={self.width}",
+            self.width % self.num_heads == 0, f"{section}.num_heads", self.num_heads, f"must divide width={self.width}"
         )
-        _require(self.mlp_ratio > 0, f"{SECTION}.mlp_ratio", self.mlp_ratio, "must be > 0")
-        _require(0.0 <= self.dropout < 1.0, f"{SECTION}.dropout", self.dropout, "must be in [0, 1)")
-        _require(self.learning_rate > 0, f"{SECTION}.learning_rate", self.learning_rate, "must be > 0")
-        _require(self.weight_decay >= 0, f"{SECTION}.weight_decay", self.weight_decay, "must be >= 0")
-        _require(self.warmup_steps >= 0, f"{SECTION}.warmup_steps", self.warmup_steps, "must be >= 0")
-        _require(0.0 < self.ema_decay < 1.0, f"{SECTION}.ema_decay", self.ema_decay, "must be in (0, 1)")
+        _require(self.mlp_ratio > 0, f"{section}.mlp_ratio", self.mlp_ratio, "must be > 0")
+        _require(0.0 <= self.dropout < 1.0, f"{section}.dropout", self.dropout, "must be in [0, 1)")
+        require_optimizer_settings(section, self)
+        _require(0.0 < self.ema_decay < 1.0, f"{section}.ema_decay", self.ema_decay, "must be in (0, 1)")
+
+    @property
+    def hidden_width(self) -> int:
+        """Hidden width of the feed-forward layers."""
+        return round(self.width * self.mlp_ratio)
 
 
 @dataclass(frozen=True)
@@ -77,20 +79,22 @@ class CarpInference:
     top_k: int = 1
     top_k_per_task: dict[str, int] = field(default_factory=dict)
 
+    SECTION: ClassVar[str] = SECTION
+
     def __post_init__(self) -> None:
-        key = f"inference.{SECTION}"
-        _require(self.top_k >= 1, f"{key}.top_k", self.top_k, "must be >= 1 (1 = greedy)")
+        key = f"inference.{self.SECTION}"
+        require_positive_int(f"{key}.top_k", self.top_k)
         for task, top_k in self.top_k_per_task.items():
             _require(task in TASK_NAMES, f"{key}.top_k_per_task.{task}", task, f"task must be one of {TASK_NAMES}")
             _require(top_k >= 1, f"{key}.top_k_per_task.{task}", top_k, "must be >= 1 (1 = greedy)")
 
     def settings_for(self, task: str) -> dict[str, Any]:
-        """Keyword arguments of `CarpPolicy.configure_inference` when evaluating `task`."""
+        """Keyword arguments of the policy's `configure_inference` when evaluating `task`."""
         return {"top_k": self.top_k_per_task.get(task, self.top_k)}
 
     def check_with(self, params: Any) -> None:
         """Refuse a token choice above the vocabulary (`params.codebook_size`)."""
-        key = f"inference.{SECTION}"
+        key = f"inference.{self.SECTION}"
         entries = [(f"{key}.top_k", self.top_k)] + [
             (f"{key}.top_k_per_task.{task}", top_k) for task, top_k in self.top_k_per_task.items()
         ]

@@ -1,19 +1,12 @@
 """CARP's entry in the policy registry (`carp.policies.registry`): its config, builder, loader and trainer."""
 
-from collections.abc import Callable
-from pathlib import Path
-
-import torch
-
-from carp.config import TrainingConfig
 from carp.policies.carp.config import CarpConfig, CarpInference
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import train_carp
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
-from carp.policies.registry import PolicyFamily
-from carp.training.loop import PolicyTrainingData
+from carp.policies.registry import PolicyFamily, TrainingRun
 from carp.training.runtime import seed_everything
 
 
@@ -49,20 +42,10 @@ def build_policy(config: CarpConfig, context: PolicyContext) -> CarpPolicy:
     )
 
 
-def train(
-    config: CarpConfig,
-    training: TrainingConfig,
-    context: PolicyContext,
-    data: PolicyTrainingData,
-    checkpoint_dir: Path,
-    device: str | torch.device = "cpu",
-    epochs: int | None = None,
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
-) -> CarpPolicy:
+def train(config: CarpConfig, run: TrainingRun) -> CarpPolicy:
     """Build the policy after seeding (reproducible weights) and train its transformer in the shared loop."""
-    seed_everything(training.seed)
-    policy = build_policy(config, context)
-    return train_carp(policy, config, training, data, checkpoint_dir, device, epochs, on_epoch_end)
+    seed_everything(run.training.seed)
+    return train_carp(build_policy(config, run.context), config, run)
 
 
 FAMILY = PolicyFamily("carp", CarpConfig, CarpInference, build_policy, CarpPolicy.from_checkpoint, train)

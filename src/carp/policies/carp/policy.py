@@ -16,23 +16,23 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policies.base import (
-    POLICY_FORMAT_VERSION,
-    TORCH_BACKEND,
-    Deployment,
-    TimedPrediction,
-    count_parameters,
-)
-from carp.policies.carp.sampling import check_top_k, generate_chunk
+from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction
+from carp.policies.carp.sampling import generate_chunk
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.wrapper import (
+    TokenizedPolicy,
+    check_policy_type,
+    check_tokenizer_fit,
+    checkpoint_normalizers,
+    checkpoint_tokenizer,
+)
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
-from carp.training.checkpoint import CheckpointError, atomic_torch_save
+from carp.training.checkpoint import CheckpointError
 
 logger = logging.getLogger(__name__)
 
@@ -48,15 +48,10 @@ def check_specs_match(policy_spec: PolicySpec, tokenizer_spec: TokenizerSpec) ->
         "latent_channels": (policy_spec.latent_channels, tokenizer_spec.latent_channels),
         "codebook_size": (policy_spec.codebook_size, tokenizer_spec.codebook_size),
     }
-    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
-    if mismatched:
-        details = ", ".join(
-            f"{name}: policy {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
-        )
-        raise ValueError(f"policy spec does not match the tokenizer spec ({details})")
+    check_tokenizer_fit(pairs, "policy", "policy spec does not match the tokenizer spec")
 
 
-class CarpPolicy(nn.Module):
+class CarpPolicy(TokenizedPolicy):
     """Normalizers + frozen tokenizer + coarse-to-fine transformer; a :class:`~carp.policies.base.Policy`.
 
     Args:
@@ -79,26 +74,11 @@ class CarpPolicy(nn.Module):
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None = None,
     ) -> None:
-        super().__init__()
-        tokenizer = tokenizer_artifact.tokenizer
-        check_specs_match(transformer.spec, tokenizer.spec)
-        if obs_normalizer.num_features != transformer.spec.obs_dim:
-            raise ValueError(
-                f"obs normalizer has {obs_normalizer.num_features} features, the policy expects Do = "
-                f"{transformer.spec.obs_dim}"
-            )
-        if action_normalizer.num_features != tokenizer.spec.action_dim:
-            raise ValueError(
-                f"action normalizer has {action_normalizer.num_features} features, the tokenizer has A = "
-                f"{tokenizer.spec.action_dim}"
-            )
-        self.tokenizer = tokenizer.eval().requires_grad_(False)
-        self.tokenizer_artifact = tokenizer_artifact
-        self.transformer = transformer.eval()
-        self.obs_normalizer = obs_normalizer
-        self.action_normalizer = action_normalizer
-        self.metadata = dict(metadata or {})
-        self.top_k = 1
+        check_specs_match(transformer.spec, tokenizer_artifact.tokenizer.spec)
+        spec = transformer.spec
+        super().__init__(
+            tokenizer_artifact, transformer, obs_normalizer, action_normalizer, metadata, spec.obs_dim, spec.num_tasks
+        )
 
     @property
     def spec(self) -> PolicySpec:
@@ -106,57 +86,9 @@ class CarpPolicy(nn.Module):
         return self.transformer.spec
 
     @property
-    def device(self) -> torch.device:
-        """Device of the weights."""
-        return self.transformer.position_embedding.device
-
-    def train(self, mode: bool = True) -> "CarpPolicy":
-        """Switch the transformer's mode; the tokenizer stays frozen in eval mode."""
-        super().train(mode)
-        self.tokenizer.eval()
-        return self
-
-    def _observations(self, obs: np.ndarray | torch.Tensor) -> torch.Tensor:
-        spec = self.spec
-        observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
-        if observations.dim() != 3 or tuple(observations.shape[1:]) != (spec.obs_steps, spec.obs_dim):
-            raise ValueError(
-                f"obs must have shape (B, To, Do) = (B, {spec.obs_steps}, {spec.obs_dim}), got "
-                f"{tuple(observations.shape)}"
-            )
-        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
-
-    def _task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
-        if task_index is None:
-            return None
-        task_ids = torch.as_tensor(task_index, dtype=torch.long, device=self.device).reshape(-1)
-        if task_ids.numel() == 1:
-            task_ids = task_ids.expand(batch_size)
-        if task_ids.numel() != batch_size:
-            raise ValueError(f"task_index must be one index or one per sample ({batch_size}), got {task_ids.numel()}")
-        if self.spec.num_tasks > 0 and not bool(((task_ids >= 0) & (task_ids < self.spec.num_tasks)).all()):
-            raise ValueError(f"task indices must be in [0, {self.spec.num_tasks}), got {task_ids.tolist()}")
-        return task_ids  # (B,)
-
-    def configure_inference(self, top_k: int = 1) -> None:
-        """Set the token choice of later predictions: 1 = greedy; k > 1 draws among the k most likely tokens."""
-        check_top_k(top_k, self.spec.codebook_size)
-        self.top_k = top_k
-
-    @property
     def model_calls_per_chunk(self) -> int:
         """`K`: one transformer call per scale."""
         return self.spec.num_scales
-
-    @property
-    def num_parameters(self) -> int:
-        """Parameters of the transformer (the frozen tokenizer is not counted)."""
-        return count_parameters(self.transformer)
-
-    @property
-    def description(self) -> str:
-        """`greedy` or `top-<k>`, the token choice of predictions."""
-        return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
     def predict_action_timed(
         self,
@@ -180,27 +112,14 @@ class CarpPolicy(nn.Module):
         top_k = self.top_k if top_k is None else top_k
         with torch.inference_mode():
             started = time.perf_counter()
-            observations = self._observations(obs)  # (B, To, Do)
-            task_ids = self._task_ids(task_index, observations.shape[0])
+            observations = self.normalized_observations(obs, self.spec.obs_steps, self.spec.obs_dim)  # (B, To, Do)
+            task_ids = self.task_ids(task_index, observations.shape[0])
             chunk = generate_chunk(self.transformer, self.tokenizer, observations, task_ids, top_k, generator)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_latent(chunk.latent)  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
             decoded = time.perf_counter()
         return TimedPrediction(actions, predicted - started, decoded - predicted, self.spec.num_scales)
-
-    def predict_action(
-        self,
-        obs: np.ndarray | torch.Tensor,
-        task_index: int | np.ndarray | torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
-        top_k: int | None = None,
-    ) -> np.ndarray:
-        """Predict raw action chunks (B, H, A) float32 from raw observations (B, To, Do).
-
-        See :meth:`predict_action_timed` for the arguments.
-        """
-        return self.predict_action_timed(obs, task_index, generator, top_k).actions
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Mean cross entropy of a teacher-forced forward pass over all L tokens (scalar float32).
@@ -234,26 +153,15 @@ class CarpPolicy(nn.Module):
                     type(error).__name__,
                     error,
                 )
-        from carp.policies.registry import load_policy
+        return super().deployment(checkpoint_path, backend, directory)
 
-        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
-
-    def to_checkpoint(self) -> dict[str, Any]:
-        """Self-contained state: spec, weights, the tokenizer artifact and its sha256, statistics, metadata."""
+    def family_checkpoint(self) -> dict[str, Any]:
+        """CARP's checkpoint entries: the spec, the transformer's weights and the tokenizer artifact with its sha256."""
         return {
-            "format_version": POLICY_FORMAT_VERSION,
-            "policy_type": POLICY_TYPE,
             "policy_spec": self.spec.to_dict(),
             "transformer_state": self.transformer.state_dict(),
-            "tokenizer": self.tokenizer_artifact.to_payload(),
-            "tokenizer_sha256": self.tokenizer_artifact.sha256,
-            "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
-            "metadata": self.metadata,
+            **self.tokenizer_checkpoint(),
         }
-
-    def save(self, path: Path) -> None:
-        """Atomically write :meth:`to_checkpoint` to `path`."""
-        atomic_torch_save(self.to_checkpoint(), Path(path))
 
     @classmethod
     def from_checkpoint(cls, checkpoint: dict[str, Any]) -> "CarpPolicy":
@@ -269,22 +177,13 @@ class CarpPolicy(nn.Module):
             raise ValueError(
                 f"policy checkpoint has format_version {version!r}, this code reads version {POLICY_FORMAT_VERSION}"
             )
-        if checkpoint.get("policy_type") != POLICY_TYPE:
-            raise ValueError(f"policy_type={checkpoint.get('policy_type')!r}: not a {POLICY_TYPE} checkpoint")
+        check_policy_type(checkpoint, POLICY_TYPE)
         transformer = CoarseToFineTransformer(PolicySpec.from_dict(checkpoint["policy_spec"]))
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
         # The specs first: a tokenizer of another shape is named as such rather than as a hash difference.
         check_specs_match(transformer.spec, TokenizerSpec.from_dict(checkpoint["tokenizer"]["spec"]))
-        tokenizer_artifact = TokenizerArtifact.from_payload(
-            checkpoint["tokenizer"], checkpoint["tokenizer_sha256"], "the policy (the tokenizer it was trained with)"
-        )
-        normalizers = checkpoint["normalizers"]
         return cls(
-            tokenizer_artifact,
-            transformer,
-            MinMaxNormalizer.from_dict(normalizers["obs"]),
-            MinMaxNormalizer.from_dict(normalizers["action"]),
-            checkpoint["metadata"],
+            checkpoint_tokenizer(checkpoint), transformer, *checkpoint_normalizers(checkpoint), checkpoint["metadata"]
         )
 
     @classmethod

@@ -81,11 +81,6 @@ class PolicySpec:
         task_features = TASK_EMBEDDING_DIM if self.num_tasks > 0 else 0
         return self.obs_steps * self.obs_dim + task_features
 
-    @property
-    def hidden_width(self) -> int:
-        """Hidden width of the feed-forward layers."""
-        return round(self.config.width * self.config.mlp_ratio)
-
     def to_dict(self) -> dict[str, Any]:
         """Plain-types view for checkpoints and tracking (scales as a list, the config as a dict)."""
         values = asdict(self)

@@ -17,30 +17,22 @@ a margin for long runs over few demonstrations. The rate is a parameter, worth r
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from carp.config import TrainingConfig
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.layout import TokenLayout
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.cross_entropy import blockwise_cross_entropy
-from carp.training.loop import (
-    OptimizerRecipe,
-    PolicyTrainingData,
-    TrainingStep,
-    matrix_decay_groups,
-    train_with_loss,
-)
+from carp.training.loop import OptimizerRecipe, PolicyTrainingData, TrainingStep, matrix_decay_groups
 
 if TYPE_CHECKING:
     from carp.policies.carp.policy import CarpPolicy
+    from carp.policies.registry import TrainingRun
 
 TOKENIZE_BATCH_SIZE = 4096
 ADAM_BETAS = (0.9, 0.95)
@@ -149,27 +141,13 @@ def optimizer_recipe(transformer: CoarseToFineTransformer, config: CarpConfig) -
     )
 
 
-def train_carp(
-    policy: CarpPolicy,
-    config: CarpConfig,
-    training: TrainingConfig,
-    data: PolicyTrainingData,
-    checkpoint_dir: Path,
-    device: str | torch.device = "cpu",
-    epochs: int | None = None,
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
-) -> CarpPolicy:
+def train_carp(policy: CarpPolicy, config: CarpConfig, run: TrainingRun) -> CarpPolicy:
     """Train `policy`'s transformer in the shared loop on its frozen tokenizer's tokens.
 
     Args:
-        policy: an untrained policy, built after `seed_everything(training.seed)` for reproducible weights.
+        policy: an untrained policy, built after `seed_everything(run.training.seed)` for reproducible weights.
         config: CARP's params section (its optimizer and EMA settings; the architecture is the policy's).
-        training: the shared loop settings.
-        data: normalized training windows.
-        checkpoint_dir: directory of the resumable training state (`carp.training.loop.train_with_loss`).
-        device: "auto", "cpu", "cuda" or "cuda:<index>".
-        epochs: passes over the windows; None takes `training.epochs`.
-        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean cross
+        run: the windows, loop settings, state directory and epoch callback. The callback sees `loss` (mean cross
             entropy per token), `token_accuracy`, `token_accuracy_scale_<k>` (k = 1..K), `learning_rate`,
             `epoch_seconds` and `samples_per_second`.
 
@@ -182,16 +160,10 @@ def train_carp(
         "spec": policy.spec.to_dict(),
         "tokenizer_sha256": policy.tokenizer_artifact.sha256,
     }
-    return train_with_loss(
+    return run.train_with_loss(
         policy,
-        data,
         optimizer_recipe(policy.transformer, config),
-        training,
-        checkpoint_dir,
         identity,
-        epochs,
-        device,
-        on_epoch_end,
         prepare_data=lambda windows: with_token_targets(policy, windows),
         training_step=lambda batch: teacher_forced_step(policy.transformer, batch),
     )

@@ -14,6 +14,7 @@ the head has one vocabulary per action dimension (see :class:`~carp.policies.car
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -21,10 +22,10 @@ from torch import nn
 
 from carp.policies.carp.blocks import (
     MODULATIONS_PER_BLOCK,
-    NORM_EPS,
     AdaptiveBlock,
     KeyValueCache,
     PerDimensionHead,
+    modulate,
 )
 from carp.policies.carp.layout import TokenLayout
 from carp.policies.carp.spec import TASK_EMBEDDING_DIM, PolicySpec
@@ -38,87 +39,100 @@ HEAD_INIT_GAIN = 0.02
 
 @dataclass
 class InferenceState:
-    """What K-step inference carries from one scale to the next.
+    """What cached inference carries from one sequential call to the next (K scale steps or L token steps).
 
     Attributes:
         condition: (B, D) condition vector.
         modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
         position_and_level: (1, L, D) position plus level embedding of every token.
-        cache: keys and values of the scales processed so far.
-        next_scale: index (0-based) of the scale the next call predicts.
+        cache: keys and values of the tokens processed so far.
+        next_step: index (0-based) of the step the next call predicts: a scale for CARP, a token for next-token.
     """
 
     condition: torch.Tensor
     modulations: tuple[torch.Tensor, ...]
     position_and_level: torch.Tensor
     cache: KeyValueCache
-    next_scale: int = 0
+    next_step: int = 0
 
 
-class CoarseToFineTransformer(nn.Module):
-    """Predicts the token ids of every scale of an action chunk given observation features.
+class AdaptiveTransformer(nn.Module):
+    """The parts CARP's transformer and the next-token transformer share.
 
-    Args:
-        spec: the shapes of data and tokenizer, and CARP's params section (the architecture).
+    Those are the AdaLN conditioning on the observations (and task), the learned position and level embeddings, the
+    block stack and the modulated input of the head. A subclass builds itself in this order:
+    :meth:`_build_condition`, its own token inputs, :meth:`_build_trunk`, then :meth:`_initialize_weights`. The
+    order fixes the registration order of the parameters, hence the seeded initial weights and the names of the
+    checkpoint's entries.
     """
 
-    def __init__(self, spec: PolicySpec) -> None:
-        super().__init__()
-        self.spec = spec
-        self.layout = TokenLayout(spec.action_dim, spec.scales)
-        config = spec.config
-        width, length = config.width, spec.sequence_length
-        first_length = self.layout.scale_lengths[0]
+    def _build_condition(self, obs_steps: int, obs_dim: int, num_tasks: int, width: int, start_length: int) -> None:
+        """The condition: an optional task embedding, the projection to `D` and the first tokens' start embedding.
 
-        self.task_embedding = nn.Embedding(spec.num_tasks, TASK_EMBEDDING_DIM) if spec.num_tasks > 0 else None
-        self.condition_projection = nn.Linear(spec.condition_features, width)
-        self.start_embedding = nn.Parameter(torch.empty(1, first_length, width))
-        self.token_projection = nn.Linear(spec.latent_channels, width)
-        self.position_embedding = nn.Parameter(torch.empty(1, length, width))
-        self.level_embedding = nn.Parameter(torch.empty(spec.num_scales, width))
+        Args:
+            obs_steps: `To`.
+            obs_dim: `Do`.
+            num_tasks: 0 for a single-task model, else the number of task indices.
+            width: `D`.
+            start_length: tokens of the first step (CARP: `s_1 * A`; next-token: 1).
+        """
+        self.obs_steps, self.obs_dim, self.num_tasks = obs_steps, obs_dim, num_tasks
+        self.task_embedding = nn.Embedding(num_tasks, TASK_EMBEDDING_DIM) if num_tasks > 0 else None
+        condition_features = obs_steps * obs_dim + (TASK_EMBEDDING_DIM if num_tasks > 0 else 0)
+        self.condition_projection = nn.Linear(condition_features, width)
+        self.start_embedding = nn.Parameter(torch.empty(1, start_length, width))
 
-        self.num_modulations = MODULATIONS_PER_BLOCK * config.depth + 2
+    def _build_trunk(self, layout: TokenLayout, architecture: Any, codebook_size: int) -> None:
+        """Position and level embeddings, the AdaLN modulation projection, the blocks and the per-dimension head.
+
+        Args:
+            layout: the chunk's token layout (`L`, the scales, `A`).
+            architecture: `depth`, `width`, `num_heads`, `hidden_width` and `dropout` (the family's config).
+            codebook_size: `V`.
+        """
+        depth, width = architecture.depth, architecture.width
+        self.depth, self.width = depth, width
+        self.position_embedding = nn.Parameter(torch.empty(1, layout.sequence_length, width))
+        self.level_embedding = nn.Parameter(torch.empty(layout.num_scales, width))
+
+        self.num_modulations = MODULATIONS_PER_BLOCK * depth + 2
         self.modulation = nn.Linear(width, self.num_modulations * width)
         # Scale modulations are applied as (1 + scale); adding the one here once saves an op per use.
         scale_rows = torch.zeros(self.num_modulations, 1)
-        scale_rows[1 : MODULATIONS_PER_BLOCK * config.depth : 3] = 1.0
+        scale_rows[1 : MODULATIONS_PER_BLOCK * depth : 3] = 1.0
         scale_rows[-1] = 1.0
         self.register_buffer("modulation_offset", scale_rows.expand(-1, width).reshape(-1), persistent=False)
 
         self.blocks = nn.ModuleList(
-            AdaptiveBlock(width, config.num_heads, spec.hidden_width, config.dropout, index)
-            for index in range(config.depth)
+            AdaptiveBlock(width, architecture.num_heads, architecture.hidden_width, architecture.dropout, index)
+            for index in range(depth)
         )
-        self.head = PerDimensionHead(spec.action_dim, width, spec.codebook_size)
-
-        self.register_buffer("level_ids", self.layout.level_ids(), persistent=False)
-        self.register_buffer("attention_mask", self.layout.attention_mask(), persistent=False)
-        self._initialize_weights()
+        self.head = PerDimensionHead(layout.action_dim, width, codebook_size)
+        self.register_buffer("level_ids", layout.level_ids(), persistent=False)
 
     def _initialize_weights(self) -> None:
-        initialize_adaptive_transformer(self, self.spec.config.depth, self.spec.config.width)
+        initialize_adaptive_transformer(self, self.depth, self.width)
 
     def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Project observations (and task) to the condition vector.
 
         Args:
             obs_features: (B, To, Do) normalized observations (or already flattened (B, To * Do)).
-            task_ids: (B,) long task indices; required exactly when the spec has `num_tasks > 0`.
+            task_ids: (B,) long task indices; required exactly when `num_tasks > 0`.
 
         Returns:
             (B, D) condition.
         """
-        spec = self.spec
         features = obs_features.reshape(obs_features.shape[0], -1)  # (B, To * Do)
-        expected = spec.obs_steps * spec.obs_dim
+        expected = self.obs_steps * self.obs_dim
         if features.shape[1] != expected:
             raise ValueError(
                 f"observations have {features.shape[1]} features per sample ({tuple(obs_features.shape)}), "
-                f"expected To * Do = {spec.obs_steps} * {spec.obs_dim} = {expected}"
+                f"expected To * Do = {self.obs_steps} * {self.obs_dim} = {expected}"
             )
         if self.task_embedding is not None:
             if task_ids is None:
-                raise ValueError(f"this policy is multi-task ({spec.num_tasks} tasks): pass task ids")
+                raise ValueError(f"this policy is multi-task ({self.num_tasks} tasks): pass task ids")
             features = torch.cat((features, self.task_embedding(task_ids)), dim=1)  # (B, To * Do + 3)
         elif task_ids is not None:
             raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
@@ -131,21 +145,74 @@ class CoarseToFineTransformer(nn.Module):
     def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
         modulation = self.modulation_vector(condition)  # (B, M * D)
-        return modulation.view(condition.shape[0], self.num_modulations, 1, self.spec.config.width).unbind(1)
-
-    def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
-        return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
+        return modulation.view(condition.shape[0], self.num_modulations, 1, self.width).unbind(1)
 
     def position_and_level(self) -> torch.Tensor:
         """Position plus level embedding of every token, (1, L, D)."""
         return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
 
-    def _final_norm(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        shift, scale = modulations[-2:]
-        return torch.addcmul(shift, F.layer_norm(hidden, hidden.shape[-1:], eps=NORM_EPS), scale)  # (B, N, D)
+    def empty_cache(self) -> KeyValueCache:
+        """A kv-cache for one chunk: every block's keys and values of up to L tokens."""
+        return KeyValueCache(self.depth, self.position_embedding.shape[1])
 
-    def _logits(self, hidden: torch.Tensor, modulations: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        return self.head(self._final_norm(hidden, modulations))  # (B, N, V)
+    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
+        """Encode the condition, its modulations and the position embeddings once, and open an empty kv-cache.
+
+        Args:
+            obs_features: (B, To, Do) normalized observations.
+            task_ids: (B,) long, for multi-task policies.
+
+        Returns:
+            State to pass to the subclass's step method once per sequential call.
+        """
+        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        return InferenceState(condition, self.modulations(condition), self.position_and_level(), self.empty_cache())
+
+    def run_blocks(
+        self,
+        hidden: torch.Tensor,
+        modulations: tuple[torch.Tensor, ...],
+        mask: torch.Tensor | None,
+        cache: KeyValueCache | None = None,
+    ) -> torch.Tensor:
+        """The blocks, then the head's modulated LayerNorm: the head's input.
+
+        Args:
+            hidden: (B, N, D) token inputs plus their position and level embeddings.
+            modulations: from :meth:`modulations`.
+            mask: (N, N) bool, True where attending is allowed; None when every key may be attended.
+            cache: keys and values of earlier tokens, extended by this call; None for a full forward pass.
+
+        Returns:
+            (B, N, D).
+        """
+        for index, block in enumerate(self.blocks):
+            start = index * MODULATIONS_PER_BLOCK
+            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], mask, cache)
+        shift, scale = modulations[-2:]
+        return modulate(hidden, shift, scale)  # (B, N, D)
+
+
+class CoarseToFineTransformer(AdaptiveTransformer):
+    """Predicts the token ids of every scale of an action chunk given observation features.
+
+    Args:
+        spec: the shapes of data and tokenizer, and CARP's params section (the architecture).
+    """
+
+    def __init__(self, spec: PolicySpec) -> None:
+        super().__init__()
+        self.spec = spec
+        self.layout = TokenLayout(spec.action_dim, spec.scales)
+        width = spec.config.width
+        self._build_condition(spec.obs_steps, spec.obs_dim, spec.num_tasks, width, self.layout.scale_lengths[0])
+        self.token_projection = nn.Linear(spec.latent_channels, width)
+        self._build_trunk(self.layout, spec.config, spec.codebook_size)
+        self.register_buffer("attention_mask", self.layout.attention_mask(), persistent=False)
+        self._initialize_weights()
+
+    def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
+        return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
 
     def forward(
         self,
@@ -173,31 +240,10 @@ class CoarseToFineTransformer(nn.Module):
         tokens = torch.cat(
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
         )  # (B, L, D)
-        hidden = tokens + self.position_and_level()
-        for index, block in enumerate(self.blocks):
-            start = index * MODULATIONS_PER_BLOCK
-            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], self.attention_mask)
+        hidden = self.run_blocks(tokens + self.position_and_level(), modulations, self.attention_mask)  # (B, L, D)
         if grouped_by_dimension:
-            return self.head.grouped_logits(self._final_norm(hidden, modulations))  # (A, B * L / A, V)
-        return self._logits(hidden, modulations)  # (B, L, V)
-
-    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
-        """Encode the condition and open an empty kv-cache for K-step inference.
-
-        Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long, for multi-task policies.
-
-        Returns:
-            State to pass to :meth:`next_scale_logits` K times.
-        """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
-        return InferenceState(
-            condition,
-            self.modulations(condition),
-            self.position_and_level(),
-            KeyValueCache(self.spec.config.depth, self.spec.sequence_length),
-        )
+            return self.head.grouped_logits(hidden)  # (A, B * L / A, V)
+        return self.head(hidden)  # (B, L, V)
 
     def next_scale_logits(self, state: InferenceState, scale_inputs: torch.Tensor | None = None) -> torch.Tensor:
         """Logits of the next scale's tokens, extending the kv-cache (no mask: cached keys are all coarser scales).
@@ -208,9 +254,9 @@ class CoarseToFineTransformer(nn.Module):
                 accumulated from the predicted scales, in sequence order.
 
         Returns:
-            (B, s_k * A, V) logits of scale k = `state.next_scale`.
+            (B, s_k * A, V) logits of scale k = `state.next_step`.
         """
-        scale_index = state.next_scale
+        scale_index = state.next_step
         if scale_index >= self.layout.num_scales:
             raise RuntimeError(f"all {self.layout.num_scales} scales were already predicted")
         start, end = self.layout.scale_bounds[scale_index]
@@ -220,12 +266,9 @@ class CoarseToFineTransformer(nn.Module):
             if scale_inputs is None:
                 raise ValueError(f"scale {scale_index + 1} needs the accumulated latent of the coarser scales")
             tokens = self.token_projection(scale_inputs)  # (B, s_k * A, D)
-        hidden = tokens + state.position_and_level[:, start:end]
-        for index, block in enumerate(self.blocks):
-            offset = index * MODULATIONS_PER_BLOCK
-            hidden = block(hidden, state.modulations[offset : offset + MODULATIONS_PER_BLOCK], None, state.cache)
-        state.next_scale += 1
-        return self._logits(hidden, state.modulations)  # (B, s_k * A, V)
+        hidden = self.run_blocks(tokens + state.position_and_level[:, start:end], state.modulations, None, state.cache)
+        state.next_step += 1
+        return self.head(hidden)  # (B, s_k * A, V)
 
 
 def initialize_adaptive_transformer(model: nn.Module, depth: int, width: int) -> None:

@@ -12,18 +12,9 @@ configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transfor
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from carp.config import _require
+from carp.config import _require, require_optimizer_settings, require_positive_int
 
 SAMPLERS = ("ddpm", "ddim")
-
-
-def _require_positive_int(section: str, name: str, value: Any) -> None:
-    _require(
-        isinstance(value, int) and not isinstance(value, bool) and value >= 1,
-        f"{section}.{name}",
-        value,
-        "must be an integer >= 1",
-    )
 
 
 @dataclass(frozen=True)
@@ -58,16 +49,8 @@ class DenoisingConfig:
 
     def __post_init__(self) -> None:
         section = self.SECTION
-        _require_positive_int(section, "num_train_steps", self.num_train_steps)
-        _require(self.learning_rate > 0, f"{section}.learning_rate", self.learning_rate, "must be > 0")
-        _require(self.weight_decay >= 0, f"{section}.weight_decay", self.weight_decay, "must be >= 0")
-        _require(
-            isinstance(self.warmup_steps, int) and self.warmup_steps >= 0,
-            f"{section}.warmup_steps",
-            self.warmup_steps,
-            "must be an integer >= 0",
-        )
-        _require(isinstance(self.use_ema, bool), f"{section}.use_ema", self.use_ema, "must be true or false")
+        require_positive_int(f"{section}.num_train_steps", self.num_train_steps)
+        require_optimizer_settings(section, self)
         _require(0.0 < self.ema_power <= 1.0, f"{section}.ema_power", self.ema_power, "must be in (0, 1]")
         _require(0.0 <= self.ema_max_decay < 1.0, f"{section}.ema_max_decay", self.ema_max_decay, "must be in [0, 1)")
 
@@ -91,7 +74,7 @@ class SamplingConfig:
     def __post_init__(self) -> None:
         key = f"inference.{self.SECTION}"
         _require(self.sampler in SAMPLERS, f"{key}.sampler", self.sampler, f"must be one of {SAMPLERS}")
-        _require_positive_int(key, "num_inference_steps", self.num_inference_steps)
+        require_positive_int(f"{key}.num_inference_steps", self.num_inference_steps)
 
     def settings_for(self, task: str) -> dict[str, Any]:
         """Keyword arguments of `DiffusionPolicy.configure_inference` (the same for every task)."""
@@ -144,18 +127,12 @@ class DiffusionUNetConfig(DenoisingConfig):
     At the defaults and Can's shapes (Do = 23, To = 2, A = 10) it has 65.9 M parameters (65,883,658); `down_dims`
     (64, 128, 256) gives a CPU-sized variant of 5.4 M. The count does not depend on the horizon.
 
+    The schedule, learning rate and EMA fields are :class:`DenoisingConfig`'s.
+
     Attributes:
-        num_train_steps: Diffusion steps of the training noise schedule (DP: 100); an integer >= 1.
-        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 1%
-            of the peak; a number > 0.
         weight_decay: AdamW weight decay of the weight matrices; a number >= 0 (DP's default: 1e-6).
         warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0
             (DP's default: 500).
-        use_ema: Evaluate an exponential moving average of the weights, as DP does (see
-            `carp.policies.diffusion.ema`); true or false.
-        ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
-            ``ema_max_decay``; a number in (0, 1].
-        ema_max_decay: Largest EMA decay; a number in [0, 1).
         down_dims: Channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
             divisible by ``num_groups``. The horizon must be divisible by ``2 ** (len(down_dims) - 1)``.
         kernel_size: Temporal kernel of the residual blocks' convolutions; an odd integer >= 1 (odd keeps the
@@ -179,17 +156,17 @@ class DiffusionUNetConfig(DenoisingConfig):
         section = self.SECTION
         _require(len(self.down_dims) >= 1, f"{section}.down_dims", self.down_dims, "must name at least one level")
         for channels in self.down_dims:
-            _require_positive_int(section, "down_dims", channels)
-        _require_positive_int(section, "num_groups", self.num_groups)
+            require_positive_int(f"{section}.down_dims", channels)
+        require_positive_int(f"{section}.num_groups", self.num_groups)
         _require(
             all(channels % self.num_groups == 0 for channels in self.down_dims),
             f"{section}.num_groups",
             self.num_groups,
             f"must divide every entry of down_dims={list(self.down_dims)}",
         )
-        _require_positive_int(section, "kernel_size", self.kernel_size)
+        require_positive_int(f"{section}.kernel_size", self.kernel_size)
         _require(self.kernel_size % 2 == 1, f"{section}.kernel_size", self.kernel_size, "must be odd")
-        _require_positive_int(section, "step_embedding_dim", self.step_embedding_dim)
+        require_positive_int(f"{section}.step_embedding_dim", self.step_embedding_dim)
         _require(
             self.step_embedding_dim >= 4 and self.step_embedding_dim % 2 == 0,
             f"{section}.step_embedding_dim",
@@ -210,18 +187,12 @@ class DiffusionTransformerConfig(DenoisingConfig):
     At the defaults and Can's shapes (Do = 23, To = 2, A = 10) it has 8,968,458 parameters (9.0 M) at DP's robomimic
     horizon H = 10 and 8,969,994 at H = 16: only the action position embedding grows, by `width` per action.
 
+    The schedule, learning rate and EMA fields are :class:`DenoisingConfig`'s.
+
     Attributes:
-        num_train_steps: Diffusion steps of the training noise schedule (DP: 100); an integer >= 1.
-        learning_rate: Peak AdamW learning rate, reached after a linear warm-up and followed by a cosine decay to 1%
-            of the peak; a number > 0.
         weight_decay: AdamW weight decay of the weight matrices; a number >= 0 (DP's default: 1e-3).
         warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0
             (DP's default: 1000).
-        use_ema: Evaluate an exponential moving average of the weights, as DP does (see
-            `carp.policies.diffusion.ema`); true or false.
-        ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
-            ``ema_max_decay``; a number in (0, 1].
-        ema_max_decay: Largest EMA decay; a number in [0, 1).
         num_layers: Transformer decoder layers of the denoiser; an integer >= 1.
         num_heads: Attention heads of every layer; an integer >= 1 dividing ``width``.
         width: Token width of the action and condition tokens; an integer >= 1.
@@ -243,9 +214,9 @@ class DiffusionTransformerConfig(DenoisingConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         section = self.SECTION
-        _require_positive_int(section, "num_layers", self.num_layers)
-        _require_positive_int(section, "num_heads", self.num_heads)
-        _require_positive_int(section, "width", self.width)
+        require_positive_int(f"{section}.num_layers", self.num_layers)
+        require_positive_int(f"{section}.num_heads", self.num_heads)
+        require_positive_int(f"{section}.width", self.width)
         _require(
             self.width % self.num_heads == 0,
             f"{section}.num_heads",

@@ -8,12 +8,7 @@ embeddings).
 
 import dataclasses
 import functools
-from collections.abc import Callable
-from pathlib import Path
 
-import torch
-
-from carp.config import TrainingConfig
 from carp.policies.context import PolicyContext
 from carp.policies.diffusion.config import (
     DenoisingConfig,
@@ -26,8 +21,8 @@ from carp.policies.diffusion.ema import exponential_moving_average
 from carp.policies.diffusion.policy import DenoiserFactory, DiffusionPolicy, from_checkpoint
 from carp.policies.diffusion.transformer import DiffusionTransformer
 from carp.policies.diffusion.unet import ConditionalUNet1D
-from carp.policies.registry import PolicyFamily
-from carp.training.loop import OptimizerRecipe, PolicyTrainingData, train_with_loss
+from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.training.loop import OptimizerRecipe
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.95, 0.999)
@@ -63,20 +58,11 @@ def build(policy_type: str, make_denoiser: DenoiserFactory, config: DenoisingCon
 
 
 def train(
-    policy_type: str,
-    make_denoiser: DenoiserFactory,
-    config: DenoisingConfig,
-    training: TrainingConfig,
-    context: PolicyContext,
-    data: PolicyTrainingData,
-    checkpoint_dir: Path,
-    device: str | torch.device = "cpu",
-    epochs: int | None = None,
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    policy_type: str, make_denoiser: DenoiserFactory, config: DenoisingConfig, run: TrainingRun
 ) -> DiffusionPolicy:
     """Build the policy after seeding (reproducible weights) and train it on DP's loss in the shared loop."""
-    seed_everything(training.seed)
-    policy = build(policy_type, make_denoiser, config, context)
+    seed_everything(run.training.seed)
+    policy = build(policy_type, make_denoiser, config, run.context)
     ema = None
     if config.use_ema:
         ema = functools.partial(exponential_moving_average, power=config.ema_power, max_decay=config.ema_max_decay)
@@ -89,8 +75,8 @@ def train(
         ema=ema,
         parameter_groups=(lambda: groups(config.weight_decay)) if groups is not None else None,
     )
-    identity = {"policy_type": policy_type, "config": dataclasses.asdict(config), "shapes": _shapes(context)}
-    return train_with_loss(policy, data, recipe, training, checkpoint_dir, identity, epochs, device, on_epoch_end)
+    identity = {"policy_type": policy_type, "config": dataclasses.asdict(config), "shapes": _shapes(run.context)}
+    return run.train_with_loss(policy, recipe, identity)
 
 
 def _shapes(context: PolicyContext) -> dict[str, int]:

@@ -9,10 +9,8 @@ asks for them) and the normalizer statistics; it loads strictly.
 """
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,16 +18,16 @@ import torch
 from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policies.base import POLICY_FORMAT_VERSION, TORCH_BACKEND, Deployment, TimedPrediction, count_parameters
+from carp.policies.base import TimedPrediction
 from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig
 from carp.policies.diffusion.sampler import DiffusionSampler
-from carp.training.checkpoint import atomic_torch_save
+from carp.policies.wrapper import PolicyModule, check_policy_type, checkpoint_normalizers
 
 DenoiserFactory = Callable[[Any, int, int, int, int], nn.Module]
 """`factory(config, action_dim, obs_dim, obs_steps, action_horizon)` -> an untrained denoiser."""
 
 
-class DiffusionPolicy(nn.Module):
+class DiffusionPolicy(PolicyModule):
     """Normalizers + denoiser + sampler; a :class:`~carp.policies.base.Policy`.
 
     Args:
@@ -52,24 +50,11 @@ class DiffusionPolicy(nn.Module):
         action_horizon: int,
         metadata: dict[str, Any] | None = None,
     ) -> None:
-        super().__init__()
-        if obs_normalizer.num_features != denoiser.obs_dim:
-            raise ValueError(
-                f"obs normalizer has {obs_normalizer.num_features} features, the denoiser expects Do = "
-                f"{denoiser.obs_dim}"
-            )
-        if action_normalizer.num_features != denoiser.action_dim:
-            raise ValueError(
-                f"action normalizer has {action_normalizer.num_features} features, the denoiser has A = "
-                f"{denoiser.action_dim}"
-            )
+        super().__init__(obs_normalizer, action_normalizer, metadata, denoiser.obs_dim, denoiser.action_dim)
         self.policy_type = policy_type
         self.config = config
         self.denoiser = denoiser
-        self.obs_normalizer = obs_normalizer
-        self.action_normalizer = action_normalizer
         self.action_horizon = action_horizon
-        self.metadata = dict(metadata or {})
         # DP's protocol until `configure_inference` says otherwise.
         self.sampler = DiffusionSampler(config.num_train_steps, "ddpm", config.num_train_steps)
 
@@ -86,27 +71,9 @@ class DiffusionPolicy(nn.Module):
         return self.sampler.num_inference_steps
 
     @property
-    def num_parameters(self) -> int:
-        """Parameters of the denoiser."""
-        return count_parameters(self.denoiser)
-
-    @property
     def description(self) -> str:
         """The sampler, e.g. `DDPM-100` or `DDIM-10`."""
         return self.sampler.description
-
-    @property
-    def device(self) -> torch.device:
-        """Device of the weights."""
-        return next(self.denoiser.parameters()).device
-
-    def _observations(self, obs: np.ndarray | torch.Tensor) -> torch.Tensor:
-        observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
-        expected = (self.denoiser.obs_steps, self.denoiser.obs_dim)
-        if observations.dim() != 3 or tuple(observations.shape[1:]) != expected:
-            raise ValueError(f"obs must have shape (B, To, Do) = (B, {expected[0]}, {expected[1]}), got "
-                             f"{tuple(observations.shape)}")  # fmt: skip
-        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
 
     def predict_action_timed(
         self,
@@ -128,21 +95,13 @@ class DiffusionPolicy(nn.Module):
             raise ValueError(f"a {self.policy_type} policy is single-task; got a task index")
         with torch.inference_mode():
             started = time.perf_counter()
-            observations = self._observations(obs)  # (B, To, Do)
-            normalized_actions = self.sampler.sample(self.denoiser, observations, self.action_horizon, generator)
+            denoiser = self.denoiser
+            observations = self.normalized_observations(obs, denoiser.obs_steps, denoiser.obs_dim)  # (B, To, Do)
+            normalized_actions = self.sampler.sample(denoiser, observations, self.action_horizon, generator)
             predicted = time.perf_counter()
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()  # (B, H, A)
             decoded = time.perf_counter()
         return TimedPrediction(actions, predicted - started, decoded - predicted, self.sampler.num_inference_steps)
-
-    def predict_action(
-        self,
-        obs: np.ndarray | torch.Tensor,
-        task_index: int | np.ndarray | torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
-    ) -> np.ndarray:
-        """(B, H, A) float32 raw actions; see :meth:`predict_action_timed`."""
-        return self.predict_action_timed(obs, task_index, generator).actions
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """DP's loss: mean-squared error of the predicted noise at uniformly drawn diffusion steps (scalar).
@@ -152,18 +111,10 @@ class DiffusionPolicy(nn.Module):
         """
         return self.sampler.training_loss(self.denoiser, batch["actions"], batch["obs"])
 
-    def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
-        """Always PyTorch (inference mode), whatever `backend` asks: the report names the backend that ran."""
-        from carp.policies.registry import load_policy
-
-        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
-
-    def to_checkpoint(self) -> dict[str, Any]:
-        """Self-contained state: family, config, shapes, denoiser weights, normalizer statistics, metadata."""
+    def family_checkpoint(self) -> dict[str, Any]:
+        """The diffusion entries: config, shapes and the denoiser's weights."""
         denoiser = self.denoiser
         return {
-            "format_version": POLICY_FORMAT_VERSION,
-            "policy_type": self.policy_type,
             "config": dataclasses.asdict(self.config),
             "shapes": {
                 "action_dim": denoiser.action_dim,
@@ -172,34 +123,27 @@ class DiffusionPolicy(nn.Module):
                 "action_horizon": self.action_horizon,
             },
             "denoiser_state": denoiser.state_dict(),
-            "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
-            "metadata": self.metadata,
         }
-
-    def save(self, path: Path) -> None:
-        """Atomically write :meth:`to_checkpoint` to `path`."""
-        atomic_torch_save(self.to_checkpoint(), Path(path))
 
 
 def from_checkpoint(
     checkpoint: dict[str, Any], policy_type: str, config_class: type, make_denoiser: DenoiserFactory
 ) -> DiffusionPolicy:
     """Rebuild a policy from :meth:`DiffusionPolicy.to_checkpoint` output, loading the weights strictly."""
-    if checkpoint.get("policy_type") != policy_type:
-        raise ValueError(f"policy_type={checkpoint.get('policy_type')!r}: not a {policy_type} checkpoint")
+    check_policy_type(checkpoint, policy_type)
     config = config_class(**checkpoint["config"])
     shapes = checkpoint["shapes"]
     denoiser = make_denoiser(
         config, shapes["action_dim"], shapes["obs_dim"], shapes["obs_steps"], shapes["action_horizon"]
     )
     denoiser.load_state_dict(checkpoint["denoiser_state"], strict=True)
-    normalizers = checkpoint["normalizers"]
+    obs_normalizer, action_normalizer = checkpoint_normalizers(checkpoint)
     policy = DiffusionPolicy(
         policy_type,
         config,
         denoiser,
-        MinMaxNormalizer.from_dict(normalizers["obs"]),
-        MinMaxNormalizer.from_dict(normalizers["action"]),
+        obs_normalizer,
+        action_normalizer,
         shapes["action_horizon"],
         checkpoint["metadata"],
     )

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from carp.policies.base import check_dimensions, check_observation_shape
 from carp.policies.diffusion.config import DiffusionTransformerConfig
 from carp.policies.diffusion.embedding import SinusoidalStepEmbedding
 
@@ -57,14 +58,7 @@ class DiffusionTransformer(nn.Module):
         self, config: DiffusionTransformerConfig, action_dim: int, obs_dim: int, obs_steps: int, action_horizon: int
     ) -> None:
         super().__init__()
-        for name, value in (
-            ("action_dim", action_dim),
-            ("obs_dim", obs_dim),
-            ("obs_steps", obs_steps),
-            ("action_horizon", action_horizon),
-        ):
-            if value < 1:
-                raise ValueError(f"{name} must be >= 1, got {value}")
+        check_dimensions(action_dim=action_dim, obs_dim=obs_dim, obs_steps=obs_steps, action_horizon=action_horizon)
         self.config = config
         self.action_dim = action_dim
         self.obs_dim = obs_dim
@@ -122,11 +116,7 @@ class DiffusionTransformer(nn.Module):
         return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
 
     def _check_inputs(self, obs_features: torch.Tensor, action_horizon: int) -> None:
-        if obs_features.dim() != 3 or tuple(obs_features.shape[1:]) != (self.obs_steps, self.obs_dim):
-            raise ValueError(
-                f"obs_features must have shape (B, To, Do) = (B, {self.obs_steps}, {self.obs_dim}), got "
-                f"{tuple(obs_features.shape)}"
-            )
+        check_observation_shape(obs_features, self.obs_steps, self.obs_dim, "obs_features")
         if action_horizon != self.action_horizon:
             raise ValueError(f"this transformer denoises H={self.action_horizon} actions, got H={action_horizon}")
 

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from carp.policies.base import check_dimensions, check_observation_shape
 from carp.policies.diffusion.config import DiffusionUNetConfig
 from carp.policies.diffusion.embedding import step_encoder
 
@@ -116,9 +117,7 @@ class ConditionalUNet1D(nn.Module):
 
     def __init__(self, config: DiffusionUNetConfig, action_dim: int, obs_dim: int, obs_steps: int) -> None:
         super().__init__()
-        for name, value in (("action_dim", action_dim), ("obs_dim", obs_dim), ("obs_steps", obs_steps)):
-            if value < 1:
-                raise ValueError(f"{name} must be >= 1, got {value}")
+        check_dimensions(action_dim=action_dim, obs_dim=obs_dim, obs_steps=obs_steps)
         self.config = config
         self.action_dim = action_dim
         self.obs_dim = obs_dim
@@ -170,11 +169,7 @@ class ConditionalUNet1D(nn.Module):
         )
 
     def _check_inputs(self, obs_features: torch.Tensor, action_horizon: int) -> None:
-        if obs_features.dim() != 3 or tuple(obs_features.shape[1:]) != (self.obs_steps, self.obs_dim):
-            raise ValueError(
-                f"obs_features must have shape (B, To, Do) = (B, {self.obs_steps}, {self.obs_dim}), got "
-                f"{tuple(obs_features.shape)}"
-            )
+        check_observation_shape(obs_features, self.obs_steps, self.obs_dim, "obs_features")
         multiple = self.config.horizon_multiple
         if action_horizon < 1 or action_horizon % multiple:
             raise ValueError(

@@ -6,20 +6,16 @@ EMA with a constant decay), so that the two families differ in how many tokens a
 """
 
 import dataclasses
-from collections.abc import Callable
-from pathlib import Path
 
-import torch
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from carp.config import TrainingConfig
 from carp.policies.context import PolicyContext
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policies.registry import PolicyFamily
-from carp.training.loop import OptimizerRecipe, PolicyTrainingData, matrix_decay_groups, train_with_loss
+from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.training.loop import OptimizerRecipe, matrix_decay_groups
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.9, 0.95)
@@ -44,18 +40,10 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
     )
 
 
-def train(
-    config: NextTokenConfig,
-    training: TrainingConfig,
-    context: PolicyContext,
-    data: PolicyTrainingData,
-    checkpoint_dir: Path,
-    device: str | torch.device = "cpu",
-    epochs: int | None = None,
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
-) -> NextTokenPolicy:
+def train(config: NextTokenConfig, run: TrainingRun) -> NextTokenPolicy:
     """Build the policy after seeding (reproducible weights) and train it in the shared loop."""
-    seed_everything(training.seed)
+    seed_everything(run.training.seed)
+    context = run.context
     policy = build(config, context)
 
     def average(module: nn.Module) -> AveragedModel:
@@ -76,7 +64,7 @@ def train(
         "shapes": {"obs_dim": context.obs_dim, "obs_steps": context.obs_steps, "action_dim": context.action_dim},
         "tokenizer_sha256": context.tokenizer_artifact.sha256,
     }
-    return train_with_loss(policy, data, recipe, training, checkpoint_dir, identity, epochs, device, on_epoch_end)
+    return run.train_with_loss(policy, recipe, identity)
 
 
 FAMILY = PolicyFamily(POLICY_TYPE, NextTokenConfig, NextTokenInference, build, NextTokenPolicy.from_checkpoint, train)

@@ -2,13 +2,14 @@
 
 Each step scores one token, chooses it (argmax, or a draw among the top k with CARP's Gumbel-max helpers from
 `carp.policies.carp.sampling`, the chunk's uniforms drawn up front) and feeds it back. The condition, the AdaLN
-modulations and the position embeddings are computed once per chunk by `start_generation`.
+modulations and the position embeddings are computed once per chunk by `start_inference`.
 """
 
 import torch
 
 from carp.policies.carp.sampling import check_top_k, sampling_uniforms, select_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
+from carp.policies.wrapper import check_tokenizer_fit
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 
@@ -37,7 +38,7 @@ def generate_tokens(
     uniforms = (
         sampling_uniforms(batch, length, top_k, generator, obs_features.device) if top_k > 1 else None
     )  # (B, L, k)
-    state = transformer.start_generation(obs_features, task_ids)
+    state = transformer.start_inference(obs_features, task_ids)
     token_ids = torch.empty(batch, length, dtype=torch.long, device=obs_features.device)
     previous = None
     for position in range(length):
@@ -58,12 +59,7 @@ def check_tokenizer_matches(transformer: NextTokenTransformer, tokenizer: MultiS
         "scales": (transformer.layout.scales, tuple(spec.scales)),
         "codebook_size": (transformer.codebook_size, spec.codebook_size),
     }
-    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
-    if mismatched:
-        details = ", ".join(
-            f"{name}: model {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
-        )
-        raise ValueError(f"next-token transformer does not match the tokenizer ({details})")
+    check_tokenizer_fit(pairs, "model", "next-token transformer does not match the tokenizer")
 
 
 @torch.inference_mode()

@@ -18,48 +18,20 @@ for multi-task policies) is projected to `D` and modulates every block through A
 replace CARP's projected, area-downsampled tokenizer latents because the latent of a partly predicted scale is not
 defined one token at a time.
 
-Blocks, the kv-cache, the mask type and the head are CARP's, imported from `carp.policies.carp.blocks`.
+The conditioning, the position and level embeddings, the blocks, the kv-cache and the head are CARP's: the
+class extends `carp.policies.carp.transformer.AdaptiveTransformer` and adds only its token inputs and causal mask.
 """
 
-from dataclasses import dataclass
-
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from carp.policies.carp.blocks import (
-    MODULATIONS_PER_BLOCK,
-    AdaptiveBlock,
-    KeyValueCache,
-    PerDimensionHead,
-    modulate,
-)
+from carp.policies.base import check_dimensions
 from carp.policies.carp.layout import TokenLayout
-from carp.policies.carp.spec import TASK_EMBEDDING_DIM
-from carp.policies.carp.transformer import initialize_adaptive_transformer
+from carp.policies.carp.transformer import AdaptiveTransformer, InferenceState
 from carp.policies.next_token.config import NextTokenConfig
 
 
-@dataclass
-class GenerationState:
-    """What token-by-token inference carries from one step to the next.
-
-    Attributes:
-        condition: (B, D) condition vector.
-        modulations: tensors (B, 1, D): `MODULATIONS_PER_BLOCK` per block, then the head's shift and scale.
-        position_and_level: (1, L, D) position plus level embedding of every token.
-        cache: keys and values of the tokens processed so far.
-        next_position: index of the token the next call predicts.
-    """
-
-    condition: torch.Tensor
-    modulations: tuple[torch.Tensor, ...]
-    position_and_level: torch.Tensor
-    cache: KeyValueCache
-    next_position: int = 0
-
-
-class NextTokenTransformer(nn.Module):
+class NextTokenTransformer(AdaptiveTransformer):
     """Predicts the L token ids of an action chunk one at a time given observation features.
 
     Args:
@@ -83,49 +55,25 @@ class NextTokenTransformer(nn.Module):
         num_tasks: int = 0,
     ) -> None:
         super().__init__()
-        for name, value in (("obs_dim", obs_dim), ("obs_steps", obs_steps), ("action_dim", action_dim)):
-            if value < 1:
-                raise ValueError(f"{name} must be >= 1, got {value}")
+        check_dimensions(obs_dim=obs_dim, obs_steps=obs_steps, action_dim=action_dim)
         if codebook_size < 2:
             raise ValueError(f"codebook_size must be >= 2, got {codebook_size}")
         if num_tasks < 0:
             raise ValueError(f"num_tasks must be >= 0, got {num_tasks}")
         self.config = config
-        self.obs_dim = obs_dim
-        self.obs_steps = obs_steps
         self.action_dim = action_dim
         self.codebook_size = codebook_size
-        self.num_tasks = num_tasks
         self.layout = TokenLayout(action_dim, tuple(scales))
-        width, length = config.width, self.layout.sequence_length
+        length = self.layout.sequence_length
 
-        self.task_embedding = nn.Embedding(num_tasks, TASK_EMBEDDING_DIM) if num_tasks > 0 else None
-        condition_features = obs_steps * obs_dim + (TASK_EMBEDDING_DIM if num_tasks > 0 else 0)
-        self.condition_projection = nn.Linear(condition_features, width)
-        self.start_embedding = nn.Parameter(torch.empty(1, 1, width))
-        self.token_embedding = nn.Embedding(action_dim * codebook_size, width)
-        self.position_embedding = nn.Parameter(torch.empty(1, length, width))
-        self.level_embedding = nn.Parameter(torch.empty(self.layout.num_scales, width))
-
-        self.num_modulations = MODULATIONS_PER_BLOCK * config.depth + 2
-        self.modulation = nn.Linear(width, self.num_modulations * width)
-        # Scales are applied as (1 + scale): the offset adds the one once per chunk.
-        scale_rows = torch.zeros(self.num_modulations, 1)
-        scale_rows[1 : MODULATIONS_PER_BLOCK * config.depth : 3] = 1.0
-        scale_rows[-1] = 1.0
-        self.register_buffer("modulation_offset", scale_rows.expand(-1, width).reshape(-1), persistent=False)
-
-        self.blocks = nn.ModuleList(
-            AdaptiveBlock(width, config.num_heads, config.hidden_width, config.dropout, index)
-            for index in range(config.depth)
-        )
-        self.head = PerDimensionHead(action_dim, width, codebook_size)
+        self._build_condition(obs_steps, obs_dim, num_tasks, config.width, 1)
+        self.token_embedding = nn.Embedding(action_dim * codebook_size, config.width)
+        self._build_trunk(self.layout, config, codebook_size)
 
         dimension_ids = self.layout.dimension_ids()  # (L,)
         self.register_buffer("dimension_ids", dimension_ids, persistent=False)
         # Row of token i's (dimension, id) pair in the embedding table is id + vocabulary_offsets[i].
         self.register_buffer("vocabulary_offsets", dimension_ids * codebook_size, persistent=False)
-        self.register_buffer("level_ids", self.layout.level_ids(), persistent=False)
         causal = torch.ones(length, length, dtype=torch.bool).tril()  # (L, L), True where attending is allowed
         self.register_buffer("causal_mask", causal, persistent=False)
         self._initialize_weights()
@@ -134,55 +82,6 @@ class NextTokenTransformer(nn.Module):
     def sequence_length(self) -> int:
         """`L`, tokens per chunk (and sequential model calls per chunk at inference)."""
         return self.layout.sequence_length
-
-    def _initialize_weights(self) -> None:
-        initialize_adaptive_transformer(self, self.config.depth, self.config.width)
-
-    def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """Project observations (and task) to the condition vector.
-
-        Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long task indices; required exactly when `num_tasks > 0`.
-
-        Returns:
-            (B, D) condition.
-        """
-        if obs_features.dim() != 3 or tuple(obs_features.shape[1:]) != (self.obs_steps, self.obs_dim):
-            raise ValueError(
-                f"obs_features must have shape (B, To, Do) = (B, {self.obs_steps}, {self.obs_dim}), got "
-                f"{tuple(obs_features.shape)}"
-            )
-        features = obs_features.flatten(1)  # (B, To * Do)
-        if self.task_embedding is not None:
-            if task_ids is None:
-                raise ValueError(f"this policy is multi-task ({self.num_tasks} tasks): pass task ids")
-            features = torch.cat((features, self.task_embedding(task_ids)), dim=1)  # (B, To * Do + 3)
-        elif task_ids is not None:
-            raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
-        return self.condition_projection(features)  # (B, D)
-
-    def modulations(self, condition: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """AdaLN vectors (B, 1, D) of a condition (B, D): shift, 1 + scale, gate per block branch, then the head's."""
-        modulation = self.modulation(F.silu(condition)) + self.modulation_offset  # (B, M * D)
-        return modulation.view(condition.shape[0], self.num_modulations, 1, self.config.width).unbind(1)
-
-    def position_and_level(self) -> torch.Tensor:
-        """Position plus level embedding of every token, (1, L, D)."""
-        return self.position_embedding + self.level_embedding[self.level_ids]  # (1, L, D)
-
-    def _run_blocks(
-        self,
-        hidden: torch.Tensor,
-        modulations: tuple[torch.Tensor, ...],
-        mask: torch.Tensor | None,
-        cache: KeyValueCache | None,
-    ) -> torch.Tensor:
-        for index, block in enumerate(self.blocks):
-            start = index * MODULATIONS_PER_BLOCK
-            hidden = block(hidden, modulations[start : start + MODULATIONS_PER_BLOCK], mask, cache)
-        shift, scale = modulations[-2:]
-        return modulate(hidden, shift, scale)  # (B, N, D)
 
     def forward(
         self, obs_features: torch.Tensor, token_ids: torch.Tensor, task_ids: torch.Tensor | None = None
@@ -205,38 +104,20 @@ class NextTokenTransformer(nn.Module):
         previous = self.token_embedding(token_ids[:, :-1] + self.vocabulary_offsets[:-1])  # (B, L - 1, D)
         start = condition.unsqueeze(1) + self.start_embedding  # (B, 1, D)
         hidden = torch.cat((start, previous), dim=1) + self.position_and_level()  # (B, L, D)
-        hidden = self._run_blocks(hidden, modulations, self.causal_mask, None)  # (B, L, D)
+        hidden = self.run_blocks(hidden, modulations, self.causal_mask, None)  # (B, L, D)
         return self.head(hidden)  # (B, L, V)
 
-    def start_generation(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> GenerationState:
-        """Encode the condition and open an empty kv-cache for L-step inference.
-
-        Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long, for multi-task policies.
-
-        Returns:
-            State to pass to :meth:`next_token_logits` L times.
-        """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
-        return GenerationState(
-            condition,
-            self.modulations(condition),
-            self.position_and_level(),
-            KeyValueCache(self.config.depth, self.sequence_length),
-        )
-
-    def next_token_logits(self, state: GenerationState, previous_ids: torch.Tensor | None = None) -> torch.Tensor:
+    def next_token_logits(self, state: InferenceState, previous_ids: torch.Tensor | None = None) -> torch.Tensor:
         """Logits of the next token, extending the kv-cache (no mask: every cached key precedes the query).
 
         Args:
-            state: from :meth:`start_generation`, advanced by one token per call.
+            state: from :meth:`start_inference`, advanced by one token per call.
             previous_ids: None for the first token; afterwards (B,) long, the id chosen at the previous position.
 
         Returns:
-            (B, V) logits of token i = `state.next_position`, over dimension `i % A`'s vocabulary.
+            (B, V) logits of token i = `state.next_step`, over dimension `i % A`'s vocabulary.
         """
-        position = state.next_position
+        position = state.next_step
         if position >= self.sequence_length:
             raise RuntimeError(f"all {self.sequence_length} tokens were already predicted")
         if position == 0:
@@ -246,7 +127,7 @@ class NextTokenTransformer(nn.Module):
                 raise ValueError(f"token {position} needs the id chosen for token {position - 1}")
             tokens = self.token_embedding(previous_ids + self.vocabulary_offsets[position - 1]).unsqueeze(1)
         hidden = tokens + state.position_and_level[:, position : position + 1]  # (B, 1, D)
-        hidden = self._run_blocks(hidden, state.modulations, None, state.cache)  # (B, 1, D)
-        state.next_position += 1
+        hidden = self.run_blocks(hidden, state.modulations, None, state.cache)  # (B, 1, D)
+        state.next_step += 1
         dimension = position % self.action_dim
         return torch.addmm(self.head.bias[dimension, 0], hidden[:, 0], self.head.weight[dimension])  # (B, V)

@@ -1,0 +1,248 @@
+"""What the families' PyTorch policies share: normalization, timing conveniences, saving and torch deployment.
+
+:class:`PolicyModule` implements the parts of the :class:`~carp.policies.base.Policy` protocol that do not depend on
+the family: a family subclasses it and writes its network, `predict_action_timed`, `training_loss`,
+`configure_inference`, `model_calls_per_chunk`, `description` and its checkpoint entries. :class:`TokenizedPolicy`
+adds what the two token-predicting families (CARP and next-token) share on top: the frozen registered tokenizer,
+the token choice (`top_k`), task indices and the tokenizer's checkpoint entries. The protocol stays the seam: the
+rest of carp types against `Policy`, never against these classes.
+"""
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from carp.data.normalizer import MinMaxNormalizer
+from carp.policies.base import (
+    POLICY_FORMAT_VERSION,
+    TORCH_BACKEND,
+    Deployment,
+    check_observation_shape,
+    count_parameters,
+)
+from carp.policies.carp.sampling import check_top_k
+from carp.tokenizer.artifact import TokenizerArtifact
+from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training.checkpoint import atomic_torch_save
+
+
+def check_policy_type(checkpoint: dict[str, Any], policy_type: str) -> None:
+    """Raise ValueError unless `checkpoint` was written by family `policy_type`."""
+    if checkpoint.get("policy_type") != policy_type:
+        raise ValueError(f"policy_type={checkpoint.get('policy_type')!r}: not a {policy_type} checkpoint")
+
+
+def checkpoint_normalizers(checkpoint: dict[str, Any]) -> tuple[MinMaxNormalizer, MinMaxNormalizer]:
+    """The (observation, action) normalizers a checkpoint written by :meth:`PolicyModule.to_checkpoint` holds."""
+    normalizers = checkpoint["normalizers"]
+    return MinMaxNormalizer.from_dict(normalizers["obs"]), MinMaxNormalizer.from_dict(normalizers["action"])
+
+
+def check_tokenizer_fit(pairs: dict[str, tuple[Any, Any]], label: str, what: str) -> None:
+    """Raise ValueError naming every size a model and the tokenizer disagree on.
+
+    Args:
+        pairs: size name -> (the model's value, the tokenizer's value).
+        label: what the model's values are called in the message (`policy`, `model`).
+        what: the start of the message, e.g. `policy spec does not match the tokenizer spec`.
+    """
+    mismatched = {name: values for name, values in pairs.items() if values[0] != values[1]}
+    if mismatched:
+        details = ", ".join(
+            f"{name}: {label} {ours} vs tokenizer {theirs}" for name, (ours, theirs) in mismatched.items()
+        )
+        raise ValueError(f"{what} ({details})")
+
+
+class PolicyModule(nn.Module):
+    """Base of the PyTorch policies: normalizers, metadata and the protocol's family-independent methods.
+
+    Subclasses set `policy_type`, register their networks (trainable parameters are what `num_parameters` counts)
+    and implement `family_checkpoint` plus the family-specific protocol methods.
+
+    Args:
+        obs_normalizer: min-max statistics of the `Do` observation features.
+        action_normalizer: min-max statistics of the `A` action dimensions.
+        metadata: plain values stored in the checkpoint.
+        obs_dim: `Do` the network expects.
+        action_dim: `A` the network predicts.
+
+    Raises:
+        ValueError: a normalizer has another number of features.
+    """
+
+    policy_type: str
+
+    def __init__(
+        self,
+        obs_normalizer: MinMaxNormalizer,
+        action_normalizer: MinMaxNormalizer,
+        metadata: dict[str, Any] | None,
+        obs_dim: int,
+        action_dim: int,
+    ) -> None:
+        if obs_normalizer.num_features != obs_dim:
+            raise ValueError(
+                f"obs normalizer has {obs_normalizer.num_features} features, the policy expects Do = {obs_dim}"
+            )
+        if action_normalizer.num_features != action_dim:
+            raise ValueError(
+                f"action normalizer has {action_normalizer.num_features} features, the policy predicts A = {action_dim}"
+            )
+        super().__init__()
+        self.obs_normalizer = obs_normalizer
+        self.action_normalizer = action_normalizer
+        self.metadata = dict(metadata or {})
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the weights."""
+        return next(self.parameters()).device
+
+    @property
+    def num_parameters(self) -> int:
+        """Trained parameters: those that require gradients (a frozen tokenizer is not counted)."""
+        return count_parameters(self)
+
+    def normalized_observations(self, obs: np.ndarray | torch.Tensor, obs_steps: int, obs_dim: int) -> torch.Tensor:
+        """(B, To, Do) float32 normalized observations on the policy's device.
+
+        Args:
+            obs: (B, To, Do) raw observations (numpy or torch).
+            obs_steps: `To` the network expects.
+            obs_dim: `Do` the network expects.
+
+        Raises:
+            ValueError: `obs` has another shape.
+        """
+        observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
+        check_observation_shape(observations, obs_steps, obs_dim, "obs")
+        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
+
+    def predict_action(
+        self,
+        obs: np.ndarray | torch.Tensor,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        **settings: Any,
+    ) -> np.ndarray:
+        """(B, H, A) float32 raw actions; see the family's `predict_action_timed` (and its extra `settings`)."""
+        return self.predict_action_timed(obs, task_index, generator, **settings).actions
+
+    def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
+        """PyTorch (inference mode) whatever `backend` asks; the report names the backend that ran.
+
+        Workers load `checkpoint_path` again; `directory` is not used.
+        """
+        from carp.policies.registry import load_policy
+
+        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
+
+    def family_checkpoint(self) -> dict[str, Any]:
+        """The family's own checkpoint entries (config or spec, shapes, weights); see :meth:`to_checkpoint`."""
+        raise NotImplementedError
+
+    def to_checkpoint(self) -> dict[str, Any]:
+        """Self-contained state: the envelope, the family's entries, the normalizer statistics and the metadata."""
+        return {
+            "format_version": POLICY_FORMAT_VERSION,
+            "policy_type": self.policy_type,
+            **self.family_checkpoint(),
+            "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
+            "metadata": self.metadata,
+        }
+
+    def save(self, path: Path) -> None:
+        """Atomically write :meth:`to_checkpoint` to `path`."""
+        atomic_torch_save(self.to_checkpoint(), Path(path))
+
+
+class TokenizedPolicy(PolicyModule):
+    """Base of the families that predict the registered tokenizer's tokens with a transformer (CARP, next-token).
+
+    The tokenizer is frozen (eval mode, no gradients); the checkpoint embeds its artifact with the artifact's
+    sha256, which loading recomputes, so a policy never decodes with a tokenizer other than the one it learned from.
+
+    Args:
+        tokenizer_artifact: the trained tokenizer with its training statistics and sha256; becomes :attr:`tokenizer`.
+        transformer: the family's token transformer, already checked against the tokenizer by the subclass.
+        obs_normalizer: min-max statistics of the `Do` observation features.
+        action_normalizer: min-max statistics of the task's `A` action dimensions.
+        metadata: plain values stored in the checkpoint.
+        obs_dim: `Do` the transformer expects.
+        num_tasks: tasks the transformer is conditioned on; 0 for a single-task policy.
+    """
+
+    def __init__(
+        self,
+        tokenizer_artifact: TokenizerArtifact,
+        transformer: nn.Module,
+        obs_normalizer: MinMaxNormalizer,
+        action_normalizer: MinMaxNormalizer,
+        metadata: dict[str, Any] | None,
+        obs_dim: int,
+        num_tasks: int,
+    ) -> None:
+        action_dim = tokenizer_artifact.tokenizer.spec.action_dim
+        super().__init__(obs_normalizer, action_normalizer, metadata, obs_dim, action_dim)
+        self.tokenizer: MultiScaleActionTokenizer = tokenizer_artifact.tokenizer.eval().requires_grad_(False)
+        self.tokenizer_artifact = tokenizer_artifact
+        self.transformer = transformer.eval()
+        self.num_tasks = num_tasks
+        self.top_k = 1
+
+    def train(self, mode: bool = True) -> "TokenizedPolicy":
+        """Switch the transformer's mode; the tokenizer stays frozen in eval mode."""
+        super().train(mode)
+        self.tokenizer.eval()
+        return self
+
+    def configure_inference(self, top_k: int = 1) -> None:
+        """Token choice of later predictions: 1 = greedy; k > 1 draws among the k most likely tokens."""
+        check_top_k(top_k, self.tokenizer.spec.codebook_size)
+        self.top_k = top_k
+
+    @property
+    def description(self) -> str:
+        """`greedy` or `top-<k>`, the token choice of predictions."""
+        return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
+
+    def task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
+        """(B,) long task indices on the policy's device, or None for a single-task call.
+
+        Args:
+            task_index: None, one index for the whole batch, or one per sample.
+            batch_size: `B`.
+
+        Raises:
+            ValueError: neither one index nor `batch_size` of them, or an index outside [0, num_tasks).
+        """
+        if task_index is None:
+            return None
+        task_ids = torch.as_tensor(task_index, dtype=torch.long, device=self.device).reshape(-1)
+        if task_ids.numel() == 1:
+            task_ids = task_ids.expand(batch_size)
+        if task_ids.numel() != batch_size:
+            raise ValueError(f"task_index must be one index or one per sample ({batch_size}), got {task_ids.numel()}")
+        if self.num_tasks > 0 and not bool(((task_ids >= 0) & (task_ids < self.num_tasks)).all()):
+            raise ValueError(f"task indices must be in [0, {self.num_tasks}), got {task_ids.tolist()}")
+        return task_ids  # (B,)
+
+    def tokenizer_checkpoint(self) -> dict[str, Any]:
+        """The checkpoint entries of the frozen tokenizer: its artifact and the artifact's sha256."""
+        return {"tokenizer": self.tokenizer_artifact.to_payload(), "tokenizer_sha256": self.tokenizer_artifact.sha256}
+
+
+def checkpoint_tokenizer(checkpoint: dict[str, Any]) -> TokenizerArtifact:
+    """The tokenizer artifact a :class:`TokenizedPolicy` checkpoint embeds, checked against its recorded sha256.
+
+    Raises:
+        TokenizerMismatchError: the artifact does not hash to the recorded sha256.
+    """
+    return TokenizerArtifact.from_payload(
+        checkpoint["tokenizer"], checkpoint["tokenizer_sha256"], "the policy (the tokenizer it was trained with)"
+    )
