@@ -274,7 +274,6 @@ def start(arguments: argparse.Namespace) -> None:
             )
         create_databases(state["db_port"], password_file)
         print(f"MLflow tracking server already running at {state['url']}")
-        print_sweep_storage(state["db_port"], password_file)
         return
 
     # Everything that can refuse is checked before anything is created.

@@ -4,6 +4,7 @@ The workspace template (repository copy with collected and ingested demos) is bu
 works in its own copy, so experiments, MLflow and Optuna stores never mix between tests.
 """
 
+import fcntl
 import json
 import os
 import shutil
@@ -341,3 +342,18 @@ def test_two_sweep_workers_share_a_postgresql_study_and_push_their_experiments(t
                 if r.data.tags.get("carp.dvc_experiment") == name and "carp.dvc_stage" in r.data.tags
             }
             assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+
+
+@pytest.mark.slow
+def test_a_second_sweep_in_the_same_workspace_is_refused(tmp_path):
+    workspace = make_workspace(tmp_path / "carp")
+    lock_path = workspace / ".dvc" / "tmp" / "sweep.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with lock_path.open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running sweep holds it
+        refused = run(sweep_command(), workspace, timeout=300)
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.strip() == (
+        f"error: {lock_path}: another sweep is running in this workspace; start each sweep worker in its own clone"
+    )
+    assert not (workspace / "optuna.db").exists() and not (workspace / "reports" / "sweep").exists()

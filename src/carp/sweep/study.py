@@ -514,11 +514,11 @@ def _open_parent_run(study: optuna.Study, config: SweepConfig, claims: ClaimStor
     }
     known = claims.get(PARENT_RUN_ATTR) or study.user_attrs.get(PARENT_RUN_ATTR)
     run_id = tracker.open_study(config.study_name, known, description)
-    if run_id != known:
-        shared = claims.setdefault(PARENT_RUN_ATTR, run_id)
-        if shared != run_id:  # another worker created one at the same moment and stored it first
+    shared = claims.setdefault(PARENT_RUN_ATTR, run_id)
+    if shared != run_id:  # another worker created one at the same moment and stored it first
+        if run_id != known:
             tracker.discard_run(run_id)
-            run_id = tracker.open_study(config.study_name, shared, description)
+        run_id = tracker.open_study(config.study_name, shared, description)
     study.set_user_attr(PARENT_RUN_ATTR, run_id)
     return run_id
 
