@@ -82,6 +82,16 @@ def test_tokenizer_throughput_refuses_bad_arguments_in_one_line(arguments, messa
     assert completed.stdout == ""
 
 
+def test_sweep_workers_refuses_a_worker_count_below_one():
+    # Its measurement starts a tracking server and runs whole sweeps (minutes); only its refusal is checked here.
+    completed = run_benchmark("sweep_workers.py", "--workers", "1", "0", timeout=120)
+    assert completed.returncode == 2 and completed.stdout == ""
+    assert (
+        completed.stderr.strip().splitlines()[-1]
+        == "sweep_workers.py: error: --workers must each be at least 1, got [1, 0]"
+    )
+
+
 @pytest.mark.slow
 def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
     completed = run_benchmark(

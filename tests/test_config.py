@@ -67,6 +67,8 @@ def test_defaults_follow_the_design():
         ({"inference": {"carp": {"top_k": 600}}}, "inference.carp.top_k=600: must be <= codebook_size = 512"),
         ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
+        ({"sweep": {"git_remote": "--force"}}, "sweep.git_remote='--force': must be a git remote name or URL"),
+        ({"sweep": {"git_remote": " origin"}}, "sweep.git_remote=' origin': must be a git remote name or URL"),
         ({"carp": {"depht": 3}}, "carp.depht: unknown key"),
         ({"policy": {"depth": 3}}, "policy: unknown key (known: carp, codebook_size,"),
         (

@@ -4,6 +4,7 @@
         [--artifacts-destination URI] [--workers 2] [--allowed-hosts HOSTS] [--pg-bin DIR] [--db-user NAME]
     python tools/tracking_server.py stop --dir DIR
     python tools/tracking_server.py status --dir DIR
+    python tools/tracking_server.py sweep-storage --dir DIR
 
 ``start`` creates a PostgreSQL cluster in ``DIR/postgres`` with the server binaries of Debian's ``postgresql``
 package (``initdb``, ``pg_ctl``), starts it on loopback only, creates the ``mlflow`` database, and starts
@@ -12,6 +13,10 @@ the usual ``AWS_*`` and ``MLFLOW_S3_ENDPOINT_URL`` variables from the environmen
 artifacts through the server and need no access to the storage. Each step is skipped when already done, so a second
 ``start`` (after a reboot, say) brings back whatever is down. Point carp at the server with the param
 ``tracking.uri: http://HOST:PORT``.
+
+The same cluster holds an ``optuna`` database for sweep workers sharing one Optuna study: ``sweep-storage`` prints its
+URL for the param ``sweep.storage`` (the password stays out of it; libpq reads it from ``PGPASSFILE`` or
+``~/.pgpass``).
 
 PostgreSQL refuses to run as root, so under root the cluster belongs to ``--db-user`` (the ``postgres`` account the
 Debian package creates, else ``nobody``), which must be able to reach ``DIR``. The database listens on 127.0.0.1 only
@@ -46,6 +51,8 @@ from service_support import (
 )
 
 DATABASE = "mlflow"
+# The sweep's Optuna study lives beside the runs, so that one command gives a lab both shared stores.
+SWEEP_DATABASE = "optuna"
 DATABASE_ROLE = "mlflow"
 # A cold `mlflow server` imports a lot and migrates a new database's schema; two cores shared with training is slow.
 STATE_FILE = "tracking.json"
@@ -204,8 +211,8 @@ def stop_postgres(binaries: Path, data: Path, account, directory: Path) -> bool:
     return True
 
 
-def create_database(port: int, password_file: Path) -> None:
-    """Create the ``mlflow`` database when missing."""
+def create_databases(port: int, password_file: Path) -> None:
+    """Create the ``mlflow`` and ``optuna`` databases when missing."""
     import psycopg2
 
     password = password_file.read_text().strip().rsplit(":", 1)[1]
@@ -215,16 +222,17 @@ def create_database(port: int, password_file: Path) -> None:
     try:
         connection.autocommit = True  # CREATE DATABASE cannot run inside a transaction
         with connection.cursor() as cursor:
-            cursor.execute("SELECT 1 FROM pg_database WHERE datname = %s", (DATABASE,))
-            if cursor.fetchone() is None:
-                cursor.execute(f'CREATE DATABASE "{DATABASE}"')
+            for name in (DATABASE, SWEEP_DATABASE):
+                cursor.execute("SELECT 1 FROM pg_database WHERE datname = %s", (name,))
+                if cursor.fetchone() is None:
+                    cursor.execute(f'CREATE DATABASE "{name}"')
     finally:
         connection.close()
 
 
-def backend_store_uri(port: int) -> str:
-    """The SQLAlchemy URI of the database; the password comes from ``PGPASSFILE``, never the command line."""
-    return f"postgresql://{DATABASE_ROLE}@{LOOPBACK}:{port}/{DATABASE}"
+def backend_store_uri(port: int, database: str = DATABASE) -> str:
+    """The SQLAlchemy URI of a database; the password comes from ``PGPASSFILE``, never the command line."""
+    return f"postgresql://{DATABASE_ROLE}@{LOOPBACK}:{port}/{database}"
 
 
 def server_marker(state: dict) -> str:
@@ -266,6 +274,7 @@ def start(arguments: argparse.Namespace) -> None:
                 f"the tracking server in {directory} already runs at {state['url']} with artifacts in "
                 f"{state['artifacts_destination']}: stop it first to change its port or artifact store"
             )
+        create_databases(state["db_port"], password_file)
         print(f"MLflow tracking server already running at {state['url']}")
         return
 
@@ -303,7 +312,7 @@ def start(arguments: argparse.Namespace) -> None:
     write_state(state_path, state)
     if not database_up:
         start_postgres(binaries, data, account, db_port, directory)
-    create_database(db_port, password_file)
+    create_databases(db_port, password_file)
 
     url = f"http://{client_host(arguments.host)}:{port}"
     command = [
@@ -326,6 +335,15 @@ def start(arguments: argparse.Namespace) -> None:
     wait_or_stop(lambda: answers(f"{url}/health"), STARTUP_SECONDS, server, log_path, "the MLflow server")
     print(f"MLflow tracking server at {url} (PostgreSQL on {LOOPBACK}:{db_port}, artifacts in {destination})")
     print(f"point carp at it with the param  tracking.uri: {url}")
+    print_sweep_storage(db_port, password_file)
+
+
+def print_sweep_storage(db_port: int, password_file: Path) -> None:
+    """Tell how sweep workers reach the ``optuna`` database."""
+    print(
+        f"sweep workers on this machine: sweep.storage: {backend_store_uri(db_port, SWEEP_DATABASE)} "
+        f"with PGPASSFILE={password_file}"
+    )
 
 
 def stop(arguments: argparse.Namespace) -> None:
@@ -353,6 +371,16 @@ def status(arguments: argparse.Namespace) -> None:
     sys.exit(3)
 
 
+def sweep_storage(arguments: argparse.Namespace) -> None:
+    """Print the ``sweep.storage`` URL of the cluster's ``optuna`` database, else say why not and exit 3."""
+    directory = Path(arguments.dir).expanduser().absolute()
+    state = read_state(directory / "tracking.json")
+    if not state.get("db_port"):
+        print(f"no database was started in {directory}")
+        sys.exit(3)
+    print(backend_store_uri(state["db_port"], SWEEP_DATABASE))
+
+
 def main() -> None:
     """Parse the command line and run the subcommand."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -367,10 +395,14 @@ def main() -> None:
     start_parser.add_argument("--allowed-hosts", help="Host headers MLflow accepts beyond localhost and private IPs")
     start_parser.add_argument("--pg-bin", help="directory of initdb and pg_ctl (default: found)")
     start_parser.add_argument("--db-user", help="account that runs PostgreSQL when started by root")
-    for name, help_text in (("stop", "stop the MLflow server and PostgreSQL"), ("status", "print the server URL")):
+    for name, help_text in (
+        ("stop", "stop the MLflow server and PostgreSQL"),
+        ("status", "print the server URL"),
+        ("sweep-storage", "print the sweep.storage URL of the optuna database"),
+    ):
         commands.add_parser(name, help=help_text).add_argument("--dir", required=True)
     arguments = parser.parse_args()
-    {"start": start, "stop": stop, "status": status}[arguments.command](arguments)
+    {"start": start, "stop": stop, "status": status, "sweep-storage": sweep_storage}[arguments.command](arguments)
 
 
 if __name__ == "__main__":

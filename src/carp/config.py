@@ -364,9 +364,10 @@ class SweepConfig:
         study_name: Name of the Optuna study, also part of each trial's DVC experiment name
             (``sweep-<study>-t<number>``); a changed search space needs a new name.
         storage: Optuna storage URL; a relative SQLite path (``sqlite:///optuna.db``) is resolved against the project
-            root.
+            root. Sweep workers in several workspaces (or on several machines) share one study through a PostgreSQL
+            URL such as ``postgresql://mlflow@127.0.0.1:5432/optuna`` (password from ``~/.pgpass`` or ``PGPASSFILE``).
         num_trials: Total number of finished trials (complete, pruned or failed), counted across restarts of the
-            sweep; an integer >= 1.
+            sweep and across the workers sharing its study; an integer >= 1.
         scale_schedules: Candidate values of ``scales``; at least one, each strictly increasing and ending at the
             latent length ``l``.
         codebook_sizes: Candidate values of ``codebook_size``; each an integer >= 2.
@@ -374,6 +375,9 @@ class SweepConfig:
             the study so far is pruned before its policy is trained; a number > 1.
         heartbeat_seconds: How often a running trial marks itself alive in the storage, in seconds; an integer >= 1.
             A killed sweep's trial is retried once its heartbeat is two intervals old.
+        git_remote: Git remote (a name such as ``origin``, or a URL) that every completed trial's DVC experiment is
+            pushed to (``dvc exp push``, which also pushes its outputs to the default DVC remote when there is one),
+            so that the experiments of every worker can be pulled into any workspace; empty: nothing is pushed.
     """
 
     study_name: str = "carp-sweep"
@@ -383,6 +387,7 @@ class SweepConfig:
     codebook_sizes: tuple[int, ...] = (64, 256, 512)
     prune_factor: float = 2.0
     heartbeat_seconds: int = 10
+    git_remote: str = ""
 
     def __post_init__(self) -> None:
         _require(self.num_trials >= 1, "sweep.num_trials", self.num_trials, "must be >= 1")
@@ -391,6 +396,12 @@ class SweepConfig:
             _require(size >= 2, "sweep.codebook_sizes", self.codebook_sizes, "every size must be >= 2")
         _require(self.prune_factor > 1.0, "sweep.prune_factor", self.prune_factor, "must be > 1")
         _require(self.heartbeat_seconds >= 1, "sweep.heartbeat_seconds", self.heartbeat_seconds, "must be >= 1")
+        _require(
+            self.git_remote == self.git_remote.strip() and not self.git_remote.startswith("-"),
+            "sweep.git_remote",
+            self.git_remote,
+            "must be a git remote name or URL, without surrounding spaces or a leading '-'",
+        )
 
 
 FAMILY_SECTIONS = "family_sections"

@@ -4,6 +4,7 @@ The workspace template (repository copy with collected and ingested demos) is bu
 works in its own copy, so experiments, MLflow and Optuna stores never mix between tests.
 """
 
+import fcntl
 import json
 import os
 import shutil
@@ -21,6 +22,7 @@ from mlflow import MlflowClient
 from optuna.trial import TrialState
 
 from tests.pipeline.workspace import dvc, make_workspace, run, tool_env
+from tests.services import service_directory, tool, tracking_server
 
 SWEEP = {
     "study_name": "tiny",
@@ -42,13 +44,14 @@ def template(tmp_path_factory) -> Path:
     return workspace
 
 
-def copy_workspace(template: Path, directory: Path, sweep: dict | None = None) -> Path:
+def copy_workspace(template: Path, directory: Path, sweep: dict | None = None, tracking: dict | None = None) -> Path:
     workspace = directory / "carp"
     # The template's MLflow store records absolute artifact locations inside the template: start a fresh one.
     shutil.copytree(template, workspace, symlinks=True, ignore=shutil.ignore_patterns("mlflow.db", "mlartifacts"))
     if sweep is not None:
         params = yaml.safe_load((workspace / "params.yaml").read_text())
         params["sweep"].update(sweep)
+        params["tracking"].update(tracking or {})
         (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         for command in (["git", "add", "params.yaml"], ["git", "commit", "-qm", "sweep settings"]):
             assert run(command, workspace).returncode == 0
@@ -270,3 +273,87 @@ def _wait_until_group_is_gone(group: int) -> None:
             return
         assert time.monotonic() < deadline, f"process group {group} survived SIGKILL"
         time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_two_sweep_workers_share_a_postgresql_study_and_push_their_experiments(template, tmp_path, monkeypatch):
+    # Two workspaces (clones of one commit) run `pipeline/sweep.py` at once on a two-point grid, sharing the study in
+    # the tracking server's PostgreSQL, logging to its MLflow server and pushing their experiments to one git remote.
+    with service_directory("carp-sweep-workers-") as services, tracking_server(services / "tracking") as url:
+        printed = tool("tracking_server.py", "sweep-storage", "--dir", str(services / "tracking"), timeout=60)
+        assert printed.returncode == 0, printed.stdout + printed.stderr
+        storage = printed.stdout.strip()
+        environment = {**tool_env(), "PGPASSFILE": str(services / "tracking" / "pgpass")}
+        sweep = {**SWEEP, "codebook_sizes": [8], "prune_factor": 1000.0, "storage": storage, "git_remote": "origin"}
+        first = copy_workspace(template, tmp_path / "first", sweep, tracking={"uri": url})
+        remote = tmp_path / "remote.git"
+        for command, directory in (
+            (["git", "init", "-q", "--bare", str(remote)], tmp_path),
+            (["git", "remote", "add", "origin", str(remote)], first),
+            (["git", "push", "-q", "origin", "HEAD"], first),
+        ):
+            assert run(command, directory).returncode == 0
+        second = tmp_path / "second" / "carp"
+        shutil.copytree(first, second, symlinks=True)
+
+        workers = []
+        for workspace in (first, second):
+            log = (workspace.parent / "sweep.log").open("w")
+            workers.append(
+                subprocess.Popen(sweep_command(), cwd=workspace, env=environment, stdout=log, stderr=subprocess.STDOUT)
+            )
+        for worker, workspace in zip(workers, (first, second)):
+            assert worker.wait(timeout=2 * TRIAL_TIMEOUT_SECONDS) == 0, (workspace.parent / "sweep.log").read_text()[
+                -3000:
+            ]
+
+        monkeypatch.setenv("PGPASSFILE", environment["PGPASSFILE"])
+        trials = optuna.load_study(study_name="tiny", storage=storage).get_trials()
+        assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
+        assert sorted(t.params["scales"] for t in trials) == ["[1,2,4]", "[1,4]"]  # each point once
+        for workspace in (first, second):
+            table = pd.read_csv(workspace / "reports/sweep/trials.csv")
+            assert table["state"].tolist() == ["COMPLETE", "COMPLETE"]
+        # Each experiment exists in the workspace that ran it; both reach any other clone through the git remote.
+        ran_here = [set(experiments(workspace)) for workspace in (first, second)]
+        names = {f"sweep-tiny-t{t.number}" for t in trials}
+        assert ran_here[0] | ran_here[1] == names and not ran_here[0] & ran_here[1]
+        clone = tmp_path / "clone"
+        assert run(["git", "clone", "-q", str(remote), str(clone)], tmp_path).returncode == 0
+        pulled = run(dvc("exp", "pull", "origin", *sorted(names)), clone)
+        assert pulled.returncode == 0, pulled.stderr
+        shown = experiments(clone)
+        for trial in trials:
+            experiment = shown[f"sweep-tiny-t{trial.number}"]
+            assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
+            assert experiment["metrics"]["success_rate"] == pytest.approx(trial.user_attrs["success_rate"])
+
+        client = MlflowClient(tracking_uri=url)
+        runs = client.search_runs([experiment.experiment_id for experiment in client.search_experiments()])
+        study_runs = [r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny"]
+        parents = [r for r in study_runs if "mlflow.parentRunId" not in r.data.tags]
+        assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+        children = [r for r in study_runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+        assert sorted(r.data.tags["carp.dvc_experiment"] for r in children) == sorted(names)
+        for name in names:
+            stages = {
+                r.data.tags["carp.dvc_stage"]
+                for r in runs
+                if r.data.tags.get("carp.dvc_experiment") == name and "carp.dvc_stage" in r.data.tags
+            }
+            assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+
+
+@pytest.mark.slow
+def test_a_second_sweep_in_the_same_workspace_is_refused(tmp_path):
+    workspace = make_workspace(tmp_path / "carp")
+    lock_path = workspace / ".dvc" / "tmp" / "sweep.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with lock_path.open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running sweep holds it
+        refused = run(sweep_command(), workspace, timeout=300)
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.strip() == (
+        f"error: {lock_path}: another sweep is running in this workspace; start each sweep worker in its own clone"
+    )
+    assert not (workspace / "optuna.db").exists() and not (workspace / "reports" / "sweep").exists()

@@ -1,5 +1,8 @@
 import dataclasses
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import optuna
 import pandas as pd
@@ -10,6 +13,8 @@ from optuna.trial import TrialState
 from carp.sweep.space import TrialSettings, parse_schedule_label
 from carp.sweep.study import SweepStateError, experiment_name, run_sweep
 from tests.sweep.conftest import FakeRunner, expected_success
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def load_trials(config):
@@ -66,7 +71,8 @@ def test_interrupted_trial_is_retried_with_same_params(sweep_config, tmp_path):
         run_sweep(sweep_config, runner, tmp_path)
     interrupted = [t for t in load_trials(sweep_config) if t.state == TrialState.FAIL]
     assert len(interrupted) == 1 and interrupted[0].user_attrs["interrupted"] is True
-    assert pd.read_csv(tmp_path / "trials.csv")["state"].tolist() == ["COMPLETE", "FAIL"]  # written on the way out
+    # Written on the way out, with the retry the interrupted worker queued before exiting.
+    assert pd.read_csv(tmp_path / "trials.csv")["state"].tolist() == ["COMPLETE", "FAIL", "WAITING"]
 
     runner.interrupt_on_experiment = None
     result = run_sweep(sweep_config, runner, tmp_path)
@@ -114,7 +120,32 @@ def test_trial_of_a_killed_sweep_is_retried_after_its_heartbeat_expires(sweep_co
     retry = next(t for t in trials if t.system_attrs.get("failed_trial") == orphan.number)
     assert retry.state == TrialState.COMPLETE and retry.params == orphan.params
     assert result.finished_trials == 3 and len(trials) == 4
-    # The retry runs first, with the orphan's params.
-    first = runner.tokenizer_calls[0]
-    assert first == TrialSettings(parse_schedule_label(orphan.params["scales"]), orphan.params["codebook_size"])
-    assert retry.user_attrs["success_rate"] == expected_success(first)
+    # The orphan's point ran once, as the retry (claimed for the orphan, so never handed out as a new point).
+    orphan_settings = TrialSettings(parse_schedule_label(orphan.params["scales"]), orphan.params["codebook_size"])
+    assert runner.tokenizer_calls.count(orphan_settings) == 1 and len(set(runner.tokenizer_calls)) == 3
+    assert retry.user_attrs["success_rate"] == expected_success(orphan_settings)
+
+
+@pytest.mark.slow
+def test_two_worker_processes_share_an_sqlite_study_on_one_machine(tmp_path):
+    # The claims work the same in SQLite: two processes sharing one absolute path split the grid, each point once.
+    log = tmp_path / "events.log"
+    command = [sys.executable, "-m", "tests.sweep.stub_worker", "--storage", f"sqlite:///{tmp_path / 'optuna.db'}"]
+    workers = [
+        subprocess.Popen(
+            [*command, "--study", "shared", "--trials", "50", "--reports", str(tmp_path / f"reports-{index}"),
+             "--log", str(log), "--seconds", "0.5"],
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for index in range(2)
+    ]  # fmt: skip
+    for worker in workers:
+        _, errors = worker.communicate(timeout=300)
+        assert worker.returncode == 0, errors[-3000:]
+    starts = [line.split()[1:3] for line in log.read_text().splitlines() if line.startswith("start ")]
+    assert len(starts) == 6 and len({tuple(point) for point in starts}) == 6
+    trials = optuna.load_study(study_name="shared", storage=f"sqlite:///{tmp_path / 'optuna.db'}").get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 6

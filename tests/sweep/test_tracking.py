@@ -4,6 +4,7 @@ import optuna
 import pytest
 from mlflow import MlflowClient
 
+from carp.sweep.claims import ClaimStore
 from carp.sweep.study import PARENT_RUN_ATTR, run_sweep
 from carp.sweep.tracking import SweepTracker
 from tests.sweep.conftest import FakeRunner
@@ -50,3 +51,23 @@ def test_one_parent_run_per_study_and_one_child_per_trial(sweep_config, tmp_path
         else:
             assert record.state == "PRUNED" and run.info.status == "KILLED"
             assert "success_rate" not in run.data.metrics
+
+
+@pytest.mark.slow
+def test_a_worker_that_loses_the_race_for_the_parent_run_joins_the_stored_one(sweep_config, tmp_path):
+    # Another worker created the study's parent run and stored it first, while this one was creating its own.
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    storage = optuna.storages.RDBStorage(sweep_config.storage)
+    optuna.create_study(study_name="unit", storage=storage, direction="maximize")
+    other = SweepTracker(uri, "carp-sweep", {}).open_study("unit", None, {"study_name": "unit"})
+    claims = ClaimStore(sweep_config.storage, storage.get_study_id_from_name("unit"))
+    assert claims.setdefault(PARENT_RUN_ATTR, other) == other
+    claims.close()
+
+    run_sweep(sweep_config, FakeRunner(), tmp_path, SweepTracker(uri, "carp-sweep", {}))
+    client = MlflowClient(tracking_uri=uri)
+    runs = client.search_runs([client.get_experiment_by_name("carp-sweep").experiment_id])
+    assert [run.info.run_id for run in runs if "mlflow.parentRunId" not in run.data.tags] == [other]
+    assert len(runs) == 1 + sweep_config.num_trials  # the losing parent run was deleted
+    assert {run.data.tags["mlflow.parentRunId"] for run in runs if run.info.run_id != other} == {other}
+    assert optuna.load_study(study_name="unit", storage=sweep_config.storage).user_attrs[PARENT_RUN_ATTR] == other

@@ -46,6 +46,11 @@ def schedule_label(scales: tuple[int, ...]) -> str:
     return "[" + ",".join(str(scale) for scale in scales) + "]"
 
 
+def point_key(settings: TrialSettings) -> str:
+    """The grid point's key in the claims table, e.g. ``scales=[1,2,4] codebook_size=64``."""
+    return " ".join(settings.set_arguments())
+
+
 def parse_schedule_label(label: str) -> tuple[int, ...]:
     """Inverse of :func:`schedule_label`."""
     return tuple(int(scale) for scale in json.loads(label))

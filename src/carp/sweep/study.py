@@ -1,16 +1,24 @@
-"""The Optuna study: sample a grid point, train its tokenizer, prune or run the whole experiment, record it.
+"""The Optuna study: claim a grid point, train its tokenizer, prune or run the whole experiment, record it.
 
-Resuming: the study lives in an SQLite (RDB) storage with heartbeats. A sweep killed mid-trial leaves that trial
-``RUNNING``; once its heartbeat is older than the grace period (2 heartbeats) the storage marks it ``FAIL`` and
-``RetryHeartbeatStaleTrialCallback`` (formerly ``RetryFailedTrialCallback``) queues a copy with the same params,
-which the resumed sweep runs first. A trial stopped by Ctrl-C is marked ``FAIL`` by Optuna itself; it is tagged
-``interrupted`` and queued again the same way. The budget counts finished trials (complete, pruned, failed) but not
-failed trials that were retried, so ``num_trials`` holds across any number of resumes.
+Workers: any number of sweep processes, each in its own workspace, may work on one study at once through its RDB
+storage (SQLite on one machine, PostgreSQL across machines). Each repeatedly takes up a queued retry, or claims an
+untried grid point in the database (:mod:`carp.sweep.claims`) and creates a trial with that point's params; no two
+workers run the same point, and at most ``num_trials`` points are ever claimed, so the budget holds across workers and
+across restarts. A worker with nothing left to claim waits until no trial of the study is running or queued (another
+worker's trial may still fail and be retried), so every worker ends with the whole study in its reports.
 
-Trials run one at a time: each owns the workspace (params, outputs, ``dvc.lock``) while it runs.
+Retries: a worker killed mid-trial leaves that trial ``RUNNING``; once its heartbeat is older than the grace period
+(2 heartbeats) another worker (or the restarted one) marks it ``FAIL`` and ``RetryHeartbeatStaleTrialCallback``
+queues a copy with the same params, which the next free worker takes up, moving the point's claim to it. A trial
+stopped by Ctrl-C is marked ``FAIL``, tagged ``interrupted`` and queued again the same way before the worker exits.
+The budget counts finished trials (complete, pruned, failed) but not failed trials that were retried.
+
+Within a workspace trials run one at a time: each owns the workspace (params, outputs, ``dvc.lock``) while it runs.
 """
 
 import logging
+import random
+import threading
 import time
 import warnings
 from collections.abc import Iterator, Sequence
@@ -21,11 +29,13 @@ from typing import Protocol
 
 import optuna
 from optuna.distributions import CategoricalDistribution
-from optuna.exceptions import ExperimentalWarning
+from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
 from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
+from sqlalchemy.exc import IntegrityError, ProgrammingError, SQLAlchemyError
 
 from carp.config import SweepConfig
+from carp.sweep.claims import ClaimLostError, ClaimStore
 from carp.sweep.outcome import (
     ExperimentResult,
     TrialRecord,
@@ -42,7 +52,9 @@ from carp.sweep.space import (
     all_settings,
     codebook_choices,
     parse_schedule_label,
+    point_key,
     scale_choices,
+    schedule_label,
 )
 from carp.sweep.tracking import SweepTracker
 
@@ -51,9 +63,14 @@ logger = logging.getLogger(__name__)
 # A trial killed again and again (e.g. it always runs out of memory) is given up after this many retries.
 MAX_RETRIES = 2
 PARENT_RUN_ATTR = "mlflow_parent_run_id"
+# Set on a trial whose worker lost its point's claim before the trial started; it never ran and does not count.
+CLAIM_LOST_ATTR = "carp_claim_lost"
 TRIALS_FILE = "trials.csv"
 BEST_PARAMS_FILE = "best_params.txt"
-SAMPLER_SEED = 0
+# Seeds the order in which workers claim grid points: a budget smaller than the grid gets a spread-out sample of it
+# rather than the first schedules, and every worker uses the same order.
+CLAIM_ORDER_SEED = 0
+SCHEMA_ATTEMPTS = 5
 
 
 class ExperimentFailedError(RuntimeError):
@@ -61,7 +78,7 @@ class ExperimentFailedError(RuntimeError):
 
 
 class SweepStateError(RuntimeError):
-    """The stored study cannot be continued as asked (other search space, or another sweep is running it)."""
+    """The stored study cannot be continued as asked (another search space)."""
 
 
 class ExperimentRunner(Protocol):
@@ -105,7 +122,9 @@ def run_sweep(
     report_directory: Path,
     tracker: SweepTracker | None = None,
 ) -> SweepResult:
-    """Run (or resume) the study until ``config.num_trials`` trials finished or the grid is exhausted.
+    """Work on the study until its budget is spent or its grid exhausted and no trial of it runs or waits.
+
+    Other workers may work on the same study at the same time (each with its own runner and workspace).
 
     Args:
         config: the sweep section; ``config.storage`` must already be an absolute URL (e.g. ``sqlite:////abs/x.db``).
@@ -114,26 +133,29 @@ def run_sweep(
         tracker: MLflow parent/child runs; ``None`` records nothing in MLflow.
 
     Raises:
-        SweepStateError: the stored study has another search space, or another live sweep is running one of its
-            trials.
+        SweepStateError: the stored study has another search space.
     """
-    study = _load_study(config)
+    study, study_id = _load_study(config)
     _check_search_space(study, config)
-    _recover_interrupted_trials(study, config, tracker)
+    claims = ClaimStore(config.storage, study_id)
+    try:
+        return _work(study, config, claims, runner, report_directory, tracker)
+    finally:
+        claims.close()
 
+
+def _work(
+    study: optuna.Study,
+    config: SweepConfig,
+    claims: ClaimStore,
+    runner: ExperimentRunner,
+    report_directory: Path,
+    tracker: SweepTracker | None,
+) -> SweepResult:
+    _claim_existing_trials(study, claims)
     parent_run_id = None
     if tracker is not None:
-        parent_run_id = tracker.open_study(
-            config.study_name,
-            study.user_attrs.get(PARENT_RUN_ATTR),
-            {
-                "study_name": config.study_name,
-                "scale_schedules": str(scale_choices(config)),
-                "codebook_sizes": str(codebook_choices(config)),
-                "prune_factor": str(config.prune_factor),
-            },
-        )
-        study.set_user_attr(PARENT_RUN_ATTR, parent_run_id)
+        parent_run_id = _open_parent_run(study, config, claims, tracker)
 
     def write_reports() -> SweepResult:
         trials = study.get_trials(deepcopy=False)
@@ -143,18 +165,29 @@ def run_sweep(
         write_best_params(result.best, report_directory / BEST_PARAMS_FILE)
         return result
 
-    remaining = remaining_trials(study.get_trials(deepcopy=False), config)
-    logger.info("study %s: %d trial(s) to run (budget %d)", config.study_name, remaining, config.num_trials)
+    logger.info(
+        "study %s: %d of %d budgeted point(s) claimed", config.study_name, len(claims.claims()), config.num_trials
+    )
     objective = _Objective(config, runner, tracker, parent_run_id)
+    waiting_for: list[int] = []
     try:
-        if remaining > 0:
-            with _experimental_api():
-                study.optimize(
-                    objective,
-                    n_trials=remaining,
-                    catch=(ExperimentFailedError,),
-                    callbacks=[lambda study, trial: write_reports()],
-                )
+        while True:
+            _fail_stale_trials(study, tracker)
+            trial = _next_trial(study, config, claims)
+            if trial is None:
+                busy = [
+                    t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.WAITING))
+                ]
+                if not busy:
+                    break
+                if busy != waiting_for:
+                    logger.info("nothing left to claim; waiting for trial(s) %s of other workers", busy)
+                    waiting_for = busy
+                time.sleep(config.heartbeat_seconds)
+                continue
+            waiting_for = []
+            _run_trial(study, trial, objective, config)
+            write_reports()
     except BaseException:
         # Ctrl-C or a bug: the reports and the parent run still show where the sweep stopped.
         write_reports()
@@ -169,19 +202,23 @@ def run_sweep(
 
 def trial_record(trial: FrozenTrial) -> TrialRecord:
     """Flatten an Optuna trial (params and the user attrs the objective sets) into a :class:`TrialRecord`."""
-    settings = None
-    if SCALES_PARAM in trial.params and CODEBOOK_PARAM in trial.params:
-        settings = TrialSettings(parse_schedule_label(trial.params[SCALES_PARAM]), int(trial.params[CODEBOOK_PARAM]))
     attrs = trial.user_attrs
     return TrialRecord(
         number=trial.number,
         state=trial.state.name,
-        settings=settings,
+        settings=trial_settings(trial),
         success_rate=attrs.get("success_rate"),
         latency_ms=attrs.get("latency_ms"),
         tokenizer_rmse_percent=attrs.get("tokenizer_rmse_percent"),
         dvc_experiment=attrs.get("dvc_experiment") or "",
     )
+
+
+def trial_settings(trial: FrozenTrial) -> TrialSettings | None:
+    """The grid point of a trial, ``None`` when its params were never set."""
+    if SCALES_PARAM in trial.params and CODEBOOK_PARAM in trial.params:
+        return TrialSettings(parse_schedule_label(trial.params[SCALES_PARAM]), int(trial.params[CODEBOOK_PARAM]))
+    return None
 
 
 def retried_trial_numbers(trials: Sequence[FrozenTrial]) -> set[int]:
@@ -194,25 +231,130 @@ def retried_trial_numbers(trials: Sequence[FrozenTrial]) -> set[int]:
 
 
 def finished_trial_count(trials: Sequence[FrozenTrial]) -> int:
-    """Complete, pruned and failed trials, leaving out failed trials that were queued again."""
+    """Complete, pruned and failed trials, leaving out failed trials that were queued again or never ran a point."""
     retried = retried_trial_numbers(trials)
     finished = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
-    return sum(1 for trial in trials if trial.state in finished and trial.number not in retried)
-
-
-def remaining_trials(trials: Sequence[FrozenTrial], config: SweepConfig) -> int:
-    """Trials still to run: the budget left, but no more than the grid points not tried yet plus queued retries."""
-    retried = retried_trial_numbers(trials)
-    tried = {
-        record.settings
+    return sum(
+        1
         for trial in trials
-        if trial.state.is_finished() and trial.number not in retried
-        for record in [trial_record(trial)]
-        if record.settings is not None
-    }
-    waiting = sum(1 for trial in trials if trial.state == TrialState.WAITING)
-    untried = len(set(all_settings(config)) - tried)
-    return max(0, min(config.num_trials - finished_trial_count(trials), untried + waiting))
+        if trial.state in finished
+        and trial.number not in retried
+        and trial_settings(trial) is not None
+        and not trial.system_attrs.get(CLAIM_LOST_ATTR)
+    )
+
+
+def claim_order(config: SweepConfig) -> list[TrialSettings]:
+    """The grid in the order workers claim it: a fixed shuffle, the same in every worker."""
+    points = all_settings(config)
+    return random.Random(CLAIM_ORDER_SEED).sample(points, len(points))
+
+
+def _next_trial(study: optuna.Study, config: SweepConfig, claims: ClaimStore) -> optuna.Trial | None:
+    """A queued retry taken up by this worker, else a new trial on a freshly claimed point, else ``None``."""
+    storage = study._storage
+    for waiting in study.get_trials(deepcopy=False, states=(TrialState.WAITING,)):
+        # Optuna moves a trial from WAITING to RUNNING under a row lock and reports whether this call did it, so
+        # exactly one worker takes up each queued retry.
+        try:
+            if not storage.set_trial_state_values(waiting._trial_id, TrialState.RUNNING):
+                continue
+        except UpdateFinishedTrialError:
+            continue
+        storage.record_heartbeat(waiting._trial_id)
+        trial = optuna.Trial(study, waiting._trial_id)
+        history = waiting.system_attrs.get("retry_history") or []
+        point = claims.transfer(history[-1], waiting.number) if history else None
+        settings = trial_settings(waiting)
+        if point is None and settings is not None:
+            claims.record(point_key(settings), waiting.number)
+        if settings is None:
+            # Queued from a trial that died before it had a point: it has nothing to rerun.
+            trial.set_user_attr("error", "queued without a grid point")
+            study.tell(trial, state=TrialState.FAIL)
+            continue
+        logger.info("trial %d retries trial %d", waiting.number, history[-1] if history else -1)
+        return trial
+
+    by_key = {point_key(settings): settings for settings in claim_order(config)}
+    point = claims.claim(list(by_key), config.num_trials, stale_seconds=_grace_seconds(config))
+    if point is None:
+        return None
+    settings = by_key[point]
+    with _experimental_api():
+        template = optuna.trial.create_trial(
+            state=TrialState.RUNNING,
+            params={SCALES_PARAM: schedule_label(settings.scales), CODEBOOK_PARAM: settings.codebook_size},
+            distributions=_distributions(config),
+        )
+    trial_id = storage.create_new_trial(claims.study_id, template_trial=template)
+    storage.record_heartbeat(trial_id)
+    trial = optuna.Trial(study, trial_id)
+    try:
+        claims.assign(point, trial.number)
+    except ClaimLostError as error:
+        logger.warning("%s", error)
+        storage.set_trial_system_attr(trial_id, CLAIM_LOST_ATTR, True)
+        trial.set_user_attr("error", str(error))
+        study.tell(trial, state=TrialState.FAIL)
+        return _next_trial(study, config, claims)
+    return trial
+
+
+def _run_trial(study: optuna.Study, trial: optuna.Trial, objective: "_Objective", config: SweepConfig) -> None:
+    """Run the objective with heartbeats and record the outcome; an interrupted trial is queued again."""
+    with _Heartbeat(study._storage, trial._trial_id, config.heartbeat_seconds):
+        try:
+            value = objective(trial)
+        except optuna.TrialPruned as pruned:
+            logger.info("trial %d pruned: %s", trial.number, pruned)
+            study.tell(trial, state=TrialState.PRUNED)
+            return
+        except ExperimentFailedError as error:
+            logger.warning("trial %d failed: %s", trial.number, error)
+            trial.set_user_attr("error", str(error))
+            study.tell(trial, state=TrialState.FAIL)
+            return
+        except KeyboardInterrupt:
+            study.tell(trial, state=TrialState.FAIL)
+            # Queued by this worker alone, before it exits, so that exactly one copy waits for the next worker.
+            with _experimental_api():
+                RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES)(
+                    study, study._storage.get_trial(trial._trial_id)
+                )
+            raise
+        except BaseException:
+            study.tell(trial, state=TrialState.FAIL)
+            raise
+        study.tell(trial, value)
+
+
+class _Heartbeat:
+    """Marks a trial alive in the storage every ``interval_seconds`` while the block runs (from a thread)."""
+
+    def __init__(self, storage: RDBStorage, trial_id: int, interval_seconds: float) -> None:
+        self.storage = storage
+        self.trial_id = trial_id
+        self.interval_seconds = interval_seconds
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{trial_id}", daemon=True)
+
+    def __enter__(self) -> "_Heartbeat":
+        self.storage.record_heartbeat(self.trial_id)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.interval_seconds):
+            try:
+                self.storage.record_heartbeat(self.trial_id)
+            except SQLAlchemyError as error:
+                # A brief database outage must not end the trial; a long one lets the trial go stale and be retried.
+                logger.warning("heartbeat of trial %s not recorded: %s", self.trial_id, error)
 
 
 class _Objective:
@@ -232,7 +374,7 @@ class _Objective:
             int(trial.suggest_categorical(CODEBOOK_PARAM, codebook_choices(self.config))),
         )
         # A retried trial inherits its predecessor's user attrs; start from a clean slate.
-        for key in ("tokenizer_rmse_percent", "success_rate", "latency_ms", "dvc_experiment", "interrupted"):
+        for key in ("tokenizer_rmse_percent", "success_rate", "latency_ms", "dvc_experiment", "interrupted", "error"):
             trial.set_user_attr(key, None)
         run_id = None
         if self.tracker is not None and self.parent_run_id is not None:
@@ -291,35 +433,54 @@ class _Objective:
 
 @contextmanager
 def _experimental_api() -> Iterator[None]:
-    """Silence Optuna's experimental-feature warnings (heartbeats, retries, brute force) for deliberate uses."""
+    """Silence Optuna's experimental-feature warnings (heartbeats, retries) for deliberate uses."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ExperimentalWarning)
         yield
 
 
-def _load_study(config: SweepConfig) -> optuna.Study:
-    with _experimental_api():
-        storage = RDBStorage(
-            config.storage,
-            heartbeat_interval=config.heartbeat_seconds,
-            grace_period=2 * config.heartbeat_seconds,
-            heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES),
-        )
-        sampler = optuna.samplers.BruteForceSampler(seed=SAMPLER_SEED)
-    return optuna.create_study(
-        study_name=config.study_name,
-        storage=storage,
-        sampler=sampler,
-        direction="maximize",
-        load_if_exists=True,
-    )
+def _grace_seconds(config: SweepConfig) -> float:
+    """How old a heartbeat (or a claim without a trial) must be before its worker is taken for dead."""
+    return 2 * config.heartbeat_seconds
 
 
-def _check_search_space(study: optuna.Study, config: SweepConfig) -> None:
-    expected = {
+def _distributions(config: SweepConfig) -> dict[str, CategoricalDistribution]:
+    return {
         SCALES_PARAM: CategoricalDistribution(scale_choices(config)),
         CODEBOOK_PARAM: CategoricalDistribution(codebook_choices(config)),
     }
+
+
+def _load_study(config: SweepConfig) -> tuple[optuna.Study, int]:
+    for attempt in range(SCHEMA_ATTEMPTS):
+        try:
+            with _experimental_api():
+                storage = RDBStorage(
+                    config.storage,
+                    heartbeat_interval=config.heartbeat_seconds,
+                    grace_period=_grace_seconds(config),
+                    heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES),
+                )
+            break
+        except (IntegrityError, ProgrammingError):
+            # Workers started together on an empty database all create Optuna's tables; PostgreSQL rejects all but
+            # the first CREATE (a duplicate in its catalog). The tables exist then; opening the storage again works.
+            if attempt + 1 == SCHEMA_ATTEMPTS:
+                raise
+            time.sleep(1.0 + random.random())
+    study = optuna.create_study(
+        study_name=config.study_name,
+        storage=storage,
+        # Never consulted: every trial is created with the params of the point its worker claimed.
+        sampler=optuna.samplers.RandomSampler(seed=CLAIM_ORDER_SEED),
+        direction="maximize",
+        load_if_exists=True,
+    )
+    return study, storage.get_study_id_from_name(config.study_name)
+
+
+def _check_search_space(study: optuna.Study, config: SweepConfig) -> None:
+    expected = _distributions(config)
     for trial in study.get_trials(deepcopy=False):
         for name, distribution in trial.distributions.items():
             if expected.get(name) != distribution:
@@ -330,41 +491,52 @@ def _check_search_space(study: optuna.Study, config: SweepConfig) -> None:
                 )
 
 
-def _recover_interrupted_trials(study: optuna.Study, config: SweepConfig, tracker: SweepTracker | None) -> None:
-    """Fail and queue again the trials that a killed or interrupted sweep left behind."""
-    retried = retried_trial_numbers(study.get_trials(deepcopy=False))
-    with _experimental_api():
-        retry = RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES)
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
-            if trial.user_attrs.get("interrupted") and trial.number not in retried:
-                logger.info("trial %d was interrupted; queueing it again", trial.number)
-                retry(study, trial)
+def _claim_existing_trials(study: optuna.Study, claims: ClaimStore) -> None:
+    """Claim the points of trials made without claims (a study started by an earlier version, or by hand)."""
+    claimed = {claim.trial_number for claim in claims.claims()}
+    latest: dict[str, int] = {}
+    for trial in study.get_trials(deepcopy=False):
+        settings = trial_settings(trial)
+        if settings is not None and not trial.system_attrs.get(CLAIM_LOST_ATTR):
+            latest[point_key(settings)] = trial.number
+    for point, number in latest.items():
+        if number not in claimed:
+            claims.record(point, number)
 
-    running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+
+def _open_parent_run(study: optuna.Study, config: SweepConfig, claims: ClaimStore, tracker: SweepTracker) -> str:
+    """The study's MLflow parent run: one for all workers, created by whichever worker gets there first."""
+    description = {
+        "study_name": config.study_name,
+        "scale_schedules": str(scale_choices(config)),
+        "codebook_sizes": str(codebook_choices(config)),
+        "prune_factor": str(config.prune_factor),
+    }
+    known = claims.get(PARENT_RUN_ATTR) or study.user_attrs.get(PARENT_RUN_ATTR)
+    run_id = tracker.open_study(config.study_name, known, description)
+    shared = claims.setdefault(PARENT_RUN_ATTR, run_id)
+    if shared != run_id:  # another worker created one at the same moment and stored it first
+        if run_id != known:
+            tracker.discard_run(run_id)
+        run_id = tracker.open_study(config.study_name, shared, description)
+    study.set_user_attr(PARENT_RUN_ATTR, run_id)
+    return run_id
+
+
+def _fail_stale_trials(study: optuna.Study, tracker: SweepTracker | None) -> None:
+    """Fail (and queue again) trials whose worker stopped sending heartbeats; close their MLflow runs."""
+    running = {
+        trial.number: trial.user_attrs.get("mlflow_run_id")
+        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+    }
     if not running:
         return
-    # Heartbeats are written every `heartbeat_seconds`; a dead sweep's trial is stale after the grace period.
-    grace_seconds = 2 * config.heartbeat_seconds
-    logger.info(
-        "trial(s) %s were left running; waiting up to %d s for their heartbeat to expire",
-        [trial.number for trial in running],
-        grace_seconds,
-    )
-    deadline = time.monotonic() + grace_seconds + 2 * config.heartbeat_seconds
-    left_running_runs = [trial.user_attrs.get("mlflow_run_id") for trial in running]
-    while True:
-        with _experimental_api():
-            fail_stale_trials(study)
-        running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
-        if not running:
-            break
-        if time.monotonic() > deadline:
-            raise SweepStateError(
-                f"trial(s) {[trial.number for trial in running]} of study '{config.study_name}' are still running "
-                "with a fresh heartbeat: another sweep is working on this study (run one sweep per workspace)"
-            )
-        time.sleep(1.0)
-    if tracker is not None:
-        for run_id in left_running_runs:
-            if run_id:
+    with _experimental_api():
+        fail_stale_trials(study)
+    for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
+        # A trial its own worker failed carries the reason (or `interrupted`) and had its run closed by that worker.
+        if trial.number in running and not trial.user_attrs.get("error") and not trial.user_attrs.get("interrupted"):
+            logger.info("trial %d lost its worker (no heartbeat); marked failed", trial.number)
+            run_id = running[trial.number]
+            if tracker is not None and run_id:
                 tracker.end_trial(run_id, "FAIL")

@@ -7,7 +7,9 @@ sweep (and is reopened on resume) while child runs come and go, and the stage sc
 
 import logging
 import math
-from collections.abc import Mapping
+import random
+import time
+from collections.abc import Callable, Mapping
 
 from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
@@ -20,6 +22,10 @@ logger = logging.getLogger(__name__)
 
 # Optuna trial state -> MLflow run status.
 RUN_STATUS = {"COMPLETE": "FINISHED", "PRUNED": "KILLED", "FAIL": "FAILED"}
+# Sweep workers that share a study close its parent run (and a dead worker's trial run) at about the same moment.
+# MLflow's SQL store writes a new tag by an INSERT after a look-up, so two writers of one tag can collide on its
+# primary key; the loser's second attempt finds the tag and updates it.
+SHARED_RUN_ATTEMPTS = 3
 
 
 class SweepTracker:
@@ -55,6 +61,10 @@ class SweepTracker:
             self.client.log_param(run.info.run_id, key, value)
         return run.info.run_id
 
+    def discard_run(self, run_id: str) -> None:
+        """Delete a parent run that lost the race to become the study's (another worker's run is used instead)."""
+        self.client.delete_run(run_id)
+
     def start_trial(self, parent_run_id: str, study_name: str, number: int, settings: TrialSettings) -> str:
         """Create the trial's child run with its params; returns its id."""
         run = self.client.create_run(
@@ -82,13 +92,20 @@ class SweepTracker:
 
     def end_trial(self, run_id: str, state: str, dvc_experiment: str = "") -> None:
         """Close a child run with the trial's final state (a tag and the matching run status)."""
-        self.client.set_tag(run_id, "carp.trial_state", state)
-        if dvc_experiment:
-            self.client.set_tag(run_id, "carp.dvc_experiment", dvc_experiment)
-        self.client.set_terminated(run_id, status=RUN_STATUS.get(state, "FAILED"))
+
+        def end() -> None:
+            self.client.set_tag(run_id, "carp.trial_state", state)
+            if dvc_experiment:
+                self.client.set_tag(run_id, "carp.dvc_experiment", dvc_experiment)
+            self.client.set_terminated(run_id, status=RUN_STATUS.get(state, "FAILED"))
+
+        _shared_write(end)
 
     def close_study(self, parent_run_id: str, best: TrialRecord | None, finished_trials: int) -> None:
         """Record the best trial on the parent run and mark it finished (a resume reopens it)."""
+        _shared_write(lambda: self._close_study(parent_run_id, best, finished_trials))
+
+    def _close_study(self, parent_run_id: str, best: TrialRecord | None, finished_trials: int) -> None:
         self.client.set_tag(parent_run_id, "carp.finished_trials", str(finished_trials))
         if best is not None and best.settings is not None:
             self.client.set_tag(parent_run_id, "carp.best_trial", str(best.number))
@@ -107,3 +124,16 @@ class SweepTracker:
     def interrupt_study(self, parent_run_id: str) -> None:
         """Mark the parent run killed (a resume reopens it)."""
         self.client.set_terminated(parent_run_id, status="KILLED")
+
+
+def _shared_write(write: Callable[[], None]) -> None:
+    """Run an idempotent write to a run that other workers may write at the same moment (see SHARED_RUN_ATTEMPTS)."""
+    for attempt in range(SHARED_RUN_ATTEMPTS):
+        try:
+            write()
+            return
+        except MlflowException:
+            if attempt + 1 == SHARED_RUN_ATTEMPTS:
+                raise
+            logger.info("a run was written by another worker at the same moment; writing again")
+            time.sleep(random.random())
