@@ -1,0 +1,132 @@
+"""Camera images for an image replay buffer: read from the robomimic file when it stores them, else rendered.
+
+A robomimic image dataset stores ``obs/<camera>_image`` uint8 (T, H, W, 3) in every demo; those images are taken as
+they are, so a user's robomimic image file ingests unchanged. A camera the file does not store is rendered from the
+demos' stored simulator states (:mod:`carp.data.rendering`), so a low-dim file needs no new collection. Rendering
+needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) before MuJoCo is imported.
+"""
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from carp.data.rendering import RenderingError, RenderSettings
+from carp.data.robomimic_io import Demonstrations
+from carp.data.robomimic_schema import DatasetError, hdf5_errors, open_hdf5
+
+STORED, RENDERED = "file", "rendered"
+
+
+@dataclass(frozen=True)
+class ImagePlan:
+    """Where each camera's images come from.
+
+    Attributes:
+        stored_keys: obs keys read from the file, in camera order.
+        rendered: settings of the cameras rendered from states, or ``None`` when the file stores every camera.
+    """
+
+    stored_keys: tuple[str, ...]
+    rendered: RenderSettings | None
+
+    def sources(self, settings: RenderSettings) -> dict[str, str]:
+        """Obs key -> ``file`` or ``rendered``, in camera order."""
+        return {key: STORED if key in self.stored_keys else RENDERED for key in settings.image_keys}
+
+
+def plan_images(path: Path, demo_names: Sequence[str], settings: RenderSettings) -> ImagePlan:
+    """Decide per camera whether to read or render its images.
+
+    A camera is read when any selected demo stores its key; the schema check then requires it in every demo, so a
+    file that stores it in some demos only is refused rather than silently mixed with rendered frames.
+
+    Args:
+        path: the robomimic-schema file (already validated for its low-dim keys).
+        demo_names: the demos that are ingested.
+        settings: cameras, image size and render flags.
+    """
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        present = set()
+        for name in demo_names:
+            obs = handle[f"data/{name}"].get("obs")
+            present |= set(obs.keys()) if obs is not None else set()
+    stored = tuple(key for key in settings.image_keys if key in present)
+    missing = tuple(
+        camera for camera, key in zip(settings.cameras, settings.image_keys, strict=True) if key not in stored
+    )
+    rendered = None
+    if missing:
+        rendered = RenderSettings(
+            cameras=missing,
+            image_size=settings.image_size,
+            shadows=settings.shadows,
+            reflections=settings.reflections,
+            skybox=settings.skybox,
+            anti_aliasing=settings.anti_aliasing,
+        )
+    return ImagePlan(stored_keys=stored, rendered=rendered)
+
+
+def check_image_size(demos: Demonstrations, keys: Sequence[str], image_size: int) -> None:
+    """Refuse stored images whose size is not ``image_size``.
+
+    Raises:
+        DatasetError: one line naming the file, demo, key and shape.
+    """
+    for name, episode in zip(demos.names, demos.episodes, strict=True):
+        for key in keys:
+            shape = episode.obs[key].shape
+            if shape[1:] != (image_size, image_size, 3):
+                raise DatasetError(
+                    f"{demos.path}: demo '{name}': obs key '{key}': shape={shape}: expected "
+                    f"(T, {image_size}, {image_size}, 3), the configured image size; images are not resized"
+                )
+
+
+def check_renderable(demos: Demonstrations, settings: RenderSettings) -> None:
+    """Refuse demos without stored states before anything is rendered.
+
+    Raises:
+        DatasetError: one line naming the file, demo and key.
+    """
+    for name, episode in zip(demos.names, demos.episodes, strict=True):
+        states = episode.states
+        if states is None or states.ndim != 2 or states.shape[1] == 0:
+            shape = None if states is None else states.shape
+            raise DatasetError(
+                f"{demos.path}: demo '{name}': key 'states': shape={shape}: no simulator states to render "
+                f"{list(settings.image_keys)} from (the file stores neither these images nor the states)"
+            )
+
+
+def rendered_episodes(demos: Demonstrations, settings: RenderSettings) -> Iterator[dict[str, np.ndarray]]:
+    """Render the demos (checked by :func:`check_renderable`) one at a time, with a progress bar over frames.
+
+    Yields:
+        Per demo, in file order, obs key -> (T_i, image_size, image_size, 3) uint8 upright RGB images.
+
+    Raises:
+        RenderingError: no offscreen backend, or a demo whose model is unknown (names the file and demo).
+    """
+    from carp.data.rendering import render_states
+    from carp.simulation import make_env
+
+    env = make_env(demos.env_args)
+    total = sum(episode.length for episode in demos.episodes)
+    try:
+        with tqdm(total=total, desc=f"render {', '.join(settings.cameras)}", unit="frame") as progress:
+            for name, episode in zip(demos.names, demos.episodes, strict=True):
+                try:
+                    images = render_states(env, episode.attrs, episode.states, settings)
+                except RenderingError as error:
+                    raise RenderingError(f"{demos.path}: demo '{name}': {error}") from None
+                progress.update(episode.length)
+                yield images
+    finally:
+        env.close()
+
+
+__all__ = ["ImagePlan", "check_image_size", "check_renderable", "plan_images", "rendered_episodes"]
