@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import zarr
 
+from carp.data.camera_images import plan_images
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.rendering import RenderSettings, offscreen_backend
 from carp.data.replay_buffer import FRAMES_PER_CHUNK, ReplayBuffer
@@ -53,6 +54,20 @@ def test_robomimic_image_file_ingests_its_images_chunked_and_compressed(tmp_path
     np.testing.assert_allclose(
         buffer.obs[30:55, 3:7], episodes[1].obs["robot0_eef_quat"], atol=1e-6
     )  # proprioception keeps the params order: eef pos (3), eef quat (4), gripper (2)
+
+
+def test_cameras_the_file_does_not_store_are_planned_for_rendering_with_the_same_settings(tmp_path):
+    raw = tmp_path / "raw.hdf5"
+    write_synthetic_file(raw, image_size=IMAGE_SIZE)
+    with h5py.File(raw, "r+") as handle:
+        for demo in ("demo_0", "demo_1", "demo_2", "demo_3"):
+            del handle[f"data/{demo}/obs/robot0_eye_in_hand_image"]
+    settings = RenderSettings(image_size=IMAGE_SIZE, shadows=True)
+    plan = plan_images(raw, ["demo_0", "demo_3"], settings)
+    assert plan.stored_keys == ("agentview_image",)
+    assert plan.rendered == RenderSettings(cameras=("robot0_eye_in_hand",), image_size=IMAGE_SIZE, shadows=True)
+    assert plan.sources(settings) == {"agentview_image": "file", "robot0_eye_in_hand_image": "rendered"}
+    assert plan_images(raw, ["demo_0"], RenderSettings(cameras=("agentview",))).rendered is None
 
 
 def _replace(path: Path, demo: str, key: str, values: np.ndarray) -> None:
@@ -154,6 +169,7 @@ from pathlib import Path
 import numpy as np
 
 from carp.data.image_windows import ImageWindowReader
+from carp.data.camera_images import plan_images
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.rendering import RenderSettings, render_demos
 from carp.data.robomimic_io import read_demonstrations

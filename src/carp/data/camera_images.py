@@ -7,7 +7,7 @@ needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) be
 """
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +15,14 @@ from tqdm import tqdm
 
 from carp.data.rendering import RenderingError, RenderSettings
 from carp.data.robomimic_io import Demonstrations
-from carp.data.robomimic_schema import DatasetError, hdf5_errors, open_hdf5
+from carp.data.robomimic_schema import (
+    DatasetError,
+    check_demo_layout,
+    check_same_widths,
+    hdf5_errors,
+    open_hdf5,
+    read_images,
+)
 
 STORED, RENDERED = "file", "rendered"
 
@@ -57,33 +64,42 @@ def plan_images(path: Path, demo_names: Sequence[str], settings: RenderSettings)
     missing = tuple(
         camera for camera, key in zip(settings.cameras, settings.image_keys, strict=True) if key not in stored
     )
-    rendered = None
-    if missing:
-        rendered = RenderSettings(
-            cameras=missing,
-            image_size=settings.image_size,
-            shadows=settings.shadows,
-            reflections=settings.reflections,
-            skybox=settings.skybox,
-            anti_aliasing=settings.anti_aliasing,
-        )
+    rendered = replace(settings, cameras=missing) if missing else None
     return ImagePlan(stored_keys=stored, rendered=rendered)
 
 
-def check_image_size(demos: Demonstrations, keys: Sequence[str], image_size: int) -> None:
-    """Refuse stored images whose size is not ``image_size``.
+def check_stored_images(path: Path, names: Sequence[str], keys: Sequence[str], image_size: int) -> None:
+    """Check the stored images of every demo from the file's metadata, before any of them is read.
 
     Raises:
-        DatasetError: one line naming the file, demo, key and shape.
+        DatasetError: one line naming the file, demo, key and shape of an image dataset that is not uint8
+            (T, image_size, image_size, 3) with T the demo's steps, or whose size differs between demos.
     """
-    for name, episode in zip(demos.names, demos.episodes, strict=True):
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        layouts = [check_demo_layout(handle[f"data/{name}"], f"{path}: demo '{name}'", keys, None) for name in names]
+    check_same_widths(path, names, layouts)
+    for name, layout in zip(names, layouts, strict=True):
         for key in keys:
-            shape = episode.obs[key].shape
-            if shape[1:] != (image_size, image_size, 3):
+            if layout.obs_shapes[key] != (image_size, image_size, 3):
+                shape = (layout.steps, *layout.obs_shapes[key])
                 raise DatasetError(
-                    f"{demos.path}: demo '{name}': obs key '{key}': shape={shape}: expected "
+                    f"{path}: demo '{name}': obs key '{key}': shape={shape}: expected "
                     f"(T, {image_size}, {image_size}, 3), the configured image size; images are not resized"
                 )
+
+
+def stored_episodes(path: Path, names: Sequence[str], keys: Sequence[str]) -> Iterator[dict[str, np.ndarray]]:
+    """Read the stored images (checked by :func:`check_stored_images`) one demo at a time.
+
+    Yields:
+        Per demo, in the order of ``names``, obs key -> (T_i, H, W, 3) uint8 images as stored.
+    """
+    with open_hdf5(path) as handle:
+        for name in names:
+            where = f"{path}: demo '{name}'"
+            with hdf5_errors(where):
+                obs = handle[f"data/{name}/obs"]
+            yield {key: read_images(obs[key], f"{where}: obs key '{key}'") for key in keys}
 
 
 def check_renderable(demos: Demonstrations, settings: RenderSettings) -> None:
@@ -129,4 +145,11 @@ def rendered_episodes(demos: Demonstrations, settings: RenderSettings) -> Iterat
         env.close()
 
 
-__all__ = ["ImagePlan", "check_image_size", "check_renderable", "plan_images", "rendered_episodes"]
+__all__ = [
+    "ImagePlan",
+    "check_renderable",
+    "check_stored_images",
+    "plan_images",
+    "rendered_episodes",
+    "stored_episodes",
+]

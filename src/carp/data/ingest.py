@@ -20,7 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from carp.data.camera_images import ImagePlan, check_image_size, check_renderable, plan_images, rendered_episodes
+from carp.data.camera_images import (
+    ImagePlan,
+    check_renderable,
+    check_stored_images,
+    plan_images,
+    rendered_episodes,
+    stored_episodes,
+)
 from carp.data.normalizer import MinMaxNormalizer, save_normalizers
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
@@ -85,9 +92,7 @@ def ingest_demonstrations(
             f"{raw_path}: obs keys {images}: camera images are not stored in the low-dimensional replay buffer; "
             "list only low-dimensional obs keys"
         )
-    plan = None
-    if camera_settings is not None:
-        demos, plan = _read_images(demos, obs_keys, filter_key, camera_settings)
+    plan = _plan_images(demos, camera_settings) if camera_settings is not None else None
     valid_names = _valid_demo_names(demos.names, demos.masks.get("valid", []), valid_fraction)
 
     obs_parts, action_parts, ends = [], [], []
@@ -148,36 +153,32 @@ def ingest_demonstrations(
     return summary
 
 
-def _read_images(
-    demos: Demonstrations, obs_keys: Sequence[str], filter_key: str | None, settings: RenderSettings
-) -> tuple[Demonstrations, ImagePlan]:
-    """Plan each camera's source, read the stored ones and check everything before any output is staged."""
+def _plan_images(demos: Demonstrations, settings: RenderSettings) -> ImagePlan:
+    """Choose each camera's source and check it from metadata, before any output is staged."""
     plan = plan_images(demos.path, demos.names, settings)
     if plan.stored_keys:
-        # Read again with the stored images, so the schema checks their dtype, shape and size per demo.
-        demos = read_demonstrations(
-            demos.path, [*obs_keys, *plan.stored_keys], action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key
-        )
-        check_image_size(demos, plan.stored_keys, settings.image_size)
+        check_stored_images(demos.path, demos.names, plan.stored_keys, settings.image_size)
     if plan.rendered is not None:
         check_renderable(demos, plan.rendered)
-    return demos, plan
+    return plan
 
 
 def _write_images(
     root: Path, buffer: ReplayBuffer, demos: Demonstrations, settings: RenderSettings, plan: ImagePlan
 ) -> None:
-    """Fill ``data/<camera>_image`` of the saved store ``root``, one demo at a time (rendered ones never all held)."""
+    """Fill ``data/<camera>_image`` of the saved store ``root`` one demo at a time, so no camera is ever held whole."""
     steps = int(buffer.episode_ends[-1])
     arrays = {
         key: ReplayBuffer.create_image_array(root, key, steps, settings.image_size) for key in settings.image_keys
     }
-    starts, ends = buffer.episode_starts, buffer.episode_ends
-    for index, episode in enumerate(demos.episodes):
-        for key in plan.stored_keys:
-            arrays[key][starts[index] : ends[index]] = episode.obs[key]
+    sources = []
+    if plan.stored_keys:
+        sources.append(stored_episodes(demos.path, demos.names, plan.stored_keys))
     if plan.rendered is not None:
-        for index, images in enumerate(rendered_episodes(demos, plan.rendered)):
+        sources.append(rendered_episodes(demos, plan.rendered))
+    starts, ends = buffer.episode_starts, buffer.episode_ends
+    for episodes in sources:
+        for index, images in enumerate(episodes):
             for key, frames in images.items():
                 arrays[key][starts[index] : ends[index]] = frames
 
