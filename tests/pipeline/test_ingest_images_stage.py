@@ -6,10 +6,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import yaml
 import zarr
 
 from tests.conftest import IMAGE_KEYS, write_synthetic_file
-from tests.pipeline.workspace import make_workspace, run
+from tests.pipeline.workspace import dvc, make_workspace, run
 
 pytestmark = pytest.mark.slow
 
@@ -55,3 +56,17 @@ def test_wrong_image_dtype_is_one_error_line_with_key_and_shape_and_nothing_is_w
     after = sorted(path.relative_to(output) for path in output.rglob("*")) if output.exists() else None
     assert after == before  # an earlier output stays as it was
     assert list(workspace.glob("data/.staging/.*")) == []
+
+
+def test_image_settings_of_a_state_run_rerun_ingest_alone_with_an_identical_output(tmp_path):
+    workspace = make_workspace(tmp_path, {"data": {"num_demos": 2}})
+    assert run(dvc("repro", "ingest@lift"), workspace, timeout=600).returncode == 0
+    before = yaml.safe_load((workspace / "dvc.lock").read_text())["stages"]["ingest@lift"]["outs"]
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    params["data"].update(cameras=["agentview"], image_size=32, proprioception_keys=["robot0_eef_pos"])
+    (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    status = run(dvc("status", "ingest@lift"), workspace)
+    assert "modified:           data.cameras" in status.stdout, status.stdout
+    assert run(dvc("repro", "ingest@lift"), workspace, timeout=600).returncode == 0
+    after = yaml.safe_load((workspace / "dvc.lock").read_text())["stages"]["ingest@lift"]["outs"]
+    assert after == before  # same directory hash: train_tokenizer and every later stage stay cached

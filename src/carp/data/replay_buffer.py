@@ -7,7 +7,8 @@ Layout::
     <root>/data/<camera>_image (N, H, W, 3) uint8 camera images, only in an image buffer (attrs image_keys)
     <root>/meta/episode_ends   (E,)    int64    exclusive end row of each episode
     <root>/meta/valid_episodes (E,)    bool     held out for validation metrics
-    attrs: obs_keys, obs_widths, controller, source file, env_args, demo names
+    attrs: obs_keys, obs_widths, controller, source file, env_args, demo names; in an image buffer also
+           image_keys (camera order), image_size and image_sources (obs key -> "file" or "rendered")
 
 zarr 2 is used deliberately: its ``DirectoryStore`` API is stable and the arrays are small (a few MB), so one chunk
 of a few thousand rows per array keeps random window sampling to a single read. Images are the exception: a demo's
@@ -30,7 +31,6 @@ FRAMES_PER_CHUNK = 4
 # zstd at a low level: rendered scenes (flat table, walls) compress several times over, and decoding a chunk costs
 # far less than copying it to the policy; Blosc's byte shuffle does nothing for 1-byte pixels, so it is off.
 IMAGE_COMPRESSOR = zarr.Blosc(cname="zstd", clevel=3, shuffle=zarr.Blosc.NOSHUFFLE)
-IMAGE_ATTRS = ("image_keys", "image_size", "image_sources")
 
 
 @dataclass
