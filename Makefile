@@ -61,6 +61,7 @@ benchmark: setup
 	$(BIN)/python benchmarks/policy_speed.py
 	$(BIN)/python benchmarks/policy_families.py
 	$(BIN)/python benchmarks/rendering_cost.py
+	$(BIN)/python benchmarks/image_windows.py
 
 ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000

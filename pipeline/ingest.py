@@ -1,5 +1,6 @@
 """ingest stage: data/raw/<task>.hdf5 -> data/processed/<task>/ (zarr replay buffer + normalization stats)."""
 
+import os
 from dataclasses import asdict
 
 from stage_support import (
@@ -15,6 +16,7 @@ from stage_support import (
 )
 
 from carp.data.ingest import ingest_demonstrations
+from carp.data.rendering import RenderingError, RenderSettings, offscreen_backend
 from carp.data.robomimic_io import DatasetError
 from carp.data.staging import remove_stale_entries
 
@@ -28,17 +30,23 @@ def main() -> None:
     # Earlier versions staged next to the output, inside train_tokenizer's dependency data/processed; a killed run's
     # leftover there would stay in that dependency's hash.
     remove_stale_entries(PROCESSED_DIR)
+    camera_settings = None
     try:
+        if params.data.observations == "image":
+            # Cameras a file does not store are rendered offscreen; MuJoCo reads MUJOCO_GL when first imported.
+            os.environ.setdefault("MUJOCO_GL", offscreen_backend())
+            camera_settings = RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
         summary = ingest_demonstrations(
             raw,
             output,
-            obs_keys=params.data.obs_keys,
+            obs_keys=params.data.low_dim_keys,
             controller=params.data.controller,
             filter_key=params.data.filter_key,
             valid_fraction=params.data.valid_fraction,
             staging_dir=STAGING_DIR,
+            camera_settings=camera_settings,
         )
-    except DatasetError as error:
+    except (DatasetError, RenderingError) as error:
         fail(str(error))
     with mlflow_stage(params, f"ingest@{args.task}", args.task) as run:
         run.log_metrics({k: v for k, v in asdict(summary).items() if isinstance(v, (int, float))})
@@ -46,6 +54,8 @@ def main() -> None:
         f"{args.task}: {summary.episodes} episodes ({summary.valid_episodes} held out), {summary.steps} steps, "
         f"obs {summary.obs_dim}-D, actions {summary.action_dim}-D -> {output.relative_to(PROJECT_DIR)}"
     )
+    if camera_settings is not None:
+        print(f"{args.task}: images {', '.join(camera_settings.image_keys)} at {camera_settings.image_size} px")
 
 
 if __name__ == "__main__":

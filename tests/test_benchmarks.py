@@ -180,3 +180,32 @@ def test_rendering_cost_refuses_an_unknown_task_in_one_line():
     assert completed.stderr.strip().splitlines() == [
         "error: --tasks ['stack']: unknown; expected some of ['can', 'lift', 'square']"
     ]
+
+
+def test_image_windows_prints_bytes_per_demo_and_consistent_window_rates():
+    completed = run_benchmark(
+        "image_windows.py", *("--demos", "3", "--steps", "12", "--image-size", "16", "--batch-size", "8")
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    output = completed.stdout
+    assert output.startswith("synthetic: 3 demos, 36 frames of 16x16, chunks of 4 frames")
+    sizes = {
+        match.group(1): (float(match.group(2)), float(match.group(3)), float(match.group(4)))
+        for match in re.finditer(rf"^(\w+_image)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}$", output, flags=re.MULTILINE)
+    }
+    assert set(sizes) == {"agentview_image", "robot0_eye_in_hand_image"}
+    for on_disk, raw, ratio in sizes.values():
+        assert raw == 12 * 16 * 16 * 3 and 0 < on_disk < raw
+        assert ratio == pytest.approx(raw / on_disk, rel=0.01)
+    total = float(re.search(rf"^all cameras\s+{NUMBER}$", output, flags=re.MULTILINE).group(1))
+    assert total == pytest.approx(sum(size[0] for size in sizes.values()), abs=1)
+    rates = re.findall(rf"^([12])\s+8\s+{NUMBER}\s+{NUMBER}$", output, flags=re.MULTILINE)
+    assert [obs_steps for obs_steps, _, _ in rates] == ["1", "2"]
+    for _, milliseconds, per_second in rates:
+        assert float(per_second) == pytest.approx(8 / (float(milliseconds) / 1e3), rel=0.02, abs=1)
+
+
+def test_image_windows_refuses_a_buffer_without_images_in_one_line(tmp_path):
+    completed = run_benchmark("image_windows.py", "--buffer", str(tmp_path))
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [f"error: --buffer={tmp_path}: not a zarr replay buffer"]

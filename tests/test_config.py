@@ -93,12 +93,36 @@ def test_defaults_follow_the_design():
         ({"tokenizer": {"tasks": ["can"]}}, "tokenizer.tasks=['can']: every tokenizer task must also be in tasks"),
         ({"colour": "red"}, "colour: unknown key"),
         ({"data": [1, 2]}, "data: expected a mapping"),
+        ({"data": {"observations": "depth"}}, "data.observations='depth': must be one of ('state', 'image')"),
+        ({"data": {"cameras": []}}, "data.cameras=[]: must name at least one camera"),
+        ({"data": {"cameras": ["agentview", ""]}}, "data.cameras=['agentview', '']: camera names must not be empty"),
+        (
+            {"data": {"cameras": ["agentview", "agentview"]}},
+            "data.cameras=['agentview', 'agentview']: must name each camera once",
+        ),
+        ({"data": {"cameras": "agentview"}}, "data.cameras='agentview': expected a list"),
+        ({"data": {"image_size": 0}}, "data.image_size=0: must be an integer >= 1"),
+        ({"data": {"image_size": 84.5}}, "data.image_size=84.5: expected an integer"),
+        ({"data": {"proprioception_keys": []}}, "data.proprioception_keys=[]: must name at least one key"),
+        (
+            {"data": {"proprioception_keys": ["robot0_eef_pos", "agentview_image"]}},
+            "data.proprioception_keys=['robot0_eef_pos', 'agentview_image']: must be low-dim keys, not camera images",
+        ),
     ],
 )
 def test_bad_values_are_refused_with_the_key_named(raw, message):
     with pytest.raises(ConfigError) as error:
         params_from_dict(raw)
     assert message in str(error.value)
+
+
+def test_image_observations_swap_the_object_pose_for_proprioception_and_cameras():
+    state = Params().data
+    assert state.observations == "state" and state.image_keys == () and state.low_dim_keys == state.obs_keys
+    image = params_from_dict({"data": {"observations": "image", "cameras": ["agentview"], "image_size": 64}}).data
+    assert image.image_keys == ("agentview_image",) and image.image_size == 64
+    assert image.low_dim_keys == ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+    assert "object" in state.low_dim_keys and "object" not in image.low_dim_keys
 
 
 def test_load_params_names_the_file(tmp_path):

@@ -22,7 +22,10 @@ CONTROLLERS = ("absolute", "delta")
 ACTION_DIMS = {"absolute": 10, "delta": 7}
 EVAL_BACKENDS = ("onnxruntime", "torch")
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
+OBSERVATION_KINDS = ("state", "image")
 REGISTRY_URI_PREFIX = "models:/"
+# robomimic names a camera's images obs/<camera>_image (as carp.data.robomimic_schema does).
+IMAGE_KEY_SUFFIX = "_image"
 
 
 class ConfigError(ValueError):
@@ -91,6 +94,18 @@ class DataConfig:
         num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
             among lift, can and square. DVC tracks the whole mapping: changing one entry reruns every ``collect``
             stage, but collection is deterministic, so only that task's data and what depends on it change.
+        observations: What the policy observes: ``state`` (the low-dim ``obs_keys``, object pose included) or
+            ``image`` (camera images of ``cameras`` plus the proprioception of ``proprioception_keys``, no object
+            pose). Only the ingest stage tracks the image settings; in a ``state`` run, changing one reruns ingest
+            alone, whose output is then unchanged, so nothing downstream reruns.
+        cameras: robosuite cameras whose images are ingested with ``observations: image``, each giving the obs key
+            ``<camera>_image``; at least one, no repeats. Taken from the robomimic file when it stores that key,
+            otherwise rendered from the demos' stored simulator states.
+        image_size: Height and width of the camera images in pixels (robomimic's image datasets: 84); an integer
+            >= 1. Images a file stores must already have this size.
+        proprioception_keys: Low-dim observation keys ingested with the images (``observations: image``),
+            concatenated in this order; at least one, none of them a camera image. The default is the robot's own
+            state (end-effector position and quaternion, gripper joints), without the object's privileged pose.
     """
 
     num_demos: int = 100
@@ -105,6 +120,10 @@ class DataConfig:
     valid_fraction: float = 0.1
     raw_files: dict[str, str] = field(default_factory=dict)
     num_demos_per_task: dict[str, int] = field(default_factory=dict)
+    observations: str = "state"
+    cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
+    image_size: int = 84
+    proprioception_keys: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
     def demos_for(self, task: str) -> int:
         """Scripted demos collected for `task`: its `num_demos_per_task` entry, else `num_demos`."""
@@ -128,6 +147,32 @@ class DataConfig:
         _require(0.0 <= self.valid_fraction < 1.0, "data.valid_fraction", self.valid_fraction, "must be in [0, 1)")
         for task in self.raw_files:
             _require(task in TASK_NAMES, f"data.raw_files.{task}", task, f"task must be one of {TASK_NAMES}")
+        _require(
+            self.observations in OBSERVATION_KINDS,
+            "data.observations",
+            self.observations,
+            f"must be one of {OBSERVATION_KINDS}",
+        )
+        cameras = list(self.cameras)
+        _require(len(cameras) > 0, "data.cameras", cameras, "must name at least one camera")
+        _require(all(camera for camera in cameras), "data.cameras", cameras, "camera names must not be empty")
+        _require(len(set(cameras)) == len(cameras), "data.cameras", cameras, "must name each camera once")
+        require_positive_int("data.image_size", self.image_size)
+        keys = list(self.proprioception_keys)
+        _require(len(keys) > 0, "data.proprioception_keys", keys, "must name at least one key")
+        _require(len(set(keys)) == len(keys), "data.proprioception_keys", keys, "must name each key once")
+        images = [key for key in keys if key.endswith(IMAGE_KEY_SUFFIX)]
+        _require(not images, "data.proprioception_keys", keys, f"must be low-dim keys, not camera images {images}")
+
+    @property
+    def image_keys(self) -> tuple[str, ...]:
+        """Obs keys of the camera images (``<camera>_image``, in ``cameras`` order) with ``observations: image``."""
+        return tuple(f"{camera}{IMAGE_KEY_SUFFIX}" for camera in self.cameras) if self.observations == "image" else ()
+
+    @property
+    def low_dim_keys(self) -> tuple[str, ...]:
+        """Low-dim obs keys stored in the replay buffer: ``obs_keys`` for state, ``proprioception_keys`` for image."""
+        return self.proprioception_keys if self.observations == "image" else self.obs_keys
 
     @property
     def action_dim(self) -> int:

@@ -89,3 +89,9 @@ def test_a_per_family_stage_refuses_a_family_missing_from_policies_in_one_line(s
     assert completed.stderr.strip().splitlines() == [
         f"error: {params_path}: policies=['carp']: --policy next_token is not listed"
     ]
+
+
+def test_only_ingest_tracks_the_image_settings(stages):
+    image_settings = {"data.observations", "data.cameras", "data.image_size", "data.proprioception_keys"}
+    assert image_settings <= set(stages["ingest@lift"])
+    assert [name for name, keys in stages.items() if image_settings & set(keys) and name != "ingest@lift"] == []

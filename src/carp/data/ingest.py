@@ -5,6 +5,10 @@ exactly when executed; delta actions are kept as they are. The output directory 
 renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path. Every
 check of the input file lives in :mod:`carp.data.robomimic_schema`, shared with the collect stage's import of a user's
 file.
+
+With camera settings, the buffer also holds each camera's images (read from the file or rendered from the stored
+states, see :mod:`carp.data.camera_images`), written into the staged store one demo at a time; without them the
+output is exactly the low-dim buffer.
 """
 
 import json
@@ -16,9 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
+from carp.data.camera_images import (
+    ImagePlan,
+    check_renderable,
+    check_stored_images,
+    plan_images,
+    rendered_episodes,
+    stored_episodes,
+)
 from carp.data.normalizer import MinMaxNormalizer, save_normalizers
+from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
-from carp.data.robomimic_io import DatasetError, read_demonstrations
+from carp.data.robomimic_io import DatasetError, Demonstrations, read_demonstrations
 from carp.data.robomimic_schema import is_image_key
 from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
 from carp.data.staging import staged
@@ -49,6 +62,7 @@ def ingest_demonstrations(
     filter_key: str | None = None,
     valid_fraction: float = 0.1,
     staging_dir: Path | None = None,
+    camera_settings: RenderSettings | None = None,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
@@ -62,9 +76,12 @@ def ingest_demonstrations(
         staging_dir: where the output is built before its rename (see :mod:`carp.data.staging`): outside every
             folder a pipeline declares as a dependency, on the output's filesystem. ``None`` uses ``output_dir``'s
             parent.
+        camera_settings: cameras and image size of an image buffer; ``None`` (the default) stores low-dim
+            observations only.
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
+        RenderingError: images must be rendered and rendering is unavailable, or a demo's model is unknown.
     """
     raw_path, output_dir = Path(raw_path), Path(output_dir)
     demos = read_demonstrations(raw_path, obs_keys, action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key)
@@ -75,6 +92,7 @@ def ingest_demonstrations(
             f"{raw_path}: obs keys {images}: camera images are not stored in the low-dimensional replay buffer; "
             "list only low-dimensional obs keys"
         )
+    plan = _plan_images(demos, camera_settings) if camera_settings is not None else None
     valid_names = _valid_demo_names(demos.names, demos.masks.get("valid", []), valid_fraction)
 
     obs_parts, action_parts, ends = [], [], []
@@ -113,17 +131,56 @@ def ingest_demonstrations(
         mean_episode_steps=float(total / buffer.num_episodes),
     )
 
+    if camera_settings is not None:
+        buffer.attrs.update(
+            image_keys=list(camera_settings.image_keys),
+            image_size=camera_settings.image_size,
+            image_sources=plan.sources(camera_settings),
+        )
+
     normalizers = {"obs": MinMaxNormalizer.fit(obs), "action": MinMaxNormalizer.fit(action)}
     output_dir.parent.mkdir(parents=True, exist_ok=True)
     with staged(staging_dir or output_dir.parent, output_dir.name) as staging:
         staging.mkdir()
         buffer.save(staging / BUFFER_DIRNAME)
+        if camera_settings is not None:
+            _write_images(staging / BUFFER_DIRNAME, buffer, demos, camera_settings, plan)
         save_normalizers(staging / NORMALIZATION_FILENAME, normalizers)
         (staging / SUMMARY_FILENAME).write_text(json.dumps(asdict(summary), indent=2))
         if output_dir.exists():
             shutil.rmtree(output_dir)
         os.replace(staging, output_dir)
     return summary
+
+
+def _plan_images(demos: Demonstrations, settings: RenderSettings) -> ImagePlan:
+    """Choose each camera's source and check it from metadata, before any output is staged."""
+    plan = plan_images(demos.path, demos.names, settings)
+    if plan.stored_keys:
+        check_stored_images(demos.path, demos.names, plan.stored_keys, settings.image_size)
+    if plan.rendered is not None:
+        check_renderable(demos, plan.rendered)
+    return plan
+
+
+def _write_images(
+    root: Path, buffer: ReplayBuffer, demos: Demonstrations, settings: RenderSettings, plan: ImagePlan
+) -> None:
+    """Fill ``data/<camera>_image`` of the saved store ``root`` one demo at a time, so no camera is ever held whole."""
+    steps = int(buffer.episode_ends[-1])
+    arrays = {
+        key: ReplayBuffer.create_image_array(root, key, steps, settings.image_size) for key in settings.image_keys
+    }
+    sources = []
+    if plan.stored_keys:
+        sources.append(stored_episodes(demos.path, demos.names, plan.stored_keys))
+    if plan.rendered is not None:
+        sources.append(rendered_episodes(demos, plan.rendered))
+    starts, ends = buffer.episode_starts, buffer.episode_ends
+    for episodes in sources:
+        for index, images in enumerate(episodes):
+            for key, frames in images.items():
+                arrays[key][starts[index] : ends[index]] = frames
 
 
 def _valid_demo_names(names: list[str], listed_valid: list[str], valid_fraction: float) -> set[str]:

@@ -1,0 +1,155 @@
+"""Camera images for an image replay buffer: read from the robomimic file when it stores them, else rendered.
+
+A robomimic image dataset stores ``obs/<camera>_image`` uint8 (T, H, W, 3) in every demo; those images are taken as
+they are, so a user's robomimic image file ingests unchanged. A camera the file does not store is rendered from the
+demos' stored simulator states (:mod:`carp.data.rendering`), so a low-dim file needs no new collection. Rendering
+needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) before MuJoCo is imported.
+"""
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from carp.data.rendering import RenderingError, RenderSettings
+from carp.data.robomimic_io import Demonstrations
+from carp.data.robomimic_schema import (
+    DatasetError,
+    check_demo_layout,
+    check_same_widths,
+    hdf5_errors,
+    open_hdf5,
+    read_images,
+)
+
+STORED, RENDERED = "file", "rendered"
+
+
+@dataclass(frozen=True)
+class ImagePlan:
+    """Where each camera's images come from.
+
+    Attributes:
+        stored_keys: obs keys read from the file, in camera order.
+        rendered: settings of the cameras rendered from states, or ``None`` when the file stores every camera.
+    """
+
+    stored_keys: tuple[str, ...]
+    rendered: RenderSettings | None
+
+    def sources(self, settings: RenderSettings) -> dict[str, str]:
+        """Obs key -> ``file`` or ``rendered``, in camera order."""
+        return {key: STORED if key in self.stored_keys else RENDERED for key in settings.image_keys}
+
+
+def plan_images(path: Path, demo_names: Sequence[str], settings: RenderSettings) -> ImagePlan:
+    """Decide per camera whether to read or render its images.
+
+    A camera is read when any selected demo stores its key; the schema check then requires it in every demo, so a
+    file that stores it in some demos only is refused rather than silently mixed with rendered frames.
+
+    Args:
+        path: the robomimic-schema file (already validated for its low-dim keys).
+        demo_names: the demos that are ingested.
+        settings: cameras, image size and render flags.
+    """
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        present = set()
+        for name in demo_names:
+            obs = handle[f"data/{name}"].get("obs")
+            present |= set(obs.keys()) if obs is not None else set()
+    stored = tuple(key for key in settings.image_keys if key in present)
+    missing = tuple(
+        camera for camera, key in zip(settings.cameras, settings.image_keys, strict=True) if key not in stored
+    )
+    rendered = replace(settings, cameras=missing) if missing else None
+    return ImagePlan(stored_keys=stored, rendered=rendered)
+
+
+def check_stored_images(path: Path, names: Sequence[str], keys: Sequence[str], image_size: int) -> None:
+    """Check the stored images of every demo from the file's metadata, before any of them is read.
+
+    Raises:
+        DatasetError: one line naming the file, demo, key and shape of an image dataset that is not uint8
+            (T, image_size, image_size, 3) with T the demo's steps, or whose size differs between demos.
+    """
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        layouts = [check_demo_layout(handle[f"data/{name}"], f"{path}: demo '{name}'", keys, None) for name in names]
+    check_same_widths(path, names, layouts)
+    for name, layout in zip(names, layouts, strict=True):
+        for key in keys:
+            if layout.obs_shapes[key] != (image_size, image_size, 3):
+                shape = (layout.steps, *layout.obs_shapes[key])
+                raise DatasetError(
+                    f"{path}: demo '{name}': obs key '{key}': shape={shape}: expected "
+                    f"(T, {image_size}, {image_size}, 3), the configured image size; images are not resized"
+                )
+
+
+def stored_episodes(path: Path, names: Sequence[str], keys: Sequence[str]) -> Iterator[dict[str, np.ndarray]]:
+    """Read the stored images (checked by :func:`check_stored_images`) one demo at a time.
+
+    Yields:
+        Per demo, in the order of ``names``, obs key -> (T_i, H, W, 3) uint8 images as stored.
+    """
+    with open_hdf5(path) as handle:
+        for name in names:
+            where = f"{path}: demo '{name}'"
+            with hdf5_errors(where):
+                obs = handle[f"data/{name}/obs"]
+            yield {key: read_images(obs[key], f"{where}: obs key '{key}'") for key in keys}
+
+
+def check_renderable(demos: Demonstrations, settings: RenderSettings) -> None:
+    """Refuse demos without stored states before anything is rendered.
+
+    Raises:
+        DatasetError: one line naming the file, demo and key.
+    """
+    for name, episode in zip(demos.names, demos.episodes, strict=True):
+        states = episode.states
+        if states is None or states.ndim != 2 or states.shape[1] == 0:
+            shape = None if states is None else states.shape
+            raise DatasetError(
+                f"{demos.path}: demo '{name}': key 'states': shape={shape}: no simulator states to render "
+                f"{list(settings.image_keys)} from (the file stores neither these images nor the states)"
+            )
+
+
+def rendered_episodes(demos: Demonstrations, settings: RenderSettings) -> Iterator[dict[str, np.ndarray]]:
+    """Render the demos (checked by :func:`check_renderable`) one at a time, with a progress bar over frames.
+
+    Yields:
+        Per demo, in file order, obs key -> (T_i, image_size, image_size, 3) uint8 upright RGB images.
+
+    Raises:
+        RenderingError: no offscreen backend, or a demo whose model is unknown (names the file and demo).
+    """
+    from carp.data.rendering import render_states
+    from carp.simulation import make_env
+
+    env = make_env(demos.env_args)
+    total = sum(episode.length for episode in demos.episodes)
+    try:
+        with tqdm(total=total, desc=f"render {', '.join(settings.cameras)}", unit="frame") as progress:
+            for name, episode in zip(demos.names, demos.episodes, strict=True):
+                try:
+                    images = render_states(env, episode.attrs, episode.states, settings)
+                except RenderingError as error:
+                    raise RenderingError(f"{demos.path}: demo '{name}': {error}") from None
+                progress.update(episode.length)
+                yield images
+    finally:
+        env.close()
+
+
+__all__ = [
+    "ImagePlan",
+    "check_renderable",
+    "check_stored_images",
+    "plan_images",
+    "rendered_episodes",
+    "stored_episodes",
+]

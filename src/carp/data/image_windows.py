@@ -1,0 +1,97 @@
+"""Image observation windows, read lazily from an image replay buffer (layout in :mod:`carp.data.replay_buffer`).
+
+Windows follow :mod:`carp.data.windows` (same rows, same edge padding); only the observation steps ``To`` carry
+images. The low-dim arrays (proprioception, actions) are small and held in memory; the images stay on disk and a
+batch reads, for each camera, the union of its windows' frames with one orthogonal selection, which decodes only the
+chunks (a few frames each) holding those frames.
+"""
+
+from collections.abc import MutableMapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zarr
+from einops import rearrange
+
+from carp.data.windows import window_row_indices
+
+SPLITS = ("train", "valid", "all")
+
+
+@dataclass(frozen=True)
+class ImageWindows:
+    """A batch of windows.
+
+    Attributes:
+        images: (N, To, cameras, 3, H, W) uint8 RGB images, cameras in the buffer's ``image_keys`` order.
+        proprioception: (N, To, Dp) float32 low-dim observations (the buffer's ``obs``), raw.
+        actions: (N, H, A) float32 actions, raw.
+    """
+
+    images: np.ndarray
+    proprioception: np.ndarray
+    actions: np.ndarray
+
+
+class ImageWindowReader:
+    """Windows of an image replay buffer, indexed ``0 .. len - 1``.
+
+    Args:
+        store: the ``replay.zarr`` folder, or any zarr 2 store holding it (e.g. a wrapper that counts reads).
+        horizon: ``H``, window length.
+        obs_steps: ``To``, observation steps per window.
+        action_steps: ``Ta``, executed actions per window (sets the padding after an episode's end).
+        split: ``train`` (episodes not held out), ``valid`` (held out) or ``all``.
+
+    Raises:
+        ValueError: an unknown split, or a buffer without images (ingested with ``observations: state``).
+    """
+
+    def __init__(
+        self, store: Path | MutableMapping, horizon: int, obs_steps: int, action_steps: int, split: str = "all"
+    ) -> None:
+        if split not in SPLITS:
+            raise ValueError(f"split={split!r}: must be one of {SPLITS}")
+        group = zarr.open_group(str(store) if isinstance(store, Path) else store, mode="r")
+        if "image_keys" not in group.attrs:
+            raise ValueError(f"{store}: replay buffer holds no images (ingest it with observations: image)")
+        self.image_keys: tuple[str, ...] = tuple(group.attrs["image_keys"])
+        self.image_size = int(group.attrs["image_size"])
+        self.obs_steps = obs_steps
+        self._images = [group[f"data/{key}"] for key in self.image_keys]
+        self._proprioception = group["data/obs"][:]
+        self._actions = group["data/action"][:]
+        episode_ends = group["meta/episode_ends"][:]
+        held_out = group["meta/valid_episodes"][:]
+        episodes = np.arange(len(episode_ends))
+        if split != "all":
+            episodes = episodes[held_out] if split == "valid" else episodes[~held_out]
+        self.rows = window_row_indices(episode_ends, horizon, obs_steps - 1, action_steps - 1, episodes)  # (N, H)
+
+    def __len__(self) -> int:
+        return int(self.rows.shape[0])
+
+    def read(self, window_indices: np.ndarray) -> ImageWindows:
+        """Images, proprioception and actions of some windows.
+
+        Args:
+            window_indices: (N,) int indices into ``0 .. len - 1``, any order, repeats allowed.
+
+        Returns:
+            The windows, in the order of ``window_indices``.
+        """
+        rows = self.rows[np.asarray(window_indices, dtype=np.int64)]  # (N, H)
+        obs_rows = rows[:, : self.obs_steps]  # (N, To)
+        frames, inverse = np.unique(obs_rows, return_inverse=True)
+        # Orthogonal selection reads each chunk holding a selected frame once; sorted unique rows keep it in order.
+        per_camera = [array.get_orthogonal_selection(frames) for array in self._images]  # cameras x (U, H, W, 3)
+        images = np.stack(per_camera, axis=1)[inverse.reshape(obs_rows.shape)]  # (N, To, cameras, H, W, 3)
+        return ImageWindows(
+            images=np.ascontiguousarray(rearrange(images, "n t c h w rgb -> n t c rgb h w")),
+            proprioception=self._proprioception[obs_rows],
+            actions=self._actions[rows],
+        )
+
+
+__all__ = ["ImageWindowReader", "ImageWindows"]
