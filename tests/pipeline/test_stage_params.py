@@ -95,3 +95,24 @@ def test_only_ingest_tracks_the_image_settings(stages):
     image_settings = {"data.observations", "data.cameras", "data.image_size", "data.proprioception_keys"}
     assert image_settings <= set(stages["ingest@lift"])
     assert [name for name, keys in stages.items() if image_settings & set(keys) and name != "ingest@lift"] == []
+
+
+@pytest.mark.parametrize("script", ["train_policy.py", "evaluate.py"])
+def test_a_per_family_stage_refuses_image_observations_in_one_line(script, tmp_path):
+    """Ingest stores camera images, but no family encodes them yet: training must stop rather than train blind."""
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["data"]["observations"] = "image"
+    params_path = tmp_path / "params.yaml"
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    completed = subprocess.run(
+        [sys.executable, str(REPO / "pipeline" / script), "--params", str(params_path), "--task", "lift"]
+        + ["--policy", "carp"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
+    assert completed.returncode == 1
+    lines = completed.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {params_path}: data.observations=image: "), lines
+    assert list(tmp_path.iterdir()) == [params_path]
