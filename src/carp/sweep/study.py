@@ -97,6 +97,23 @@ class SweepResult:
     best: TrialRecord | None
     finished_trials: int
 
+    def summary_lines(self, config: SweepConfig) -> list[str]:
+        """What a worker prints when it is done: trials by state, and how to reproduce (and fetch) the best one."""
+        states: dict[str, int] = {}
+        for record in self.records:
+            states[record.state] = states.get(record.state, 0) + 1
+        lines = [f"study {config.study_name}: {self.finished_trials}/{config.num_trials} trials finished {states}"]
+        best = self.best
+        if best is not None and best.settings is not None:
+            lines.append(
+                f"best: trial {best.number} ({best.dvc_experiment}), success {100 * best.success_rate:.1f}%, latency "
+                f"{best.latency_ms:.2f} ms; reproduce with: dvc exp run {best.settings.command_line()}"
+            )
+            if config.git_remote:
+                name = best.dvc_experiment
+                lines.append(f"in any workspace: dvc exp pull {config.git_remote} {name} && dvc exp apply {name}")
+        return lines
+
 
 def experiment_name(study_name: str, number: int) -> str:
     """DVC experiment name of a trial, e.g. ``sweep-carp-sweep-t3``."""
