@@ -27,7 +27,7 @@ from optuna.distributions import CategoricalDistribution
 from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
 from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
-from sqlalchemy.exc import IntegrityError, ProgrammingError, SQLAlchemyError
+from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
 from carp.config import SweepConfig
 from carp.sweep.claims import ClaimLostError, ClaimStore
@@ -89,10 +89,12 @@ def open_storage(config: SweepConfig) -> RDBStorage:
                     heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES),
                 )
             break
-        except (IntegrityError, ProgrammingError):
+        except (IntegrityError, OperationalError, ProgrammingError) as error:
             # Workers started together on an empty database all create Optuna's tables; PostgreSQL rejects all but
-            # the first CREATE (a duplicate in its catalog). The tables exist then; opening the storage again works.
-            if attempt + 1 == SCHEMA_ATTEMPTS:
+            # the first CREATE (a duplicate in its catalog), SQLite reports "table ... already exists". The tables
+            # exist then; opening the storage again works. Other operational errors (no such file) are not a race.
+            schema_race = not isinstance(error, OperationalError) or "already exists" in str(error)
+            if not schema_race or attempt + 1 == SCHEMA_ATTEMPTS:
                 raise
             time.sleep(1.0 + random.random())
     return storage
