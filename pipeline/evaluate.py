@@ -11,11 +11,11 @@ from stage_support import (
     policy_dir,
     policy_stage_args,
     setup_logging,
-    write_json,
 )
 
 from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import batched_latency, episodes_table, evaluate_policy, save_gif
+from carp.outputs import write_json
 from carp.policies.registry import load_policy
 from carp.training.checkpoint import CheckpointError
 

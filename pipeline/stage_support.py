@@ -1,12 +1,11 @@
 """What every pipeline stage script shares: paths, params, device, git/DVC context and the MLflow run.
 
-torch and pandas are imported where they are used, so the always-run ``check_inputs`` stage and the data stages
-(collect, ingest), which need neither, start seconds sooner.
+torch is imported where it is used (and pandas by ``carp.outputs``), so the always-run ``check_inputs`` stage and the
+data stages (collect, ingest), which need neither, start seconds sooner.
 """
 
 import argparse
 import dataclasses
-import json
 import logging
 import os
 import subprocess
@@ -177,24 +176,6 @@ def copy_fields(target_type: type, *sources: object, **overrides):
     for source in sources:
         values.update({name: getattr(source, name) for name in names if hasattr(source, name)})
     return target_type(**{**values, **overrides})
-
-
-def write_json(path: Path, payload: dict) -> None:
-    """Write JSON atomically (temp file, then rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(json.dumps(payload, indent=2, sort_keys=True))
-    os.replace(temporary, path)
-
-
-def write_history(path: Path, history: list[dict]) -> None:
-    """Write per-epoch metrics as CSV atomically; no epochs (a tokenizer fetched, not trained) gives just a header."""
-    import pandas as pd
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    pd.DataFrame(history, columns=None if history else ["epoch"]).to_csv(temporary, index=False)
-    os.replace(temporary, path)
 
 
 def setup_logging() -> None:

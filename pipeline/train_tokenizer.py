@@ -19,11 +19,10 @@ from stage_support import (
     select_device,
     setup_logging,
     tracking_uri,
-    write_history,
-    write_json,
 )
 
 from carp.data.dataset import load_task_windows
+from carp.outputs import write_history, write_json
 from carp.tokenizer.artifact import (
     NonFiniteTokenizerError,
     TokenizerMismatchError,
@@ -38,9 +37,9 @@ from carp.training.tokenizer_trainer import train_tokenizer
 
 def main() -> None:
     setup_logging()
-    # One thread: the tokenizer's steps are hundreds of small ops, where a second thread gains ~20% when the cores
-    # are free, but its OpenMP threads wait for each other at every op: passively that makes two threads slower
-    # than one, and spinning stalls them many times over as soon as another job uses a core.
+    # One thread: the tokenizer's steps are hundreds of small ops, where a second thread gains little even when the
+    # cores are free, but its OpenMP threads wait for each other at every op: passively that makes two threads
+    # slower than one, and spinning stalls them many times over as soon as another job uses a core.
     torch.set_num_threads(1)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer

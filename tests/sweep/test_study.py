@@ -10,8 +10,9 @@ import pytest
 from optuna.exceptions import ExperimentalWarning
 from optuna.trial import TrialState
 
+from carp.sweep.outcome import TrialRecord
 from carp.sweep.space import TrialSettings, parse_schedule_label
-from carp.sweep.study import SweepStateError, experiment_name, run_sweep
+from carp.sweep.study import SweepResult, SweepStateError, experiment_name, run_sweep
 from tests.sweep.conftest import FakeRunner, expected_success
 
 REPO = Path(__file__).resolve().parents[2]
@@ -149,3 +150,18 @@ def test_two_worker_processes_share_an_sqlite_study_on_one_machine(tmp_path):
     assert len(starts) == 6 and len({tuple(point) for point in starts}) == 6
     trials = optuna.load_study(study_name="shared", storage=f"sqlite:///{tmp_path / 'optuna.db'}").get_trials()
     assert [t.state for t in trials] == [TrialState.COMPLETE] * 6
+
+
+def test_summary_names_the_best_trial_and_how_to_fetch_it(sweep_config):
+    best = TrialRecord(3, "COMPLETE", TrialSettings((1, 2), 8), 0.75, 1.25, 2.0, "sweep-s-t3")
+    records = [best, TrialRecord(4, "PRUNED", TrialSettings((1, 2), 4)), TrialRecord(5, "COMPLETE", None)]
+    config = dataclasses.replace(sweep_config, num_trials=4, git_remote="origin")
+    lines = SweepResult(records, best, 3).summary_lines(config)
+    assert lines == [
+        f"study {config.study_name}: 3/4 trials finished {{'COMPLETE': 2, 'PRUNED': 1}}",
+        "best: trial 3 (sweep-s-t3), success 75.0%, latency 1.25 ms; reproduce with: dvc exp run "
+        "-S 'scales=[1,2]' -S codebook_size=8",
+        "in any workspace: dvc exp pull origin sweep-s-t3 && dvc exp apply sweep-s-t3",
+    ]
+    no_remote = dataclasses.replace(config, git_remote="")
+    assert SweepResult(records, None, 3).summary_lines(no_remote) == lines[:1]

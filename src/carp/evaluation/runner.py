@@ -39,11 +39,10 @@ def evaluate_policy(
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
-    Each worker process loads the policy once and runs it on one CPU thread. Measured against one policy batched
-    across the workers' envs (`benchmarks/eval_batching.py`, 2 workers, 8 Lift episodes, 2 alternating runs each):
-    25.4 and 25.4 simulator steps/s per worker against 24.2 and 23.6 batched, with identical episodes. Per chunk the
-    policy needs a few ms against ~8 simulator steps, so batching saves little and adds a round trip between
-    processes on every decision.
+    Each worker process loads the policy once and runs it on one CPU thread rather than sharing one policy batched
+    across the workers' envs (`benchmarks/eval_batching.py` compares the two): a chunk's prediction costs far less
+    than the simulator steps it drives, so batching would save little while adding a round trip between processes on
+    every decision.
 
     The policy's family decides how `backend` is served (`Policy.deployment`): CARP exports ONNX graphs for
     "onnxruntime" into a temporary directory that every worker runs with ONNX Runtime; families without graphs, and

@@ -1,41 +1,26 @@
 """The Optuna study: claim a grid point, train its tokenizer, prune or run the whole experiment, record it.
 
-Workers: any number of sweep processes, each in its own workspace, may work on one study at once through its RDB
-storage (SQLite on one machine, PostgreSQL across machines). Each repeatedly takes up a queued retry, or claims an
-untried grid point in the database (:mod:`carp.sweep.claims`) and creates a trial with that point's params; no two
-workers run the same point, and at most ``num_trials`` points are ever claimed, so the budget holds across workers and
-across restarts. A worker with nothing left to claim waits until no trial of the study is running or queued (another
-worker's trial may still fail and be retried), so every worker ends with the whole study in its reports.
-
-Retries: a worker killed mid-trial leaves that trial ``RUNNING``; once its heartbeat is older than the grace period
-(2 heartbeats) another worker (or the restarted one) marks it ``FAIL`` and ``RetryHeartbeatStaleTrialCallback``
-queues a copy with the same params, which the next free worker takes up, moving the point's claim to it. A trial
-stopped by Ctrl-C is marked ``FAIL``, tagged ``interrupted`` and queued again the same way before the worker exits.
-The budget counts finished trials (complete, pruned, failed) but not failed trials that were retried.
+Any number of sweep processes, each in its own workspace, may work on one study at once through its RDB storage;
+how they share it (claimed grid points, retries of trials whose worker died, heartbeats) is
+:mod:`carp.sweep.worker`'s. A worker with nothing left to claim waits until no trial of the study is running or
+queued (another worker's trial may still fail and be retried), so every worker ends with the whole study in its
+reports. The budget counts finished trials (complete, pruned, failed) but not failed trials that were retried.
 
 Within a workspace trials run one at a time: each owns the workspace (params, outputs, ``dvc.lock``) while it runs.
 """
 
 import logging
-import random
-import threading
 import time
-import warnings
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import optuna
-from optuna.distributions import CategoricalDistribution
-from optuna.exceptions import ExperimentalWarning, UpdateFinishedTrialError
-from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback, fail_stale_trials
 from optuna.trial import FrozenTrial, TrialState
-from sqlalchemy.exc import IntegrityError, ProgrammingError, SQLAlchemyError
 
 from carp.config import SweepConfig
-from carp.sweep.claims import ClaimLostError, ClaimStore
+from carp.sweep.claims import ClaimStore
 from carp.sweep.outcome import (
     ExperimentResult,
     TrialRecord,
@@ -49,28 +34,30 @@ from carp.sweep.space import (
     CODEBOOK_PARAM,
     SCALES_PARAM,
     TrialSettings,
-    all_settings,
     codebook_choices,
     parse_schedule_label,
-    point_key,
     scale_choices,
-    schedule_label,
 )
 from carp.sweep.tracking import SweepTracker
+from carp.sweep.worker import (
+    CLAIM_LOST_ATTR,
+    CLAIM_ORDER_SEED,
+    Heartbeat,
+    claim_existing_trials,
+    fail_abandoned_trials,
+    next_trial,
+    open_storage,
+    queue_retry,
+    retried_trial_numbers,
+    search_distributions,
+    trial_settings,
+)
 
 logger = logging.getLogger(__name__)
 
-# A trial killed again and again (e.g. it always runs out of memory) is given up after this many retries.
-MAX_RETRIES = 2
 PARENT_RUN_ATTR = "mlflow_parent_run_id"
-# Set on a trial whose worker lost its point's claim before the trial started; it never ran and does not count.
-CLAIM_LOST_ATTR = "carp_claim_lost"
 TRIALS_FILE = "trials.csv"
 BEST_PARAMS_FILE = "best_params.txt"
-# Seeds the order in which workers claim grid points: a budget smaller than the grid gets a spread-out sample of it
-# rather than the first schedules, and every worker uses the same order.
-CLAIM_ORDER_SEED = 0
-SCHEMA_ATTEMPTS = 5
 
 
 class ExperimentFailedError(RuntimeError):
@@ -109,6 +96,23 @@ class SweepResult:
     records: list[TrialRecord]
     best: TrialRecord | None
     finished_trials: int
+
+    def summary_lines(self, config: SweepConfig) -> list[str]:
+        """What a worker prints when it is done: trials by state, and how to reproduce (and fetch) the best one."""
+        states: dict[str, int] = {}
+        for record in self.records:
+            states[record.state] = states.get(record.state, 0) + 1
+        lines = [f"study {config.study_name}: {self.finished_trials}/{config.num_trials} trials finished {states}"]
+        best = self.best
+        if best is not None and best.settings is not None:
+            lines.append(
+                f"best: trial {best.number} ({best.dvc_experiment}), success {100 * best.success_rate:.1f}%, latency "
+                f"{best.latency_ms:.2f} ms; reproduce with: dvc exp run {best.settings.command_line()}"
+            )
+            if config.git_remote:
+                name = best.dvc_experiment
+                lines.append(f"in any workspace: dvc exp pull {config.git_remote} {name} && dvc exp apply {name}")
+        return lines
 
 
 def experiment_name(study_name: str, number: int) -> str:
@@ -152,7 +156,7 @@ def _work(
     report_directory: Path,
     tracker: SweepTracker | None,
 ) -> SweepResult:
-    _claim_existing_trials(study, claims)
+    claim_existing_trials(study, claims)
     parent_run_id = None
     if tracker is not None:
         parent_run_id = _open_parent_run(study, config, claims, tracker)
@@ -172,8 +176,8 @@ def _work(
     waiting_for: list[int] = []
     try:
         while True:
-            _fail_stale_trials(study, tracker)
-            trial = _next_trial(study, config, claims)
+            fail_abandoned_trials(study, tracker)
+            trial = next_trial(study, config, claims)
             if trial is None:
                 busy = [
                     t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING, TrialState.WAITING))
@@ -214,22 +218,6 @@ def trial_record(trial: FrozenTrial) -> TrialRecord:
     )
 
 
-def trial_settings(trial: FrozenTrial) -> TrialSettings | None:
-    """The grid point of a trial, ``None`` when its params were never set."""
-    if SCALES_PARAM in trial.params and CODEBOOK_PARAM in trial.params:
-        return TrialSettings(parse_schedule_label(trial.params[SCALES_PARAM]), int(trial.params[CODEBOOK_PARAM]))
-    return None
-
-
-def retried_trial_numbers(trials: Sequence[FrozenTrial]) -> set[int]:
-    """Numbers of failed trials that a later trial retries (they do not count against the budget)."""
-    retried: set[int] = set()
-    with _experimental_api():
-        for trial in trials:
-            retried.update(RetryHeartbeatStaleTrialCallback.retry_history(trial))
-    return retried
-
-
 def finished_trial_count(trials: Sequence[FrozenTrial]) -> int:
     """Complete, pruned and failed trials, leaving out failed trials that were queued again or never ran a point."""
     retried = retried_trial_numbers(trials)
@@ -244,66 +232,9 @@ def finished_trial_count(trials: Sequence[FrozenTrial]) -> int:
     )
 
 
-def claim_order(config: SweepConfig) -> list[TrialSettings]:
-    """The grid in the order workers claim it: a fixed shuffle, the same in every worker."""
-    points = all_settings(config)
-    return random.Random(CLAIM_ORDER_SEED).sample(points, len(points))
-
-
-def _next_trial(study: optuna.Study, config: SweepConfig, claims: ClaimStore) -> optuna.Trial | None:
-    """A queued retry taken up by this worker, else a new trial on a freshly claimed point, else ``None``."""
-    storage = study._storage
-    for waiting in study.get_trials(deepcopy=False, states=(TrialState.WAITING,)):
-        # Optuna moves a trial from WAITING to RUNNING under a row lock and reports whether this call did it, so
-        # exactly one worker takes up each queued retry.
-        try:
-            if not storage.set_trial_state_values(waiting._trial_id, TrialState.RUNNING):
-                continue
-        except UpdateFinishedTrialError:
-            continue
-        storage.record_heartbeat(waiting._trial_id)
-        trial = optuna.Trial(study, waiting._trial_id)
-        history = waiting.system_attrs.get("retry_history") or []
-        point = claims.transfer(history[-1], waiting.number) if history else None
-        settings = trial_settings(waiting)
-        if point is None and settings is not None:
-            claims.record(point_key(settings), waiting.number)
-        if settings is None:
-            # Queued from a trial that died before it had a point: it has nothing to rerun.
-            trial.set_user_attr("error", "queued without a grid point")
-            study.tell(trial, state=TrialState.FAIL)
-            continue
-        logger.info("trial %d retries trial %d", waiting.number, history[-1] if history else -1)
-        return trial
-
-    by_key = {point_key(settings): settings for settings in claim_order(config)}
-    point = claims.claim(list(by_key), config.num_trials, stale_seconds=_grace_seconds(config))
-    if point is None:
-        return None
-    settings = by_key[point]
-    with _experimental_api():
-        template = optuna.trial.create_trial(
-            state=TrialState.RUNNING,
-            params={SCALES_PARAM: schedule_label(settings.scales), CODEBOOK_PARAM: settings.codebook_size},
-            distributions=_distributions(config),
-        )
-    trial_id = storage.create_new_trial(claims.study_id, template_trial=template)
-    storage.record_heartbeat(trial_id)
-    trial = optuna.Trial(study, trial_id)
-    try:
-        claims.assign(point, trial.number)
-    except ClaimLostError as error:
-        logger.warning("%s", error)
-        storage.set_trial_system_attr(trial_id, CLAIM_LOST_ATTR, True)
-        trial.set_user_attr("error", str(error))
-        study.tell(trial, state=TrialState.FAIL)
-        return _next_trial(study, config, claims)
-    return trial
-
-
 def _run_trial(study: optuna.Study, trial: optuna.Trial, objective: "_Objective", config: SweepConfig) -> None:
     """Run the objective with heartbeats and record the outcome; an interrupted trial is queued again."""
-    with _Heartbeat(study._storage, trial._trial_id, config.heartbeat_seconds):
+    with Heartbeat(study._storage, trial._trial_id, config.heartbeat_seconds):
         try:
             value = objective(trial)
         except optuna.TrialPruned as pruned:
@@ -318,43 +249,12 @@ def _run_trial(study: optuna.Study, trial: optuna.Trial, objective: "_Objective"
         except KeyboardInterrupt:
             study.tell(trial, state=TrialState.FAIL)
             # Queued by this worker alone, before it exits, so that exactly one copy waits for the next worker.
-            with _experimental_api():
-                RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES)(
-                    study, study._storage.get_trial(trial._trial_id)
-                )
+            queue_retry(study, trial)
             raise
         except BaseException:
             study.tell(trial, state=TrialState.FAIL)
             raise
         study.tell(trial, value)
-
-
-class _Heartbeat:
-    """Marks a trial alive in the storage every ``interval_seconds`` while the block runs (from a thread)."""
-
-    def __init__(self, storage: RDBStorage, trial_id: int, interval_seconds: float) -> None:
-        self.storage = storage
-        self.trial_id = trial_id
-        self.interval_seconds = interval_seconds
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-{trial_id}", daemon=True)
-
-    def __enter__(self) -> "_Heartbeat":
-        self.storage.record_heartbeat(self.trial_id)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def _beat(self) -> None:
-        while not self._stop.wait(self.interval_seconds):
-            try:
-                self.storage.record_heartbeat(self.trial_id)
-            except SQLAlchemyError as error:
-                # A brief database outage must not end the trial; a long one lets the trial go stale and be retried.
-                logger.warning("heartbeat of trial %s not recorded: %s", self.trial_id, error)
 
 
 class _Objective:
@@ -431,43 +331,8 @@ class _Objective:
             self.tracker.end_trial(run_id, state, dvc_experiment)
 
 
-@contextmanager
-def _experimental_api() -> Iterator[None]:
-    """Silence Optuna's experimental-feature warnings (heartbeats, retries) for deliberate uses."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ExperimentalWarning)
-        yield
-
-
-def _grace_seconds(config: SweepConfig) -> float:
-    """How old a heartbeat (or a claim without a trial) must be before its worker is taken for dead."""
-    return 2 * config.heartbeat_seconds
-
-
-def _distributions(config: SweepConfig) -> dict[str, CategoricalDistribution]:
-    return {
-        SCALES_PARAM: CategoricalDistribution(scale_choices(config)),
-        CODEBOOK_PARAM: CategoricalDistribution(codebook_choices(config)),
-    }
-
-
 def _load_study(config: SweepConfig) -> tuple[optuna.Study, int]:
-    for attempt in range(SCHEMA_ATTEMPTS):
-        try:
-            with _experimental_api():
-                storage = RDBStorage(
-                    config.storage,
-                    heartbeat_interval=config.heartbeat_seconds,
-                    grace_period=_grace_seconds(config),
-                    heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRIES),
-                )
-            break
-        except (IntegrityError, ProgrammingError):
-            # Workers started together on an empty database all create Optuna's tables; PostgreSQL rejects all but
-            # the first CREATE (a duplicate in its catalog). The tables exist then; opening the storage again works.
-            if attempt + 1 == SCHEMA_ATTEMPTS:
-                raise
-            time.sleep(1.0 + random.random())
+    storage = open_storage(config)
     study = optuna.create_study(
         study_name=config.study_name,
         storage=storage,
@@ -480,7 +345,7 @@ def _load_study(config: SweepConfig) -> tuple[optuna.Study, int]:
 
 
 def _check_search_space(study: optuna.Study, config: SweepConfig) -> None:
-    expected = _distributions(config)
+    expected = search_distributions(config)
     for trial in study.get_trials(deepcopy=False):
         for name, distribution in trial.distributions.items():
             if expected.get(name) != distribution:
@@ -489,19 +354,6 @@ def _check_search_space(study: optuna.Study, config: SweepConfig) -> None:
                     f"params now give {list(expected[name].choices) if name in expected else 'none'}; "
                     "use a new sweep.study_name for a new search space"
                 )
-
-
-def _claim_existing_trials(study: optuna.Study, claims: ClaimStore) -> None:
-    """Claim the points of trials made without claims (a study started by an earlier version, or by hand)."""
-    claimed = {claim.trial_number for claim in claims.claims()}
-    latest: dict[str, int] = {}
-    for trial in study.get_trials(deepcopy=False):
-        settings = trial_settings(trial)
-        if settings is not None and not trial.system_attrs.get(CLAIM_LOST_ATTR):
-            latest[point_key(settings)] = trial.number
-    for point, number in latest.items():
-        if number not in claimed:
-            claims.record(point, number)
 
 
 def _open_parent_run(study: optuna.Study, config: SweepConfig, claims: ClaimStore, tracker: SweepTracker) -> str:
@@ -521,22 +373,3 @@ def _open_parent_run(study: optuna.Study, config: SweepConfig, claims: ClaimStor
         run_id = tracker.open_study(config.study_name, shared, description)
     study.set_user_attr(PARENT_RUN_ATTR, run_id)
     return run_id
-
-
-def _fail_stale_trials(study: optuna.Study, tracker: SweepTracker | None) -> None:
-    """Fail (and queue again) trials whose worker stopped sending heartbeats; close their MLflow runs."""
-    running = {
-        trial.number: trial.user_attrs.get("mlflow_run_id")
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
-    }
-    if not running:
-        return
-    with _experimental_api():
-        fail_stale_trials(study)
-    for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
-        # A trial its own worker failed carries the reason (or `interrupted`) and had its run closed by that worker.
-        if trial.number in running and not trial.user_attrs.get("error") and not trial.user_attrs.get("interrupted"):
-            logger.info("trial %d lost its worker (no heartbeat); marked failed", trial.number)
-            run_id = running[trial.number]
-            if tracker is not None and run_id:
-                tracker.end_trial(run_id, "FAIL")

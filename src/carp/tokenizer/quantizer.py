@@ -132,8 +132,8 @@ class MultiScaleQuantizer(nn.Module):
             matrix = resampling_matrix(source_length, size, mode).to(device=latent.device, dtype=latent.dtype)
             self._resampling_matrices[key] = matrix
         batch, num_dimensions = latent.shape[:2]
-        # One (size, T) x (T, B * A * C) product: a matmul broadcast over the batch runs B tiny products instead, and
-        # its backward measured ~2x slower at B = 64. The two small copies keep the result time-major.
+        # One (size, T) x (T, B * A * C) product: a matmul broadcast over the batch runs B tiny products instead, whose
+        # backward is slower at training batch sizes. The two small copies keep the result time-major.
         columns = rearrange(latent, "b a c t -> t b (a c)").reshape(source_length, -1)  # (T, B * A * C)
         resampled = (matrix @ columns).view(size, batch, -1).transpose(0, 1).contiguous()  # (B, size, A * C)
         return rearrange(resampled, "b s (a c) -> b a c s", a=num_dimensions)
@@ -156,7 +156,7 @@ class MultiScaleQuantizer(nn.Module):
         queries = rearrange(residual.detach(), "b a c s -> a (b s) c")
         # The (A, B * s, V) similarities are the largest tensor of a training step (5 MB at A = 10, B = 64, s = 4);
         # searching a few dimensions at a time bounds that memory for any A. The block size hardly moves the step
-        # time (about 1% between 2^18 elements and one block for all dimensions), so it is chosen for memory.
+        # time, so it is chosen for memory.
         dimensions_per_block = max(1, SEARCH_BLOCK_ELEMENTS // (queries.shape[1] * unit_codes.shape[1]))
         ids = [
             first_maximum_indices(torch.bmm(block_queries, block_codes.transpose(1, 2)))  # (dimensions, B * s)

@@ -27,8 +27,8 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
     """The autocast dtype of training steps: `precision` ("auto", "float32" or "bfloat16") on `device`.
 
     "auto" picks bfloat16 where the hardware multiplies it natively, float32 elsewhere: emulated bfloat16 matmuls
-    are several times slower than float32 ones. On a CPU with AMX a batch-256 training step of the default policy
-    takes about three quarters of the float32 time with bfloat16 autocast (`benchmarks/policy_speed.py` times both).
+    are several times slower than float32 ones, while native ones (AMX on the CPU) make a training step faster than
+    float32 (`benchmarks/policy_speed.py` times both).
     """
     if precision not in TRAINING_PRECISIONS:
         raise ValueError(f"precision must be one of {TRAINING_PRECISIONS}, got {precision!r}")

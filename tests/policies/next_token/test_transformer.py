@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from carp.config import ConfigError
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
-from carp.policies.next_token.generation import generate_actions, generate_tokens
+from carp.policies.next_token.generation import check_tokenizer_matches, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy_spec, tiny_tokenizer
 
@@ -120,11 +120,14 @@ def test_generation_past_the_last_token_is_refused():
 
 
 def test_generated_tokens_decode_to_an_action_chunk_with_the_tokenizer():
-    tokenizer = tiny_tokenizer(SCALES)
-    actions = generate_actions(_model(), tokenizer, _obs(2))
+    tokenizer, model = tiny_tokenizer(SCALES), _model()
+    check_tokenizer_matches(model, tokenizer)
+    token_ids = generate_tokens(model, _obs(2))  # (B, L)
+    actions = tokenizer.decode_ids(tokenizer.sequence_to_ids(token_ids))
     assert actions.shape == (2, tokenizer.spec.action_horizon, A)
+    assert torch.isfinite(actions).all()
     with pytest.raises(ValueError, match=r"scales: model \(1, 2, 3\) vs tokenizer \(1, 2\)"):
-        generate_actions(_model(), tiny_tokenizer((1, 2)), _obs(2))
+        check_tokenizer_matches(model, tiny_tokenizer((1, 2)))
 
 
 def test_transformer_blocks_are_the_size_of_carps():

@@ -9,8 +9,7 @@ own and are modulated by shift/scale/gate vectors computed from the condition. D
 - Attention uses the standard `1/sqrt(head_width)` scale and `F.scaled_dot_product_attention`; a fused qkv projection
   with ordinary biases (VAR: `0.25/sqrt(head_width)`, no key bias).
 - The feed-forward activation is exact (erf) GELU; VAR and the official CARP use the tanh approximation, which on
-  CPU measured ~4x slower than exact GELU at training size (25,600 x 256 elements) and slower summed over the four
-  inference scales at batch 1.
+  the CPU is slower than exact GELU both at training size and at inference's batch of one.
 - The head scores token `i` against dimension `i % A`'s own vocabulary (weights (A, D, V)); the official CARP shares
   one Linear(D -> V) across dimensions and relies on the position embedding to tell them apart.
 """

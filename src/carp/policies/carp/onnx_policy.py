@@ -1,7 +1,7 @@
 """Batch-1 inference exported to ONNX and run by ONNX Runtime: the fast path of simulated evaluation.
 
-Why a second execution path: at batch 1 the eager transformer spends most of its ~9 ms per chunk dispatching ~700
-tiny PyTorch operators (a (40 x 64) @ (64 x 192) matmul is a few microseconds of arithmetic and about as much
+Why a second execution path: at batch 1 the eager transformer spends most of its time per chunk dispatching hundreds
+of tiny PyTorch operators (a (40 x 64) @ (64 x 192) matmul is a few microseconds of arithmetic and about as much
 dispatch). ONNX Runtime runs the same computation as one static graph with a few microseconds per node
 (`benchmarks/policy_speed.py` prints both).
 
@@ -161,8 +161,8 @@ def _export(
     """Trace `module` on `inputs` into the ONNX file `path` (written to a temporary name, then renamed).
 
     PyTorch's TorchScript-based exporter (`dynamo=False`) rather than its default `torch.export`-based one: both give
-    graphs that choose the same tokens at the same ONNX Runtime latency, but tracing takes ~1 s for the default
-    policy where `torch.export` with its decompositions takes ~15 s, once per evaluated task and sweep trial.
+    graphs that choose the same tokens at the same ONNX Runtime latency, but tracing is many times quicker than
+    `torch.export` with its decompositions, and the export runs once per evaluated task and sweep trial.
     Every shape here is static, so the tracer's warnings
     about Python values it records as constants (tensor sizes) do not apply, and its deprecation notice is not
     actionable while torch is pinned.
@@ -193,7 +193,7 @@ def _export(
 def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) -> Path:
     """Write the prediction and decoding graphs of a CPU policy into `directory` (created); returns `directory`.
 
-    Takes ~1-2 s for the default model, once per evaluation.
+    Runs once per evaluation.
 
     Args:
         policy: the trained policy.

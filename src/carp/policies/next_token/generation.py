@@ -1,4 +1,4 @@
-"""Token-by-token inference of the next-token transformer: L steps with a kv-cache, then the tokenizer's decoding.
+"""Token-by-token inference of the next-token transformer: L steps with a kv-cache (the policy decodes the ids).
 
 Each step scores one token, chooses it (argmax, or a draw among the top k with CARP's Gumbel-max helpers from
 `carp.policies.carp.sampling`, the chunk's uniforms drawn up front) and feeds it back. The condition, the AdaLN
@@ -60,30 +60,3 @@ def check_tokenizer_matches(transformer: NextTokenTransformer, tokenizer: MultiS
         "codebook_size": (transformer.codebook_size, spec.codebook_size),
     }
     check_tokenizer_fit(pairs, "model", "next-token transformer does not match the tokenizer")
-
-
-@torch.inference_mode()
-def generate_actions(
-    transformer: NextTokenTransformer,
-    tokenizer: MultiScaleActionTokenizer,
-    obs_features: torch.Tensor,
-    task_ids: torch.Tensor | None = None,
-    top_k: int = 1,
-    generator: torch.Generator | None = None,
-) -> torch.Tensor:
-    """Predict and decode one chunk per observation.
-
-    Args:
-        transformer: the trained transformer, in eval mode.
-        tokenizer: the frozen tokenizer whose token ids the transformer was trained on.
-        obs_features: (B, To, Do) normalized observations.
-        task_ids: (B,) long task indices, for multi-task policies.
-        top_k: see :func:`generate_tokens`.
-        generator: see :func:`generate_tokens`.
-
-    Returns:
-        (B, H, A) normalized actions.
-    """
-    check_tokenizer_matches(transformer, tokenizer)
-    token_ids = generate_tokens(transformer, obs_features, task_ids, top_k, generator)  # (B, L)
-    return tokenizer.decode_ids(tokenizer.sequence_to_ids(token_ids))  # (B, H, A)

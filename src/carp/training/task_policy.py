@@ -1,0 +1,200 @@
+"""One task's policy of one family, trained on the task's processed windows with the referenced tokenizer.
+
+The work of the `train_policy` stage: `load_task_policy_inputs` reads and checks what it trains from,
+`train_task_policy` trains (every process of a multi-process run calls it), and `train_and_write_task_policy` trains
+inside a tracking run, measures the held-out action errors and writes the checkpoint, history and metrics (the one
+process that writes outputs).
+"""
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from carp.config import DataConfig, TrainingConfig
+from carp.data.dataset import TaskWindows, load_task_windows
+from carp.evaluation.offline import held_out_action_errors
+from carp.outputs import write_history, write_json
+from carp.policies.base import Policy
+from carp.policies.context import PolicyContext
+from carp.policies.registry import train_policy
+from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
+from carp.tracking.registry import TokenizerReference
+from carp.training.loop import PolicyTrainingData
+
+if TYPE_CHECKING:
+    from carp.tracking.runs import StageRun
+
+FINAL_METRICS = ("loss", "token_accuracy")
+"""Per-epoch metrics whose last value is also reported as `final_<name>` (a family that has them)."""
+
+
+@dataclass(frozen=True)
+class TaskPolicyInputs:
+    """What a task's policy is trained from: the tokenizer reference and artifact and the task's windows."""
+
+    reference: TokenizerReference
+    artifact: TokenizerArtifact
+    windows: TaskWindows
+
+
+@dataclass(frozen=True)
+class TaskPolicyOutputs:
+    """Where a trained policy and its reports go.
+
+    Attributes:
+        checkpoint: the policy file (`policy.pt`), read by evaluation.
+        report_dir: receives `history.csv` (one row per epoch) and `metrics.json` (held-out errors, final values).
+    """
+
+    checkpoint: Path
+    report_dir: Path
+
+
+def load_task_policy_inputs(
+    task_dir: Path,
+    tokenizer_dir: Path,
+    reference_path: Path,
+    data: DataConfig,
+    action_space: str,
+    scales: tuple[int, ...],
+    codebook_size: int,
+) -> TaskPolicyInputs:
+    """Read the referenced tokenizer and the task's windows, checking that the tokenizer fits the params.
+
+    Args:
+        task_dir: the task's processed data (`data/processed/<task>`).
+        tokenizer_dir: the referenced tokenizer, whatever its source (a registered one is fetched there first).
+        reference_path: the tokenizer reference file; the artifact's sha256 must equal the one it records.
+        data: windowing (`H`, `To`, `Ta`).
+        action_space: the params' action space, which the tokenizer must have been trained in.
+        scales: the params' scale schedule, which the tokenizer must use.
+        codebook_size: the params' `V`, which the tokenizer must use.
+
+    Raises:
+        FileNotFoundError: a file is missing.
+        CheckpointError: the tokenizer is corrupt or not the referenced one.
+        TokenizerMismatchError: the tokenizer does not fit the params.
+    """
+    reference = TokenizerReference.load(reference_path)
+    artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
+    check_compatible(artifact, action_space, scales, codebook_size)
+    windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
+    return TaskPolicyInputs(reference, artifact, windows)
+
+
+def train_task_policy(
+    family: str,
+    family_config: Any,
+    training: TrainingConfig,
+    data: DataConfig,
+    inputs: TaskPolicyInputs,
+    task: str,
+    checkpoint_dir: Path,
+    device: torch.device,
+    tracking_run_id: str | None = None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> Policy:
+    """Train a policy of `family` on the task's training windows, resuming from `checkpoint_dir` when it can.
+
+    Args:
+        family: registered policy family.
+        family_config: the family's params section.
+        training: the shared training loop's settings (its epochs for `task`).
+        data: `To` and `H`.
+        inputs: see :func:`load_task_policy_inputs`.
+        task: the task's name, stored in the checkpoint's metadata.
+        checkpoint_dir: resumable training states of this (task, family) pair.
+        device: where training runs (a process's own device in a multi-process run).
+        tracking_run_id: the tracking run that logs this training, stored in the checkpoint's metadata.
+        on_epoch_end: called with (epoch, metrics) after every epoch on the process that reports.
+
+    Returns:
+        The trained policy in eval mode on the CPU.
+    """
+    windows = inputs.windows
+    # The task's own statistics, as the tokenizer saw every training task's actions (carp.tokenizer.artifact).
+    obs_normalizer, action_normalizer = windows.obs_normalizer, windows.action_normalizer
+    train_data = PolicyTrainingData(
+        obs=torch.as_tensor(obs_normalizer.normalize(windows.train_obs), dtype=torch.float32),
+        actions=torch.as_tensor(action_normalizer.normalize(windows.train_actions), dtype=torch.float32),
+    )
+    context = PolicyContext(
+        obs_normalizer=obs_normalizer,
+        action_normalizer=action_normalizer,
+        obs_steps=data.obs_steps,
+        action_horizon=data.action_horizon,
+        tokenizer_artifact=inputs.artifact,
+        metadata={"task": task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+    )
+    return train_policy(
+        family,
+        family_config,
+        training,
+        context,
+        train_data,
+        checkpoint_dir,
+        device=device,
+        epochs=training.epochs_for(task),
+        on_epoch_end=on_epoch_end,
+    )
+
+
+def train_and_write_task_policy(
+    family: str,
+    family_config: Any,
+    training: TrainingConfig,
+    data: DataConfig,
+    inputs: TaskPolicyInputs,
+    task: str,
+    checkpoint_dir: Path,
+    device: torch.device,
+    outputs: TaskPolicyOutputs,
+    run: "StageRun",
+) -> dict[str, float]:
+    """Train as :func:`train_task_policy` does, logging to `run`, then evaluate and write the outputs.
+
+    Every epoch's metrics go to `run` and to the history; the held-out action errors (raw units, see
+    `carp.evaluation.offline`) to `run` and, with the last epoch's loss and token accuracy, to `metrics.json`; the
+    checkpoint becomes an artifact of `run`.
+
+    Args:
+        family: see :func:`train_task_policy`.
+        family_config: see :func:`train_task_policy`.
+        training: see :func:`train_task_policy`.
+        data: see :func:`train_task_policy`; also `Ta` of the held-out errors.
+        inputs: see :func:`train_task_policy`.
+        task: see :func:`train_task_policy`.
+        checkpoint_dir: see :func:`train_task_policy`.
+        device: see :func:`train_task_policy`.
+        outputs: where the checkpoint and the reports go.
+        run: the tracking run of this training.
+
+    Returns:
+        The metrics written to `metrics.json`: held-out errors (none without held-out windows) and `final_*` values.
+    """
+    history: list[dict] = []
+
+    def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
+        history.append({"epoch": epoch + 1, **metrics})
+        run.log_metrics(metrics, step=epoch + 1)
+
+    windows = inputs.windows
+    policy = train_task_policy(
+        family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch
+    )
+    held_out = held_out_action_errors(
+        policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
+    )
+    run.log_metrics(held_out)
+    outputs.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    policy.save(outputs.checkpoint)
+    write_history(outputs.report_dir / "history.csv", history)
+    last = history[-1]
+    final = {f"final_{key}": last[key] for key in FINAL_METRICS if key in last}
+    metrics = {**held_out, **final}
+    write_json(outputs.report_dir / "metrics.json", metrics)
+    run.log_artifact(outputs.checkpoint, "checkpoint")
+    return metrics

@@ -1,0 +1,113 @@
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from carp.config import DataConfig, TrainingConfig
+from carp.data.dataset import TaskWindows
+from carp.data.normalizer import MinMaxNormalizer
+from carp.evaluation.offline import held_out_action_errors
+from carp.policies.carp.config import CarpConfig
+from carp.policies.registry import load_policy
+from carp.tokenizer.artifact import TokenizerMismatchError
+from carp.tracking.registry import TokenizerReference
+from carp.training.checkpoint import CheckpointError
+from carp.training.task_policy import (
+    TaskPolicyInputs,
+    TaskPolicyOutputs,
+    load_task_policy_inputs,
+    train_and_write_task_policy,
+)
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, TINY_ARCHITECTURE, tiny_artifact, tiny_tokenizer
+
+HORIZON, ACTION_DIM = 8, 2
+DATA = DataConfig(obs_steps=OBS_STEPS, action_horizon=HORIZON, action_steps=4)
+CONFIG = CarpConfig(**TINY_ARCHITECTURE, warmup_steps=2)
+
+
+class RecordingRun:
+    """Stands in for a tracking run: keeps what was logged."""
+
+    run_id = "run-123"
+
+    def __init__(self) -> None:
+        self.metrics: list[tuple[dict[str, float], int | None]] = []
+        self.artifacts: list[tuple[Path, str | None]] = []
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        self.metrics.append((dict(metrics), step))
+
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        self.artifacts.append((path, artifact_path))
+
+
+def _inputs() -> TaskPolicyInputs:
+    rng = np.random.default_rng(0)
+    artifact = tiny_artifact(tiny_tokenizer())
+    windows = TaskWindows(
+        train_obs=rng.normal(size=(40, OBS_STEPS, OBS_DIM)),
+        train_actions=rng.uniform(-1, 1, size=(40, HORIZON, ACTION_DIM)),
+        valid_obs=rng.normal(size=(6, OBS_STEPS, OBS_DIM)),
+        valid_actions=rng.uniform(-1, 1, size=(6, HORIZON, ACTION_DIM)),
+        obs_normalizer=MinMaxNormalizer(np.full(OBS_DIM, -3.0), np.full(OBS_DIM, 3.0)),
+        action_normalizer=MinMaxNormalizer(np.full(ACTION_DIM, -1.0), np.full(ACTION_DIM, 1.0)),
+        buffer=None,
+    )
+    reference = TokenizerReference("carp-tokenizer-test", "1", "default", "run", artifact.sha256)
+    return TaskPolicyInputs(reference, artifact, windows)
+
+
+def test_trained_policy_and_its_reports_are_written_and_logged(tmp_path):
+    inputs, run = _inputs(), RecordingRun()
+    outputs = TaskPolicyOutputs(tmp_path / "models" / "policy.pt", tmp_path / "reports")
+    # The task's own epoch count wins over `epochs`.
+    training = TrainingConfig(epochs=1, batch_size=16, epochs_per_task={"lift": 3})
+    metrics = train_and_write_task_policy(
+        "carp", CONFIG, training, DATA, inputs, "lift", tmp_path / "states", torch.device("cpu"), outputs, run
+    )
+
+    history = pd.read_csv(outputs.report_dir / "history.csv")
+    assert history["epoch"].tolist() == [1, 2, 3]
+    assert [step for _, step in run.metrics[:3]] == [1, 2, 3]
+    assert run.metrics[3] == ({key: metrics[key] for key in metrics if key.startswith("valid_")}, None)
+    assert metrics["final_loss"] == pytest.approx(history["loss"].iloc[-1])
+    assert metrics["final_token_accuracy"] == pytest.approx(history["token_accuracy"].iloc[-1])
+    assert json.loads((outputs.report_dir / "metrics.json").read_text()) == pytest.approx(metrics)
+    assert run.artifacts == [(outputs.checkpoint, "checkpoint")]
+
+    policy = load_policy(outputs.checkpoint)
+    assert policy.metadata["task"] == "lift" and policy.metadata["mlflow_run_id"] == "run-123"
+    assert policy.metadata["tokenizer"] == asdict(inputs.reference)
+    windows = inputs.windows
+    again = held_out_action_errors(policy, windows.valid_obs, windows.valid_actions, OBS_STEPS, DATA.action_steps)
+    assert again == pytest.approx({key: metrics[key] for key in again}, rel=1e-5)
+    assert sorted(p.name for p in outputs.report_dir.iterdir()) == ["history.csv", "metrics.json"]
+
+
+def _tokenizer_files(directory: Path, recorded_sha256: str | None = None) -> Path:
+    artifact = tiny_artifact(tiny_tokenizer())
+    (directory / "tokenizer").mkdir(parents=True)
+    torch.save(artifact.to_payload(), directory / "tokenizer" / "tokenizer.pt")
+    reference = TokenizerReference("carp-tokenizer-test", "1", "default", "run", recorded_sha256 or artifact.sha256)
+    reference.save(directory / "tokenizer_ref.json")
+    return directory / "tokenizer_ref.json"
+
+
+def test_inputs_refuse_an_unreferenced_or_mismatched_tokenizer_before_reading_the_task(tmp_path):
+    missing_task = tmp_path / "processed" / "lift"
+    reference = _tokenizer_files(tmp_path / "other", recorded_sha256="0" * 64)
+    with pytest.raises(TokenizerMismatchError, match="not the sha256 000000000000"):
+        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+    reference = _tokenizer_files(tmp_path / "same")
+    (reference.parent / "tokenizer" / "tokenizer.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+    reference = _tokenizer_files(tmp_path / "fits")
+    with pytest.raises(TokenizerMismatchError, match="codebook_size is 8 but the params ask for 16"):
+        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 16)
+    with pytest.raises(FileNotFoundError, match="replay buffer not found"):
+        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
