@@ -8,6 +8,7 @@ the token choice (`top_k`), task indices and the tokenizer's checkpoint entries.
 rest of carp types against `Policy`, never against these classes.
 """
 
+import abc
 import functools
 from pathlib import Path
 from typing import Any
@@ -58,7 +59,7 @@ def check_tokenizer_fit(pairs: dict[str, tuple[Any, Any]], label: str, what: str
         raise ValueError(f"{what} ({details})")
 
 
-class PolicyModule(nn.Module):
+class PolicyModule(nn.Module, abc.ABC):
     """Base of the PyTorch policies: normalizers, metadata and the protocol's family-independent methods.
 
     Subclasses set `policy_type`, register their networks (trainable parameters are what `num_parameters` counts)
@@ -142,9 +143,9 @@ class PolicyModule(nn.Module):
 
         return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
 
+    @abc.abstractmethod
     def family_checkpoint(self) -> dict[str, Any]:
         """The family's own checkpoint entries (config or spec, shapes, weights); see :meth:`to_checkpoint`."""
-        raise NotImplementedError
 
     def to_checkpoint(self) -> dict[str, Any]:
         """Self-contained state: the envelope, the family's entries, the normalizer statistics and the metadata."""
