@@ -15,7 +15,7 @@ import subprocess
 import pytest
 from mlflow import MlflowClient
 
-from carp.tracking.registry import fetch_registered_tokenizer
+from carp.tracking.registry import SHA_TAG, fetch_registered_tokenizer, point_alias, register_tokenizer
 from carp.tracking.runs import find_runs, stage_run
 from tests.services import service_directory, tool, tracking_server
 from tests.tracking.test_registry import make_artifact, register
@@ -102,6 +102,54 @@ def test_registered_tokenizer_is_stored_and_served_by_the_server(server, tmp_pat
     assert run.info.artifact_uri.startswith("mlflow-artifacts:/")
     assert list((directory / "artifacts").rglob("tokenizer.pt"))
     assert not (tmp_path / "mlartifacts").exists() and not (tmp_path / "mlruns").exists()
+
+
+def _register_at_once(uri: str, directory: str, sha: str, rounds: int, barrier, results) -> None:
+    try:
+        barrier.wait()
+        with stage_run(uri, "carp-registrars", "register_tokenizer", {}, {}) as run:
+            reference = register_tokenizer(uri, directory, "carp-tokenizer-race", "default", run.run_id, sha)
+        client = MlflowClient(tracking_uri=uri)
+        aliased = []
+        for index in range(rounds):  # each round a new alias, set by every process at the same moment
+            barrier.wait()
+            aliased.append(
+                str(point_alias(client, "carp-tokenizer-race", f"round{index}", reference.version, sha).version)
+            )
+        results.put((reference.version, aliased))
+    except Exception as error:  # reported to the test, which names it
+        barrier.abort()  # the others stop waiting for this process
+        results.put(f"{type(error).__name__}: {error}")
+
+
+@pytest.mark.slow
+def test_processes_registering_the_same_tokenizer_at_once_all_succeed_on_one_version(server, tmp_path):
+    # Two sweep workers reach `register_tokenizer` together: both may add a version and both insert the same new
+    # alias, which PostgreSQL refuses to one of them on the alias's primary key.
+    url, writers, rounds = server[1], 3, 8
+    directory = tmp_path / "tokenizer"
+    _, sha = make_artifact(directory)
+    context = multiprocessing.get_context("spawn")
+    barrier, results = context.Barrier(writers), context.Queue()
+    processes = [
+        context.Process(target=_register_at_once, args=(url, str(directory), sha, rounds, barrier, results))
+        for _ in range(writers)
+    ]
+    for process in processes:
+        process.start()
+    reported = [results.get(timeout=600) for _ in processes]
+    for process in processes:
+        process.join(timeout=60)
+    assert all(isinstance(outcome, tuple) for outcome in reported), reported
+    versions = {version for version, _ in reported}
+    assert len(versions) == 1, reported
+    (version,) = versions
+    assert all(aliased == [version] * rounds for _, aliased in reported), reported
+
+    client = MlflowClient(tracking_uri=url)
+    for alias in ["default", *(f"round{index}" for index in range(rounds))]:
+        pointed = client.get_model_version_by_alias("carp-tokenizer-race", alias)
+        assert pointed.version == version and pointed.tags[SHA_TAG] == sha
 
 
 @pytest.mark.slow

@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import tempfile
+import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,6 +28,9 @@ logger = logging.getLogger(__name__)
 
 SHA_TAG = "carp.sha256"
 ARTIFACT_KEY = "tokenizer"
+# Setting an alias is a read-then-insert on the server; writers that insert the same new alias at the same moment
+# collide on its primary key, and a repeat (which then updates) settles it.
+ALIAS_ATTEMPTS = 6
 
 
 @dataclass(frozen=True)
@@ -118,11 +122,41 @@ def register_tokenizer(
             # Declares the `task` inference parameter; MLflow drops parameters a signature does not name.
             signature=ModelSignature(inputs=None, params=ParamSchema([ParamSpec("task", "string", "")])),
         )
-        version = mlflow.register_model(info.model_uri, name, tags={SHA_TAG: sha256})
-    client.set_registered_model_alias(name, alias, version.version)
+        mlflow.register_model(info.model_uri, name, tags={SHA_TAG: sha256})
+        # Writers registering the same weights at once each add a version; all of them settle on the oldest.
+        version = min(
+            (v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256), key=lambda v: int(v.version)
+        )
+    aliased = point_alias(client, name, alias, str(version.version), sha256)
     return TokenizerReference(
-        name=name, version=str(version.version), alias=alias, run_id=version.run_id, sha256=sha256
+        name=name, version=str(aliased.version), alias=alias, run_id=aliased.run_id, sha256=sha256
     )
+
+
+def point_alias(client: MlflowClient, name: str, alias: str, version: str, sha256: str):
+    """Point ``alias`` of ``name`` at ``version`` (whose weights hash to ``sha256``); returns the aliased version.
+
+    Safe beside other writers: when the server refuses the write because another writer set the same alias at the
+    same moment, the alias is read back and accepted if it points at a version with the same weights; otherwise the
+    write is repeated.
+
+    Raises:
+        mlflow.exceptions.MlflowException: the alias could not be set in ``ALIAS_ATTEMPTS`` tries.
+    """
+    for attempt in range(ALIAS_ATTEMPTS - 1):
+        try:
+            client.set_registered_model_alias(name, alias, version)
+            return client.get_model_version(name, version)
+        except mlflow.exceptions.MlflowException:
+            try:
+                current = client.get_model_version_by_alias(name, alias)
+            except mlflow.exceptions.MlflowException:
+                current = None
+            if current is not None and current.tags.get(SHA_TAG) == sha256:
+                return current
+            time.sleep(0.05 * 2**attempt)
+    client.set_registered_model_alias(name, alias, version)
+    return client.get_model_version(name, version)
 
 
 def _versions(client: MlflowClient, name: str) -> list:
