@@ -72,6 +72,22 @@ class ImageWindowReader:
     def __len__(self) -> int:
         return int(self.rows.shape[0])
 
+    def images(self, window_indices: np.ndarray) -> np.ndarray:
+        """The camera images of some windows' observation steps.
+
+        Args:
+            window_indices: (N,) int indices into ``0 .. len - 1``, any order, repeats allowed.
+
+        Returns:
+            (N, To, cameras, 3, H, W) uint8 RGB images, in the order of ``window_indices``.
+        """
+        obs_rows = self.rows[np.asarray(window_indices, dtype=np.int64), : self.obs_steps]  # (N, To)
+        frames, inverse = np.unique(obs_rows, return_inverse=True)
+        # Orthogonal selection reads each chunk holding a selected frame once; sorted unique rows keep it in order.
+        per_camera = [array.get_orthogonal_selection(frames) for array in self._images]  # cameras x (U, H, W, 3)
+        images = np.stack(per_camera, axis=1)[inverse.reshape(obs_rows.shape)]  # (N, To, cameras, H, W, 3)
+        return np.ascontiguousarray(rearrange(images, "n t c h w rgb -> n t c rgb h w"))
+
     def read(self, window_indices: np.ndarray) -> ImageWindows:
         """Images, proprioception and actions of some windows.
 
@@ -82,14 +98,9 @@ class ImageWindowReader:
             The windows, in the order of ``window_indices``.
         """
         rows = self.rows[np.asarray(window_indices, dtype=np.int64)]  # (N, H)
-        obs_rows = rows[:, : self.obs_steps]  # (N, To)
-        frames, inverse = np.unique(obs_rows, return_inverse=True)
-        # Orthogonal selection reads each chunk holding a selected frame once; sorted unique rows keep it in order.
-        per_camera = [array.get_orthogonal_selection(frames) for array in self._images]  # cameras x (U, H, W, 3)
-        images = np.stack(per_camera, axis=1)[inverse.reshape(obs_rows.shape)]  # (N, To, cameras, H, W, 3)
         return ImageWindows(
-            images=np.ascontiguousarray(rearrange(images, "n t c h w rgb -> n t c rgb h w")),
-            proprioception=self._proprioception[obs_rows],
+            images=self.images(window_indices),
+            proprioception=self._proprioception[rows[:, : self.obs_steps]],
             actions=self._actions[rows],
         )
 

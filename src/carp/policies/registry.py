@@ -8,6 +8,7 @@ family. Modules are imported on first use, after `carp.config` has loaded, so a 
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -99,19 +100,22 @@ class TrainingRun:
         Args:
             policy: the freshly built policy.
             recipe: its optimizer (`carp.training.loop.OptimizerRecipe`).
-            identity: plain values that must match for a saved state to be resumed (family, config, shapes).
+            identity: plain values that must match for a saved state to be resumed (family, config, shapes); the
+                observation kind and camera encoder settings are added here for every family.
             prepare_data: the family's one-time derivation from the windows (e.g. their token targets), or None.
             training_step: the family's loss and metric sums of a batch; None trains on `policy.training_loss`.
         """
         from carp.training.loop import train_with_loss
 
+        encoder = self.context.image_encoder
+        observations = {"image_encoder": None if encoder is None else dataclasses.asdict(encoder)}
         return train_with_loss(
             policy,
             self.data,
             recipe,
             self.training,
             self.checkpoint_dir,
-            identity,
+            identity | {"observations": observations},
             self.epochs,
             self.device,
             self.on_epoch_end,

@@ -26,9 +26,11 @@ from carp.policies.base import (
     count_parameters,
 )
 from carp.policies.carp.sampling import check_top_k
+from carp.policies.observations import as_image_tensor, build_observation_encoder, encoder_checkpoint
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import atomic_torch_save
+from carp.vision.config import ImageEncoderConfig
 
 
 def check_policy_type(checkpoint: dict[str, Any], policy_type: str) -> None:
@@ -60,20 +62,23 @@ def check_tokenizer_fit(pairs: dict[str, tuple[Any, Any]], label: str, what: str
 
 
 class PolicyModule(nn.Module, abc.ABC):
-    """Base of the PyTorch policies: normalizers, metadata and the protocol's family-independent methods.
+    """Base of the PyTorch policies: normalizers, the observation encoder, metadata and the family-independent methods.
 
     Subclasses set `policy_type`, register their networks (trainable parameters are what `num_parameters` counts)
-    and implement `family_checkpoint` plus the family-specific protocol methods.
+    and implement `family_checkpoint` plus the family-specific protocol methods. Their networks are conditioned on
+    the (B, To, F) features of :attr:`observation_encoder` (`carp.policies.observations`): the normalized
+    observations themselves for state policies (F = Do), camera features and proprioception with `image_encoder`.
 
     Args:
-        obs_normalizer: min-max statistics of the `Do` observation features.
+        obs_normalizer: min-max statistics of the `Do` low-dim observation features.
         action_normalizer: min-max statistics of the `A` action dimensions.
         metadata: plain values stored in the checkpoint.
-        obs_dim: `Do` the network expects.
+        feature_dim: `F`, the observation features per step the network expects.
         action_dim: `A` the network predicts.
+        image_encoder: the camera encoder's settings for an image policy; None for a state policy.
 
     Raises:
-        ValueError: a normalizer has another number of features.
+        ValueError: a normalizer has another number of features than the network expects.
     """
 
     policy_type: str
@@ -83,18 +88,23 @@ class PolicyModule(nn.Module, abc.ABC):
         obs_normalizer: MinMaxNormalizer,
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None,
-        obs_dim: int,
+        feature_dim: int,
         action_dim: int,
+        image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
-        if obs_normalizer.num_features != obs_dim:
+        encoder = build_observation_encoder(obs_normalizer.num_features, image_encoder)
+        if encoder.output_dim != feature_dim:
+            cameras = "" if image_encoder is None else f" (with the cameras' features: F = {encoder.output_dim})"
             raise ValueError(
-                f"obs normalizer has {obs_normalizer.num_features} features, the policy expects Do = {obs_dim}"
+                f"obs normalizer has {obs_normalizer.num_features} features{cameras}, the policy expects "
+                f"{'Do' if image_encoder is None else 'F'} = {feature_dim}"
             )
         if action_normalizer.num_features != action_dim:
             raise ValueError(
                 f"action normalizer has {action_normalizer.num_features} features, the policy predicts A = {action_dim}"
             )
         super().__init__()
+        self.observation_encoder = encoder
         self.obs_normalizer = obs_normalizer
         self.action_normalizer = action_normalizer
         self.metadata = dict(metadata or {})
@@ -109,20 +119,27 @@ class PolicyModule(nn.Module, abc.ABC):
         """Trained parameters: those that require gradients (a frozen tokenizer is not counted)."""
         return count_parameters(self)
 
-    def normalized_observations(self, obs: np.ndarray | torch.Tensor, obs_steps: int, obs_dim: int) -> torch.Tensor:
-        """(B, To, Do) float32 normalized observations on the policy's device.
+    def observation_features(
+        self, obs: np.ndarray | torch.Tensor, obs_steps: int, images: np.ndarray | torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(B, To, F) features the network is conditioned on, from raw observations (and images), on its device.
 
         Args:
-            obs: (B, To, Do) raw observations (numpy or torch).
+            obs: (B, To, Do) raw low-dim observations (numpy or torch).
             obs_steps: `To` the network expects.
-            obs_dim: `Do` the network expects.
+            images: (B, To, cameras, 3, h, w) uint8 camera images for an image policy; None for a state policy.
 
         Raises:
-            ValueError: `obs` has another shape.
+            ValueError: `obs` or `images` has another shape, or images are missing or unexpected.
         """
         observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
-        check_observation_shape(observations, obs_steps, obs_dim, "obs")
-        return self.obs_normalizer.normalize(observations)  # (B, To, Do)
+        check_observation_shape(observations, obs_steps, self.obs_normalizer.num_features, "obs")
+        normalized = self.obs_normalizer.normalize(observations)  # (B, To, Do)
+        return self.observation_encoder(normalized, as_image_tensor(images, self.device))
+
+    def batch_features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(b, To, F) features of a training batch: its normalized `obs` (b, To, Do) and, if any, its `images`."""
+        return self.observation_encoder(batch["obs"], batch.get("images"))
 
     def predict_action(
         self,
@@ -148,11 +165,12 @@ class PolicyModule(nn.Module, abc.ABC):
         """The family's own checkpoint entries (config or spec, shapes, weights); see :meth:`to_checkpoint`."""
 
     def to_checkpoint(self) -> dict[str, Any]:
-        """Self-contained state: the envelope, the family's entries, the normalizer statistics and the metadata."""
+        """Self-contained state: envelope, family entries, observation encoder, normalizer statistics, metadata."""
         return {
             "format_version": POLICY_FORMAT_VERSION,
             "policy_type": self.policy_type,
             **self.family_checkpoint(),
+            **encoder_checkpoint(self.observation_encoder),
             "normalizers": {"obs": self.obs_normalizer.to_dict(), "action": self.action_normalizer.to_dict()},
             "metadata": self.metadata,
         }
@@ -174,8 +192,9 @@ class TokenizedPolicy(PolicyModule):
         obs_normalizer: min-max statistics of the `Do` observation features.
         action_normalizer: min-max statistics of the task's `A` action dimensions.
         metadata: plain values stored in the checkpoint.
-        obs_dim: `Do` the transformer expects.
+        feature_dim: `F`, observation features per step the transformer expects.
         num_tasks: tasks the transformer is conditioned on; 0 for a single-task policy.
+        image_encoder: the camera encoder's settings for an image policy; None for a state policy.
     """
 
     def __init__(
@@ -185,11 +204,12 @@ class TokenizedPolicy(PolicyModule):
         obs_normalizer: MinMaxNormalizer,
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None,
-        obs_dim: int,
+        feature_dim: int,
         num_tasks: int,
+        image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
         action_dim = tokenizer_artifact.tokenizer.spec.action_dim
-        super().__init__(obs_normalizer, action_normalizer, metadata, obs_dim, action_dim)
+        super().__init__(obs_normalizer, action_normalizer, metadata, feature_dim, action_dim, image_encoder)
         self.tokenizer: MultiScaleActionTokenizer = tokenizer_artifact.tokenizer.eval().requires_grad_(False)
         self.tokenizer_artifact = tokenizer_artifact
         self.transformer = transformer.eval()

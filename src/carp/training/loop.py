@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.optim.swa_utils import AveragedModel
@@ -57,20 +58,30 @@ class PolicyTrainingData:
         task_ids: (N,) long task indices for multi-task policies, else None.
         extras: (N, ...) tensors a family derives from the windows once (`train_with_loss`'s `prepare_data`), by
             name; every batch carries their rows under the same names.
+        images: for image policies, reads the camera images of some windows: (b,) window indices -> (b, To,
+            cameras, 3, h, w) uint8 (e.g. `carp.data.image_windows.ImageWindowReader.images`); they stay on disk
+            and each batch reads its own. None for state policies.
     """
 
     obs: torch.Tensor
     actions: torch.Tensor
     task_ids: torch.Tensor | None = None
     extras: dict[str, torch.Tensor] = field(default_factory=dict)
+    images: Callable[[np.ndarray], np.ndarray] | None = None
 
     def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The windows at `indices` (b,) as a training batch: `obs`, `actions`, `task_ids` if any, and the extras."""
+        """The windows at `indices` (b,) as a training batch.
+
+        Holds `obs`, `actions`, `task_ids` if any, the extras, and `images` (on the device of `obs`) when the windows
+        have them.
+        """
         batch = {"obs": self.obs[indices], "actions": self.actions[indices]}
         if self.task_ids is not None:
             batch["task_ids"] = self.task_ids[indices]
         for name, values in self.extras.items():
             batch[name] = values[indices]
+        if self.images is not None:
+            batch["images"] = torch.from_numpy(self.images(indices.cpu().numpy())).to(self.obs.device)
         return batch
 
     def to(self, device: torch.device) -> "PolicyTrainingData":
@@ -80,6 +91,7 @@ class PolicyTrainingData:
             self.actions.to(device=device, dtype=torch.float32),
             self.task_ids.to(device=device, dtype=torch.long) if self.task_ids is not None else None,
             {name: values.to(device) for name, values in self.extras.items()},
+            self.images,
         )
 
 
@@ -109,7 +121,8 @@ class OptimizerRecipe:
         betas: AdamW betas.
         ema: builds the weight average of the trained module (e.g. `carp.policies.diffusion.ema`), or None.
         parameter_groups: returns AdamW parameter groups (each with its own `weight_decay`) when the family decays
-            some parameters and not others; None trains every parameter that requires gradients with
+            some parameters and not others; trainable parameters of the policy that no group holds (a camera
+            encoder) train with `weight_decay`. None trains every parameter that requires gradients with
             `weight_decay`.
     """
 
@@ -249,6 +262,11 @@ def train_with_loss(
         trainable["ema"] = ema
     if recipe.parameter_groups is not None:
         parameters = recipe.parameter_groups()
+        # A family groups its own network; what it leaves out (an image policy's camera encoder) still trains.
+        grouped = {id(parameter) for group in parameters for parameter in group["params"]}
+        rest = [p for p in policy.parameters() if p.requires_grad and id(p) not in grouped]
+        if rest:
+            parameters.append({"params": rest, "weight_decay": recipe.weight_decay})
     else:
         parameters = [parameter for parameter in policy.parameters() if parameter.requires_grad]
     optimizer = make_optimizer(parameters, recipe, device)

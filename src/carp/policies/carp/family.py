@@ -20,7 +20,7 @@ def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
         raise ValueError("a carp policy needs the registered tokenizer")
     tokenizer_spec = context.tokenizer_artifact.tokenizer.spec
     return PolicySpec(
-        obs_dim=context.obs_dim,
+        obs_dim=context.feature_dim,
         obs_steps=context.obs_steps,
         action_dim=context.action_dim,
         scales=tokenizer_spec.scales,
@@ -39,6 +39,7 @@ def build_policy(config: CarpConfig, context: PolicyContext) -> CarpPolicy:
         context.obs_normalizer,
         context.action_normalizer,
         context.metadata,
+        context.image_encoder,
     )
 
 

@@ -23,6 +23,7 @@ from carp.policies.carp.sampling import generate_chunk
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import (
     TokenizedPolicy,
     check_policy_type,
@@ -33,6 +34,7 @@ from carp.policies.wrapper import (
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.checkpoint import CheckpointError
+from carp.vision.config import ImageEncoderConfig
 
 logger = logging.getLogger(__name__)
 
@@ -58,10 +60,11 @@ class CarpPolicy(TokenizedPolicy):
         tokenizer_artifact: the trained tokenizer with its training statistics and sha256; its tokenizer is frozen
             here (eval mode, no gradients) and becomes :attr:`tokenizer`.
         transformer: trained coarse-to-fine transformer.
-        obs_normalizer: per-feature min-max statistics of the `Do` observation features.
+        obs_normalizer: per-feature min-max statistics of the `Do` low-dim observation features.
         action_normalizer: per-feature min-max statistics of the `A` action dimensions of the policy's task (the
             task's own, also for a task the tokenizer was not trained on).
         metadata: plain values stored in the checkpoint (e.g. the tokenizer's registry reference, the task names).
+        image_encoder: the camera encoder's settings for an image policy; None for a state policy.
     """
 
     policy_type = POLICY_TYPE
@@ -73,11 +76,19 @@ class CarpPolicy(TokenizedPolicy):
         obs_normalizer: MinMaxNormalizer,
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None = None,
+        image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
         check_specs_match(transformer.spec, tokenizer_artifact.tokenizer.spec)
         spec = transformer.spec
         super().__init__(
-            tokenizer_artifact, transformer, obs_normalizer, action_normalizer, metadata, spec.obs_dim, spec.num_tasks
+            tokenizer_artifact,
+            transformer,
+            obs_normalizer,
+            action_normalizer,
+            metadata,
+            spec.obs_dim,
+            spec.num_tasks,
+            image_encoder,
         )
 
     @property
@@ -96,15 +107,17 @@ class CarpPolicy(TokenizedPolicy):
         task_index: int | np.ndarray | torch.Tensor | None = None,
         generator: torch.Generator | None = None,
         top_k: int | None = None,
+        images: np.ndarray | torch.Tensor | None = None,
     ) -> TimedPrediction:
         """Predict raw action chunks and time prediction and decoding separately.
 
         Args:
-            obs: (B, To, Do) raw observations (numpy or torch).
+            obs: (B, To, Do) raw low-dim observations (numpy or torch).
             task_index: None for single-task policies; otherwise one task index for the whole batch or (B,).
             generator: random source for top-k sampling, on the policy's device.
             top_k: token choice of this call; None uses :meth:`configure_inference`'s (greedy by default). See
                 `carp.policies.carp.sampling.select_tokens`.
+            images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
         Returns:
             Actions (B, H, A) raw float32, the two durations in seconds and the K transformer calls.
@@ -112,7 +125,7 @@ class CarpPolicy(TokenizedPolicy):
         top_k = self.top_k if top_k is None else top_k
         with torch.inference_mode():
             started = time.perf_counter()
-            observations = self.normalized_observations(obs, self.spec.obs_steps, self.spec.obs_dim)  # (B, To, Do)
+            observations = self.observation_features(obs, self.spec.obs_steps, images)  # (B, To, F)
             task_ids = self.task_ids(task_index, observations.shape[0])
             chunk = generate_chunk(self.transformer, self.tokenizer, observations, task_ids, top_k, generator)
             predicted = time.perf_counter()
@@ -128,19 +141,25 @@ class CarpPolicy(TokenizedPolicy):
         (training tokenizes every window once instead, `carp.policies.carp.trainer`).
 
         Args:
-            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) long when multi-task.
+            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) long when multi-task;
+                `images` (b, To, cameras, 3, h, w) uint8 for an image policy.
         """
         targets = compute_token_targets(self.tokenizer, batch["actions"])
-        batch = batch | {"token_sequence": targets.token_sequence, "teacher_inputs": targets.teacher_inputs}
+        batch = batch | {
+            "obs": self.batch_features(batch),
+            "token_sequence": targets.token_sequence,
+            "teacher_inputs": targets.teacher_inputs,
+        }
         return teacher_forced_step(self.transformer, batch).loss
 
     def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
         """Workers run ONNX Runtime graphs exported into `directory` for `onnxruntime`, else this checkpoint in torch.
 
-        The graphs bake in the current `top_k`. An export failure is logged and falls back to PyTorch, which
-        computes the same actions; the returned backend says which one runs.
+        The graphs bake in the current `top_k` and take state observations: an image policy runs in PyTorch, camera
+        encoder included. An export failure is logged and falls back to PyTorch, which computes the same actions; the
+        returned backend says which one runs.
         """
-        if backend == ONNX_BACKEND:
+        if backend == ONNX_BACKEND and self.observation_encoder.kind == "state":
             from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 
             try:
@@ -182,9 +201,15 @@ class CarpPolicy(TokenizedPolicy):
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
         # The specs first: a tokenizer of another shape is named as such rather than as a hash difference.
         check_specs_match(transformer.spec, TokenizerSpec.from_dict(checkpoint["tokenizer"]["spec"]))
-        return cls(
-            checkpoint_tokenizer(checkpoint), transformer, *checkpoint_normalizers(checkpoint), checkpoint["metadata"]
+        policy = cls(
+            checkpoint_tokenizer(checkpoint),
+            transformer,
+            *checkpoint_normalizers(checkpoint),
+            checkpoint["metadata"],
+            checkpoint_image_encoder(checkpoint),
         )
+        restore_observation_encoder(policy.observation_encoder, checkpoint)
+        return policy
 
     @classmethod
     def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":

@@ -26,7 +26,9 @@ class PolicySpec:
     :class:`~carp.policies.carp.policy.CarpPolicy` checks that they match.
 
     Attributes:
-        obs_dim: `Do`, low-dim observation features per step (not the flattened `To * Do`).
+        obs_dim: `F`, observation features per step the transformer is conditioned on (not the flattened `To * F`):
+            `Do` for state observations, camera features and proprioception for images
+            (`carp.policies.observations`).
         obs_steps: `To`, observation steps the policy conditions on.
         action_dim: `A`, action dimensions (one tokenizer and one vocabulary each).
         scales: `(s_1, ..., s_K)`, tokens per dimension at each scale, strictly increasing.

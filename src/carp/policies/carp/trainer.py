@@ -70,8 +70,9 @@ def teacher_forced_step(transformer: CoarseToFineTransformer, batch: dict[str, t
 
     Args:
         transformer: the model being trained.
-        batch: `obs` (b, To, Do) normalized observations, `teacher_inputs` (b, L - s_1 * A, C), `token_sequence`
-            (b, L) long ground-truth ids, and `task_ids` (b,) long for multi-task policies.
+        batch: `obs` (b, To, F) observation features (`CarpPolicy.batch_features`), `teacher_inputs`
+            (b, L - s_1 * A, C), `token_sequence` (b, L) long ground-truth ids, and `task_ids` (b,) long for
+            multi-task policies.
 
     Returns:
         The scalar float32 loss, and as metric sums over the batch's windows the fraction of each window's tokens
@@ -104,9 +105,10 @@ def with_token_targets(policy: CarpPolicy, data: PolicyTrainingData) -> PolicyTr
     """
     spec = policy.spec
     count = data.obs.shape[0]
-    if data.obs.dim() != 3 or tuple(data.obs.shape[1:]) != (spec.obs_steps, spec.obs_dim):
+    obs_dim = policy.obs_normalizer.num_features
+    if data.obs.dim() != 3 or tuple(data.obs.shape[1:]) != (spec.obs_steps, obs_dim):
         raise ValueError(
-            f"obs must have shape (N, To, Do) = (N, {spec.obs_steps}, {spec.obs_dim}), got {tuple(data.obs.shape)}"
+            f"obs must have shape (N, To, Do) = (N, {spec.obs_steps}, {obs_dim}), got {tuple(data.obs.shape)}"
         )
     expected_actions = (count, policy.tokenizer.spec.action_horizon, spec.action_dim)
     if tuple(data.actions.shape) != expected_actions:
@@ -165,5 +167,7 @@ def train_carp(policy: CarpPolicy, config: CarpConfig, run: TrainingRun) -> Carp
         optimizer_recipe(policy.transformer, config),
         identity,
         prepare_data=lambda windows: with_token_targets(policy, windows),
-        training_step=lambda batch: teacher_forced_step(policy.transformer, batch),
+        training_step=lambda batch: teacher_forced_step(
+            policy.transformer, batch | {"obs": policy.batch_features(batch)}
+        ),
     )

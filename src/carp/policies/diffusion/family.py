@@ -43,7 +43,7 @@ def make_transformer(
 
 def build(policy_type: str, make_denoiser: DenoiserFactory, config: DenoisingConfig, context: PolicyContext):
     """An untrained policy of `policy_type` sized for the data of `context` (the tokenizer is not used)."""
-    denoiser = make_denoiser(config, context.action_dim, context.obs_dim, context.obs_steps, context.action_horizon)
+    denoiser = make_denoiser(config, context.action_dim, context.feature_dim, context.obs_steps, context.action_horizon)
     if context.num_tasks > 0:
         raise ValueError(f"a {policy_type} policy is single-task; got num_tasks = {context.num_tasks}")
     return DiffusionPolicy(
@@ -54,6 +54,7 @@ def build(policy_type: str, make_denoiser: DenoiserFactory, config: DenoisingCon
         context.action_normalizer,
         context.action_horizon,
         context.metadata,
+        context.image_encoder,
     )
 
 
@@ -81,7 +82,7 @@ def train(
 
 def _shapes(context: PolicyContext) -> dict[str, int]:
     return {
-        "obs_dim": context.obs_dim,
+        "obs_dim": context.feature_dim,
         "obs_steps": context.obs_steps,
         "action_dim": context.action_dim,
         "action_horizon": context.action_horizon,

@@ -21,10 +21,12 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig
 from carp.policies.diffusion.sampler import DiffusionSampler
+from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import PolicyModule, check_policy_type, checkpoint_normalizers
+from carp.vision.config import ImageEncoderConfig
 
 DenoiserFactory = Callable[[Any, int, int, int, int], nn.Module]
-"""`factory(config, action_dim, obs_dim, obs_steps, action_horizon)` -> an untrained denoiser."""
+"""`factory(config, action_dim, feature_dim, obs_steps, action_horizon)` -> an untrained denoiser."""
 
 
 class DiffusionPolicy(PolicyModule):
@@ -34,10 +36,11 @@ class DiffusionPolicy(PolicyModule):
         policy_type: the registry name of the family (`diffusion_unet` or `diffusion_transformer`).
         config: the family's config (denoiser shape, training schedule, optimizer, EMA).
         denoiser: the noise-predicting network (`Denoiser` protocol of `carp.policies.diffusion.sampler`).
-        obs_normalizer: min-max statistics of the `Do` observation features.
+        obs_normalizer: min-max statistics of the `Do` low-dim observation features.
         action_normalizer: min-max statistics of the `A` action dimensions.
         action_horizon: `H`, actions per chunk.
         metadata: plain values stored in the checkpoint.
+        image_encoder: the camera encoder's settings for an image policy; None for a state policy.
     """
 
     def __init__(
@@ -49,8 +52,11 @@ class DiffusionPolicy(PolicyModule):
         action_normalizer: MinMaxNormalizer,
         action_horizon: int,
         metadata: dict[str, Any] | None = None,
+        image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
-        super().__init__(obs_normalizer, action_normalizer, metadata, denoiser.obs_dim, denoiser.action_dim)
+        super().__init__(
+            obs_normalizer, action_normalizer, metadata, denoiser.obs_dim, denoiser.action_dim, image_encoder
+        )
         self.policy_type = policy_type
         self.config = config
         self.denoiser = denoiser
@@ -80,13 +86,15 @@ class DiffusionPolicy(PolicyModule):
         obs: np.ndarray | torch.Tensor,
         task_index: int | np.ndarray | torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        images: np.ndarray | torch.Tensor | None = None,
     ) -> TimedPrediction:
         """Denoise one raw action chunk per observation and time the loop and the un-normalization.
 
         Args:
-            obs: (B, To, Do) raw observations.
+            obs: (B, To, Do) raw low-dim observations.
             task_index: must be None (the Diffusion Policy families are single-task here).
             generator: random source of the initial noise (and of DDPM's per-step noise); seeded per episode.
+            images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
         Returns:
             Actions (B, H, A) raw float32, the two durations in seconds and the N denoiser calls.
@@ -96,7 +104,7 @@ class DiffusionPolicy(PolicyModule):
         with torch.inference_mode():
             started = time.perf_counter()
             denoiser = self.denoiser
-            observations = self.normalized_observations(obs, denoiser.obs_steps, denoiser.obs_dim)  # (B, To, Do)
+            observations = self.observation_features(obs, denoiser.obs_steps, images)  # (B, To, F)
             normalized_actions = self.sampler.sample(denoiser, observations, self.action_horizon, generator)
             predicted = time.perf_counter()
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()  # (B, H, A)
@@ -107,9 +115,10 @@ class DiffusionPolicy(PolicyModule):
         """DP's loss: mean-squared error of the predicted noise at uniformly drawn diffusion steps (scalar).
 
         Args:
-            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized.
+            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `images` (b, To, cameras, 3, h, w) uint8
+                for an image policy.
         """
-        return self.sampler.training_loss(self.denoiser, batch["actions"], batch["obs"])
+        return self.sampler.training_loss(self.denoiser, batch["actions"], self.batch_features(batch))
 
     def family_checkpoint(self) -> dict[str, Any]:
         """The diffusion entries: config, shapes and the denoiser's weights."""
@@ -146,5 +155,7 @@ def from_checkpoint(
         action_normalizer,
         shapes["action_horizon"],
         checkpoint["metadata"],
+        checkpoint_image_encoder(checkpoint),
     )
+    restore_observation_encoder(policy.observation_encoder, checkpoint)
     return policy.train(False)

@@ -28,7 +28,7 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
     spec = context.tokenizer_artifact.tokenizer.spec
     transformer = NextTokenTransformer(
         config,
-        context.obs_dim,
+        context.feature_dim,
         context.obs_steps,
         context.action_dim,
         tuple(spec.scales),
@@ -36,7 +36,12 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
         context.num_tasks,
     )
     return NextTokenPolicy(
-        context.tokenizer_artifact, transformer, context.obs_normalizer, context.action_normalizer, context.metadata
+        context.tokenizer_artifact,
+        transformer,
+        context.obs_normalizer,
+        context.action_normalizer,
+        context.metadata,
+        context.image_encoder,
     )
 
 
@@ -61,7 +66,7 @@ def train(config: NextTokenConfig, run: TrainingRun) -> NextTokenPolicy:
     identity = {
         "policy_type": POLICY_TYPE,
         "config": dataclasses.asdict(config),
-        "shapes": {"obs_dim": context.obs_dim, "obs_steps": context.obs_steps, "action_dim": context.action_dim},
+        "shapes": {"obs_dim": context.feature_dim, "obs_steps": context.obs_steps, "action_dim": context.action_dim},
         "tokenizer_sha256": context.tokenizer_artifact.sha256,
     }
     return run.train_with_loss(policy, recipe, identity)

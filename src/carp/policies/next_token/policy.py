@@ -19,8 +19,10 @@ from carp.policies.base import TimedPrediction
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.generation import check_tokenizer_matches, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
+from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import TokenizedPolicy, check_policy_type, checkpoint_normalizers, checkpoint_tokenizer
 from carp.tokenizer.artifact import TokenizerArtifact
+from carp.vision.config import ImageEncoderConfig
 
 POLICY_TYPE = "next_token"
 
@@ -31,9 +33,10 @@ class NextTokenPolicy(TokenizedPolicy):
     Args:
         tokenizer_artifact: the registered tokenizer the token ids come from; frozen here.
         transformer: the next-token transformer, sized for the tokenizer.
-        obs_normalizer: min-max statistics of the `Do` observation features.
+        obs_normalizer: min-max statistics of the `Do` low-dim observation features.
         action_normalizer: min-max statistics of the task's `A` action dimensions.
         metadata: plain values stored in the checkpoint.
+        image_encoder: the camera encoder's settings for an image policy; None for a state policy.
     """
 
     policy_type = POLICY_TYPE
@@ -45,6 +48,7 @@ class NextTokenPolicy(TokenizedPolicy):
         obs_normalizer: MinMaxNormalizer,
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None = None,
+        image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
         check_tokenizer_matches(transformer, tokenizer_artifact.tokenizer)
         super().__init__(
@@ -55,6 +59,7 @@ class NextTokenPolicy(TokenizedPolicy):
             metadata,
             transformer.obs_dim,
             transformer.num_tasks,
+            image_encoder,
         )
 
     @property
@@ -67,13 +72,15 @@ class NextTokenPolicy(TokenizedPolicy):
         obs: np.ndarray | torch.Tensor,
         task_index: int | np.ndarray | torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        images: np.ndarray | torch.Tensor | None = None,
     ) -> TimedPrediction:
         """Predict the L tokens one at a time, decode them, and time both parts.
 
         Args:
-            obs: (B, To, Do) raw observations.
+            obs: (B, To, Do) raw low-dim observations.
             task_index: None for single-task policies; one index or (B,) otherwise.
             generator: random source of top-k draws, seeded per episode.
+            images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
         Returns:
             Actions (B, H, A) raw float32, the two durations in seconds and the L transformer calls.
@@ -81,9 +88,9 @@ class NextTokenPolicy(TokenizedPolicy):
         with torch.inference_mode():
             started = time.perf_counter()
             transformer = self.transformer
-            normalized = self.normalized_observations(obs, transformer.obs_steps, transformer.obs_dim)  # (B, To, Do)
-            task_ids = self.task_ids(task_index, normalized.shape[0])
-            token_ids = generate_tokens(transformer, normalized, task_ids, self.top_k, generator)  # (B, L)
+            features = self.observation_features(obs, transformer.obs_steps, images)  # (B, To, F)
+            task_ids = self.task_ids(task_index, features.shape[0])
+            token_ids = generate_tokens(transformer, features, task_ids, self.top_k, generator)  # (B, L)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_ids(self.tokenizer.sequence_to_ids(token_ids))  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
@@ -94,13 +101,14 @@ class NextTokenPolicy(TokenizedPolicy):
         """Mean cross entropy of the teacher-forced next-token logits over all L tokens (scalar float32).
 
         Args:
-            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) when multi-task.
+            batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `task_ids` (b,) when multi-task; `images`
+                (b, To, cameras, 3, h, w) uint8 for an image policy.
         """
         actions = batch["actions"]
         # The frozen tokenizer encodes in float32 whatever the loop's autocast: its ids must not depend on it.
         with torch.no_grad(), torch.autocast(actions.device.type, enabled=False):
             token_ids = self.tokenizer.ids_to_sequence(self.tokenizer.encode_to_ids(actions.float()))  # (b, L)
-        logits = self.transformer(batch["obs"], token_ids, batch.get("task_ids"))  # (b, L, V)
+        logits = self.transformer(self.batch_features(batch), token_ids, batch.get("task_ids"))  # (b, L, V)
         return F.cross_entropy(logits.flatten(0, 1).float(), token_ids.flatten())
 
     def family_checkpoint(self) -> dict[str, Any]:
@@ -135,6 +143,12 @@ class NextTokenPolicy(TokenizedPolicy):
             shapes["num_tasks"],
         )
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
-        return cls(
-            checkpoint_tokenizer(checkpoint), transformer, *checkpoint_normalizers(checkpoint), checkpoint["metadata"]
+        policy = cls(
+            checkpoint_tokenizer(checkpoint),
+            transformer,
+            *checkpoint_normalizers(checkpoint),
+            checkpoint["metadata"],
+            checkpoint_image_encoder(checkpoint),
         )
+        restore_observation_encoder(policy.observation_encoder, checkpoint)
+        return policy
