@@ -22,7 +22,7 @@ from carp.training.checkpoint import CheckpointError
 
 def main() -> None:
     setup_logging()
-    args, params = policy_stage_args(__doc__)
+    args, params = policy_stage_args(__doc__, takes_images=False)
     data, config = params.data, params.eval
     if config.video:
         # Headless offscreen rendering through EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; `make render-deps`).

@@ -75,9 +75,9 @@ def main() -> None:
         # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
         inputs = load_task_policy_inputs(
             PROCESSED_DIR / args.task, TOKENIZER_DIR, TOKENIZER_REF, params.data, params.action_space, params.scales,
-            params.codebook_size,
+            params.codebook_size, params.policy_image_encoder,
         )  # fmt: skip
-    except (CheckpointError, TokenizerMismatchError, FileNotFoundError) as error:
+    except (CheckpointError, TokenizerMismatchError, FileNotFoundError, ValueError) as error:
         fail(str(error))
     device = select_device(params)
     if launched is None and num_processes > 1:

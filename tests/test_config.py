@@ -119,10 +119,33 @@ def test_bad_values_are_refused_with_the_key_named(raw, message):
 def test_image_observations_swap_the_object_pose_for_proprioception_and_cameras():
     state = Params().data
     assert state.observations == "state" and state.image_keys == () and state.low_dim_keys == state.obs_keys
-    image = params_from_dict({"data": {"observations": "image", "cameras": ["agentview"], "image_size": 64}}).data
+    image_params = params_from_dict(
+        {
+            "data": {"observations": "image", "cameras": ["agentview"], "image_size": 64},
+            "image_encoder": {"crop_size": 56},
+        }
+    )
+    image = image_params.data
     assert image.image_keys == ("agentview_image",) and image.image_size == 64
     assert image.low_dim_keys == ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
     assert "object" in state.low_dim_keys and "object" not in image.low_dim_keys
+    # The policies' camera encoder sees what ingest stored; state policies have none.
+    encoder = image_params.policy_image_encoder
+    assert encoder.cameras == ("agentview",) and encoder.image_size == 64 and encoder.crop_size == 56
+    assert Params().policy_image_encoder is None
+
+
+def test_the_image_encoder_section_takes_its_cameras_and_size_from_data():
+    with pytest.raises(ConfigError, match=r"image_encoder.crop_size=76: must be an integer in \[1, image_size=64\]"):
+        params_from_dict({"data": {"observations": "image", "image_size": 64}})
+    with pytest.raises(ConfigError, match=r"image_encoder.cameras=\['agentview'\]: is data.cameras; set data.cameras"):
+        params_from_dict({"image_encoder": {"cameras": ["agentview"]}})
+    with pytest.raises(ConfigError, match="image_encoder.image_size=100: is data.image_size; set data.image_size"):
+        params_from_dict({"image_encoder": {"image_size": 100}})
+    # Restating data's values is allowed; a state run ignores the encoder's crop.
+    same = {"cameras": ["agentview"], "image_size": 40, "crop_size": 36}
+    assert params_from_dict({"data": {"cameras": ["agentview"], "image_size": 40}, "image_encoder": same})
+    assert params_from_dict({"data": {"image_size": 40}}).policy_image_encoder is None
 
 
 def test_load_params_names_the_file(tmp_path):

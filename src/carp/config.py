@@ -11,9 +11,9 @@ sections to library functions.
 import dataclasses
 import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from ruamel.yaml import YAML, YAMLError
 
@@ -268,6 +268,92 @@ class TokenizerConfig:
         _require(self.augment_max_scale >= 1.0, "tokenizer.augment_max_scale", self.augment_max_scale, "must be >= 1")
 
 
+# GroupNorm as in Diffusion Policy: one group per 16 channels, so every stage width must be a multiple of 16.
+CHANNELS_PER_GROUP = 16
+STANDARD_BASE_CHANNELS = 64
+LIGHT_BASE_CHANNELS = 16
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+@dataclass(frozen=True)
+class ImageEncoderConfig:
+    """Cameras, crop and network sizes of the image encoder (:class:`carp.vision.encoder.ImageEncoder`).
+
+    Defaults are Diffusion Policy's image recipe (robomimic's ``VisualCore``): per camera a ResNet-18 trunk trained
+    from scratch with GroupNorm, a spatial-softmax head of 32 keypoints projected to 64 features, and crops of
+    76 x 76 pixels from 84 x 84 images; :meth:`light` is the CPU-sized variant. In ``params.yaml`` the
+    ``image_encoder`` section holds the network's settings; its cameras and image size are ``data.cameras`` and
+    ``data.image_size`` (the images ingest stored).
+
+    Attributes:
+        cameras: robosuite camera names, one encoder each; their images are the obs keys ``<camera>_image``;
+            at least one, no repeats.
+        image_size: height and width of the stored images in pixels (robomimic: 84); an integer >= 1.
+        crop_size: side of the square crop fed to the network, random in training and centred in evaluation
+            (Diffusion Policy: 76); an integer in [1, image_size].
+        base_channels: channels of the ResNet-18 stem; the four stages have 1, 2, 4 and 8 times as many. 64 is the
+            standard ResNet-18 (11.2 M trunk parameters per camera), 16 the light CPU variant (0.70 M); a positive
+            multiple of 16 (GroupNorm uses one group per 16 channels).
+        num_keypoints: K, spatial-softmax keypoints per camera (Diffusion Policy: 32); an integer >= 1.
+        feature_dim: features per camera after projecting the 2K keypoint coordinates (Diffusion Policy: 64); an
+            integer >= 1.
+    """
+
+    SECTION: ClassVar[str] = "image_encoder"
+
+    cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
+    image_size: int = 84
+    crop_size: int = 76
+    base_channels: int = STANDARD_BASE_CHANNELS
+    num_keypoints: int = 32
+    feature_dim: int = 64
+
+    def __post_init__(self) -> None:
+        section = self.SECTION
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        _require(len(self.cameras) > 0, f"{section}.cameras", list(self.cameras), "must name at least one camera")
+        _require(
+            all(isinstance(camera, str) and camera for camera in self.cameras),
+            f"{section}.cameras",
+            list(self.cameras),
+            "must be non-empty camera names",
+        )
+        _require(
+            len(set(self.cameras)) == len(self.cameras),
+            f"{section}.cameras",
+            list(self.cameras),
+            "names a camera twice",
+        )
+        for name in ("image_size", "num_keypoints", "feature_dim"):
+            value = getattr(self, name)
+            _require(_is_int(value) and value >= 1, f"{section}.{name}", value, "must be an integer >= 1")
+        _require(
+            _is_int(self.crop_size) and 1 <= self.crop_size <= self.image_size,
+            f"{section}.crop_size",
+            self.crop_size,
+            f"must be an integer in [1, image_size={self.image_size}]",
+        )
+        _require(
+            _is_int(self.base_channels) and self.base_channels >= 1 and self.base_channels % CHANNELS_PER_GROUP == 0,
+            f"{section}.base_channels",
+            self.base_channels,
+            f"must be a positive multiple of {CHANNELS_PER_GROUP} (GroupNorm has one group per {CHANNELS_PER_GROUP} "
+            "channels)",
+        )
+
+    @property
+    def image_keys(self) -> tuple[str, ...]:
+        """Obs keys of the cameras' images in the robomimic schema, in camera order."""
+        return tuple(f"{camera}_image" for camera in self.cameras)
+
+    def light(self) -> "ImageEncoderConfig":
+        """This config with the CPU-sized trunk (``base_channels`` 16: 0.70 M parameters per camera, not 11.2 M)."""
+        return replace(self, base_channels=LIGHT_BASE_CHANNELS)
+
+
 @dataclass(frozen=True)
 class TrainingConfig:
     """The training loop every policy family shares (each family's own section holds its model and optimizer).
@@ -484,6 +570,9 @@ class Params:
         eval: Simulated evaluation.
         tracking: MLflow tracking.
         sweep: The Optuna sweep.
+        image_encoder: The camera encoder every family puts in front of its network with ``data.observations:
+            image``; its cameras and image size are ``data.cameras`` and ``data.image_size``, which the section
+            must not restate otherwise.
         families: Family -> its section (the top-level key named after the family), for every registered family;
             a missing section takes the family's defaults, a section of an unknown family is refused.
         inference: Family -> its inference settings (``inference.<family>``), read by evaluation only, so a change
@@ -501,6 +590,7 @@ class Params:
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
+    image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
     families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
     inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
 
@@ -521,6 +611,7 @@ class Params:
             if hasattr(section, "check_with"):  # constraints across sections, e.g. CARP's top_k <= codebook_size
                 section.check_with(self)
         _require(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
+        self._bind_image_encoder()
         _require(self.codebook_size >= 2, "codebook_size", self.codebook_size, "must be >= 2")
         latent_length = self.latent_length
         _require(
@@ -571,6 +662,27 @@ class Params:
     def inference_settings(self, name: str, task: str) -> dict[str, Any]:
         """Keyword arguments of family `name`'s `configure_inference` when evaluating `task`."""
         return self.inference[name].settings_for(task)
+
+    @property
+    def policy_image_encoder(self) -> ImageEncoderConfig | None:
+        """The camera encoder the policies train with: ``image_encoder`` with image observations, else None."""
+        return self.image_encoder if self.data.observations == "image" else None
+
+    def _bind_image_encoder(self) -> None:
+        """The encoder sees the images ingest stored: ``data.cameras`` at ``data.image_size``."""
+        encoder, data, defaults = self.image_encoder, self.data, ImageEncoderConfig()
+        for name, value in (("cameras", data.cameras), ("image_size", data.image_size)):
+            written = getattr(encoder, name)
+            _require(
+                written in (getattr(defaults, name), value),
+                f"image_encoder.{name}",
+                list(written) if name == "cameras" else written,
+                f"is data.{name}; set data.{name} instead",
+            )
+        if data.observations == "image":
+            object.__setattr__(
+                self, "image_encoder", replace(encoder, cameras=data.cameras, image_size=data.image_size)
+            )
 
     @property
     def latent_length(self) -> int:

@@ -46,6 +46,7 @@ def test_train_policy_tracks_its_family_section_and_the_shared_loop_but_no_infer
         "training",
         "carp",
         "device",
+        "image_encoder",
     ]
 
 
@@ -95,11 +96,12 @@ def test_only_ingest_tracks_the_image_settings(stages):
     image_settings = {"data.observations", "data.cameras", "data.image_size", "data.proprioception_keys"}
     assert image_settings <= set(stages["ingest@lift"])
     assert [name for name, keys in stages.items() if image_settings & set(keys) and name != "ingest@lift"] == []
+    assert [name for name, keys in stages.items() if "image_encoder" in keys] == ["train_policy@lift-carp"]
 
 
-@pytest.mark.parametrize("script", ["train_policy.py", "evaluate.py"])
-def test_a_per_family_stage_refuses_image_observations_in_one_line(script, tmp_path):
-    """Ingest stores camera images, but no family encodes them yet: training must stop rather than train blind."""
+def test_evaluation_refuses_image_observations_in_one_line(tmp_path):
+    """Image policies train, but rollouts do not render their cameras yet: evaluation must stop, not run blind."""
+    script = "evaluate.py"
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["data"]["observations"] = "image"
     params_path = tmp_path / "params.yaml"
@@ -115,4 +117,5 @@ def test_a_per_family_stage_refuses_image_observations_in_one_line(script, tmp_p
     assert completed.returncode == 1
     lines = completed.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {params_path}: data.observations=image: "), lines
+    assert "rollouts do not render the cameras yet" in lines[0]
     assert list(tmp_path.iterdir()) == [params_path]

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from carp.config import TrainingConfig
+from carp.config import ImageEncoderConfig, TrainingConfig
 from carp.policies.observations import observation_feature_dim
 from carp.policies.registry import build_policy, load_policy, train_policy
 from carp.training.loop import PolicyTrainingData
-from carp.vision.config import ImageEncoderConfig
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS
 from tests.policies.test_registry import TINY_CONFIGS, TINY_INFERENCE, tiny_context, tiny_data
 

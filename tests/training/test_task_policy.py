@@ -7,11 +7,14 @@ import pandas as pd
 import pytest
 import torch
 
-from carp.config import DataConfig, TrainingConfig
+from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
 from carp.data.dataset import TaskWindows
+from carp.data.ingest import ingest_demonstrations
 from carp.data.normalizer import MinMaxNormalizer
+from carp.data.rendering import RenderSettings
 from carp.evaluation.offline import held_out_action_errors
 from carp.policies.carp.config import CarpConfig
+from carp.policies.diffusion.config import DiffusionUNetConfig
 from carp.policies.registry import load_policy
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.tracking.registry import TokenizerReference
@@ -22,6 +25,7 @@ from carp.training.task_policy import (
     load_task_policy_inputs,
     train_and_write_task_policy,
 )
+from tests.conftest import write_synthetic_file
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, TINY_ARCHITECTURE, tiny_artifact, tiny_tokenizer
 
 HORIZON, ACTION_DIM = 8, 2
@@ -111,3 +115,61 @@ def test_inputs_refuse_an_unreferenced_or_mismatched_tokenizer_before_reading_th
         load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 16)
     with pytest.raises(FileNotFoundError, match="replay buffer not found"):
         load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+
+
+# 36-pixel crops leave the trunk maps of two positions or more before every stride (bfloat16 convolution
+# gradients of strided convolutions on one-position maps are not finite on CPU).
+IMAGE_ENCODER = ImageEncoderConfig(image_size=40, crop_size=36, base_channels=16, num_keypoints=2, feature_dim=4)
+PROPRIOCEPTION_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+IMAGE_DATA = DataConfig(obs_steps=1, action_horizon=16, action_steps=8)
+
+
+@pytest.fixture(scope="module")
+def image_task(tmp_path_factory) -> tuple[Path, Path]:
+    """A task ingested with two 40 x 40 cameras from a synthetic file, and a tokenizer reference beside it."""
+    folder = tmp_path_factory.mktemp("image-task")
+    write_synthetic_file(folder / "raw.hdf5", lengths=(30, 25, 40, 20), image_size=40)
+    ingest_demonstrations(
+        folder / "raw.hdf5",
+        folder / "processed" / "lift",
+        PROPRIOCEPTION_KEYS,
+        camera_settings=RenderSettings(image_size=40),
+    )
+    return folder / "processed" / "lift", _tokenizer_files(folder / "tokenizer-files")
+
+
+@pytest.mark.slow
+def test_an_image_policy_trains_on_the_buffers_camera_windows(image_task, tmp_path):
+    task_dir, reference = image_task
+    inputs = load_task_policy_inputs(
+        task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, IMAGE_ENCODER
+    )
+    # The image windows are the low-dim windows, in the same order, for both splits.
+    windows = inputs.windows
+    assert len(inputs.train_images) == len(windows.train_obs) and len(inputs.valid_images) == len(windows.valid_obs)
+    for reader, obs in ((inputs.train_images, windows.train_obs), (inputs.valid_images, windows.valid_obs)):
+        np.testing.assert_array_equal(reader.read(np.arange(len(obs))).proprioception, obs)
+
+    run = RecordingRun()
+    outputs = TaskPolicyOutputs(tmp_path / "policy.pt", tmp_path / "reports")
+    config = DiffusionUNetConfig(
+        down_dims=(16, 32), kernel_size=3, num_groups=8, step_embedding_dim=16, num_train_steps=10, warmup_steps=0
+    )
+    training = TrainingConfig(epochs=1, batch_size=32)
+    metrics = train_and_write_task_policy(
+        "diffusion_unet", config, training, IMAGE_DATA, inputs, "lift", tmp_path / "states", torch.device("cpu"),
+        outputs, run,
+    )  # fmt: skip
+    assert np.isfinite(metrics["valid_action_rmse"]) and np.isfinite(metrics["final_loss"])
+    policy = load_policy(outputs.checkpoint)
+    assert policy.observation_encoder.config == IMAGE_ENCODER
+    assert policy.obs_normalizer.num_features == windows.train_obs.shape[-1] == 9  # proprioception only
+
+
+def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):
+    task_dir, reference = image_task
+    other = ImageEncoderConfig(cameras=("agentview",), image_size=40, crop_size=36, base_channels=16)
+    with pytest.raises(ValueError, match=r"stores images \['agentview_image', 'robot0_eye_in_hand_image'\] at 40 px"):
+        load_task_policy_inputs(
+            task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, other
+        )

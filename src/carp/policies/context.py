@@ -3,10 +3,10 @@
 from dataclasses import dataclass, field
 from typing import Any
 
+from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.observations import observation_feature_dim
 from carp.tokenizer.artifact import TokenizerArtifact
-from carp.vision.config import ImageEncoderConfig
 
 
 @dataclass(frozen=True)

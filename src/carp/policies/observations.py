@@ -22,7 +22,7 @@ import torch
 from einops import rearrange
 from torch import Tensor, nn
 
-from carp.vision.config import ImageEncoderConfig
+from carp.config import ImageEncoderConfig
 from carp.vision.encoder import ImageEncoder
 
 

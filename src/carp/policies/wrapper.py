@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import (
     POLICY_FORMAT_VERSION,
@@ -30,7 +31,6 @@ from carp.policies.observations import as_image_tensor, build_observation_encode
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import atomic_torch_save
-from carp.vision.config import ImageEncoderConfig
 
 
 def check_policy_type(checkpoint: dict[str, Any], policy_type: str) -> None:

@@ -13,8 +13,10 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from carp.config import DataConfig, TrainingConfig
+from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
 from carp.data.dataset import TaskWindows, load_task_windows
+from carp.data.image_windows import ImageWindowReader
+from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.offline import held_out_action_errors
 from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
@@ -33,11 +35,23 @@ FINAL_METRICS = ("loss", "token_accuracy")
 
 @dataclass(frozen=True)
 class TaskPolicyInputs:
-    """What a task's policy is trained from: the tokenizer reference and artifact and the task's windows."""
+    """What a task's policy is trained from: the tokenizer reference and artifact and the task's windows.
+
+    Attributes:
+        reference: the tokenizer reference file's content.
+        artifact: the referenced tokenizer.
+        windows: the task's low-dim windows (the proprioception with cameras), training and held-out.
+        image_encoder: the camera encoder's settings of an image policy; None for state observations.
+        train_images: the camera images of `windows`' training windows, in the same order; None for state.
+        valid_images: the same for the held-out windows.
+    """
 
     reference: TokenizerReference
     artifact: TokenizerArtifact
     windows: TaskWindows
+    image_encoder: ImageEncoderConfig | None = None
+    train_images: ImageWindowReader | None = None
+    valid_images: ImageWindowReader | None = None
 
 
 @dataclass(frozen=True)
@@ -61,8 +75,11 @@ def load_task_policy_inputs(
     action_space: str,
     scales: tuple[int, ...],
     codebook_size: int,
+    image_encoder: ImageEncoderConfig | None = None,
 ) -> TaskPolicyInputs:
     """Read the referenced tokenizer and the task's windows, checking that the tokenizer fits the params.
+
+    With `image_encoder`, the windows' camera images are opened too (they stay on disk; each batch reads its own).
 
     Args:
         task_dir: the task's processed data (`data/processed/<task>`).
@@ -72,17 +89,33 @@ def load_task_policy_inputs(
         action_space: the params' action space, which the tokenizer must have been trained in.
         scales: the params' scale schedule, which the tokenizer must use.
         codebook_size: the params' `V`, which the tokenizer must use.
+        image_encoder: the camera encoder's settings of an image policy (its cameras and image size must be the
+            ones the buffer stores); None for state observations.
 
     Raises:
         FileNotFoundError: a file is missing.
         CheckpointError: the tokenizer is corrupt or not the referenced one.
         TokenizerMismatchError: the tokenizer does not fit the params.
+        ValueError: the buffer holds no images, or other cameras or another image size than `image_encoder`.
     """
     reference = TokenizerReference.load(reference_path)
     artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
     check_compatible(artifact, action_space, scales, codebook_size)
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
-    return TaskPolicyInputs(reference, artifact, windows)
+    if image_encoder is None:
+        return TaskPolicyInputs(reference, artifact, windows)
+    store = Path(task_dir) / BUFFER_DIRNAME
+    readers = {
+        split: ImageWindowReader(store, data.action_horizon, data.obs_steps, data.action_steps, split)
+        for split in ("train", "valid")
+    }
+    stored = (readers["train"].image_keys, readers["train"].image_size)
+    if stored != (image_encoder.image_keys, image_encoder.image_size):
+        raise ValueError(
+            f"{store}: stores images {list(stored[0])} at {stored[1]} px, the encoder expects "
+            f"{list(image_encoder.image_keys)} at {image_encoder.image_size} px (ingest again)"
+        )
+    return TaskPolicyInputs(reference, artifact, windows, image_encoder, readers["train"], readers["valid"])
 
 
 def train_task_policy(
@@ -120,6 +153,7 @@ def train_task_policy(
     train_data = PolicyTrainingData(
         obs=torch.as_tensor(obs_normalizer.normalize(windows.train_obs), dtype=torch.float32),
         actions=torch.as_tensor(action_normalizer.normalize(windows.train_actions), dtype=torch.float32),
+        images=None if inputs.train_images is None else inputs.train_images.images,
     )
     context = PolicyContext(
         obs_normalizer=obs_normalizer,
@@ -128,6 +162,7 @@ def train_task_policy(
         action_horizon=data.action_horizon,
         tokenizer_artifact=inputs.artifact,
         metadata={"task": task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+        image_encoder=inputs.image_encoder,
     )
     return train_policy(
         family,
@@ -185,8 +220,9 @@ def train_and_write_task_policy(
     policy = train_task_policy(
         family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch
     )
+    valid_images = None if inputs.valid_images is None else inputs.valid_images.images
     held_out = held_out_action_errors(
-        policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
+        policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps, images=valid_images
     )
     run.log_metrics(held_out)
     outputs.checkpoint.parent.mkdir(parents=True, exist_ok=True)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction
 from carp.policies.carp.sampling import generate_chunk
@@ -34,7 +35,6 @@ from carp.policies.wrapper import (
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.training.checkpoint import CheckpointError
-from carp.vision.config import ImageEncoderConfig
 
 logger = logging.getLogger(__name__)
 

@@ -17,13 +17,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.diffusion.config import SAMPLERS, DenoisingConfig
 from carp.policies.diffusion.sampler import DiffusionSampler
 from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import PolicyModule, check_policy_type, checkpoint_normalizers
-from carp.vision.config import ImageEncoderConfig
 
 DenoiserFactory = Callable[[Any, int, int, int, int], nn.Module]
 """`factory(config, action_dim, feature_dim, obs_steps, action_horizon)` -> an untrained denoiser."""

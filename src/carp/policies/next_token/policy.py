@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.next_token.config import NextTokenConfig
@@ -22,7 +23,6 @@ from carp.policies.next_token.transformer import NextTokenTransformer
 from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import TokenizedPolicy, check_policy_type, checkpoint_normalizers, checkpoint_tokenizer
 from carp.tokenizer.artifact import TokenizerArtifact
-from carp.vision.config import ImageEncoderConfig
 
 POLICY_TYPE = "next_token"
 
