@@ -290,8 +290,9 @@ class ImageEncoderConfig:
 
     Attributes:
         cameras: robosuite camera names, one encoder each; their images are the obs keys ``<camera>_image``;
-            at least one, no repeats.
-        image_size: height and width of the stored images in pixels (robomimic: 84); an integer >= 1.
+            at least one, no repeats. In ``params.yaml`` it is ``data.cameras``: leave it out of this section.
+        image_size: height and width of the stored images in pixels (robomimic: 84); an integer >= 1. In
+            ``params.yaml`` it is ``data.image_size``: leave it out of this section.
         crop_size: side of the square crop fed to the network, random in training and centred in evaluation
             (Diffusion Policy: 76); an integer in [1, image_size].
         base_channels: channels of the ResNet-18 stem; the four stages have 1, 2, 4 and 8 times as many. 64 is the
