@@ -175,9 +175,20 @@ def test_policy_epochs_per_task_override_the_common_value():
     params = params_from_dict(
         {"tasks": ["lift", "square"], "training": {"epochs": 20, "epochs_per_task": {"square": 35}}}
     )
-    assert params.training.epochs_for("square") == 35
-    assert params.training.epochs_for("lift") == 20
+    assert params.training.epochs_for("square", "carp") == 35
+    assert params.training.epochs_for("lift", "carp") == 20
     assert flatten_params(params)["training.epochs_per_task.square"] == "35"
+
+
+def test_policy_epochs_per_family_override_the_task_and_common_values():
+    training = {"epochs": 40, "epochs_per_task": {"square": 60}, "epochs_per_policy": {"diffusion_unet": 120}}
+    params = params_from_dict({"tasks": ["lift", "square"], "training": training})
+    assert [params.training.epochs_for(task, "diffusion_unet") for task in params.tasks] == [120, 120]
+    assert [params.training.epochs_for(task, "carp") for task in params.tasks] == [40, 60]
+    with pytest.raises(ConfigError, match=r"training.epochs_per_policy.diffusion='diffusion': family must be one of"):
+        params_from_dict({"training": {"epochs_per_policy": {"diffusion": 100}}})
+    with pytest.raises(ConfigError, match=r"training.epochs_per_policy.carp=0: must be an integer >= 1"):
+        params_from_dict({"training": {"epochs_per_policy": {"carp": 0}}})
 
 
 def test_num_demos_per_task_overrides_the_common_demo_count():

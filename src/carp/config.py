@@ -372,6 +372,9 @@ class TrainingConfig:
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
             among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
             ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+        epochs_per_policy: Policy family -> its epochs on every task, overriding ``epochs`` and ``epochs_per_task``
+            (families converge at different rates: Diffusion Policy's denoisers need several times CARP's epochs);
+            each an integer >= 1, families among the registered ones. Tracked like ``epochs_per_task``.
         num_processes: Training processes, all on the machine that runs the stage; an integer >= 1, at most
             ``batch_size``. Above 1, ``train_policy`` starts itself again under ``torchrun`` (DistributedDataParallel:
             NCCL with one CUDA device per process, so at most the number of GPUs; gloo on the CPU, each process taking
@@ -387,9 +390,12 @@ class TrainingConfig:
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
     num_processes: int = 1
+    epochs_per_policy: dict[str, int] = field(default_factory=dict)
 
-    def epochs_for(self, task: str) -> int:
-        """Policy epochs of `task`: its `epochs_per_task` entry, else `epochs`."""
+    def epochs_for(self, task: str, policy: str) -> int:
+        """Epochs of family `policy` on `task`: its `epochs_per_policy` entry, else the task's, else `epochs`."""
+        if policy in self.epochs_per_policy:
+            return self.epochs_per_policy[policy]
         return self.epochs_per_task.get(task, self.epochs)
 
     def __post_init__(self) -> None:
@@ -403,6 +409,10 @@ class TrainingConfig:
             f"must be one of {TRAINING_PRECISIONS}",
         )
         _require_per_task_minimum(self.epochs_per_task, "training.epochs_per_task", "must be >= 1")
+        for policy, value in self.epochs_per_policy.items():
+            key = f"training.epochs_per_policy.{policy}"
+            _require(policy in family_sections(), key, policy, f"family must be one of {list(family_sections())}")
+            _require(isinstance(value, int) and value >= 1, key, value, "must be an integer >= 1")
         _require(self.num_processes >= 1, "training.num_processes", self.num_processes, "must be >= 1")
         _require(
             self.num_processes <= self.batch_size,

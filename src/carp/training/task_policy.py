@@ -172,7 +172,7 @@ def train_task_policy(
         train_data,
         checkpoint_dir,
         device=device,
-        epochs=training.epochs_for(task),
+        epochs=training.epochs_for(task, family),
         on_epoch_end=on_epoch_end,
     )
 
