@@ -5,6 +5,7 @@ import os
 from stage_support import (
     EVAL_REPORT_DIR,
     PROCESSED_DIR,
+    camera_settings,
     evaluation_report,
     fail,
     mlflow_stage,
@@ -14,6 +15,8 @@ from stage_support import (
 )
 
 from carp.data.dataset import load_task_windows
+from carp.data.image_windows import ImageWindowReader
+from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import batched_latency, episodes_table, evaluate_policy, save_gif
 from carp.outputs import write_json
 from carp.policies.registry import load_policy
@@ -22,12 +25,13 @@ from carp.training.checkpoint import CheckpointError
 
 def main() -> None:
     setup_logging()
-    args, params = policy_stage_args(__doc__, takes_images=False)
+    args, params = policy_stage_args(__doc__)
     data, config = params.data, params.eval
     if config.video:
         # Headless offscreen rendering through EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; `make render-deps`).
         # Worker processes are spawned after this point and inherit it.
         os.environ.setdefault("MUJOCO_GL", "egl")
+    cameras = camera_settings(params)
     checkpoint = policy_dir(args.task, args.policy) / "policy.pt"
     try:
         policy = load_policy(checkpoint)
@@ -43,7 +47,7 @@ def main() -> None:
             checkpoint,
             env_args=windows.buffer.attrs["env_args"],
             controller=data.controller,
-            obs_keys=data.obs_keys,
+            obs_keys=data.low_dim_keys,
             obs_steps=data.obs_steps,
             action_steps=data.action_steps,
             seeds=seeds,
@@ -52,9 +56,22 @@ def main() -> None:
             inference=inference,
             video_episodes=config.video_episodes if config.video else 0,
             backend=config.backend,
+            cameras=cameras,
         )
         policy.configure_inference(**inference)
-        summary.update(batched_latency(policy, windows.valid_obs if len(windows.valid_obs) else windows.train_obs))
+        split = "valid" if len(windows.valid_obs) else "train"
+        images = None
+        if cameras is not None:
+            reader = ImageWindowReader(
+                PROCESSED_DIR / args.task / BUFFER_DIRNAME,
+                data.action_horizon,
+                data.obs_steps,
+                data.action_steps,
+                split,
+            )
+            images = reader.images
+        observations = windows.valid_obs if split == "valid" else windows.train_obs
+        summary.update(batched_latency(policy, observations, images=images))
         report = evaluation_report(args.task, args.policy)
         write_json(report, summary)
         episodes = report.with_name(f"{args.policy}_episodes.csv")

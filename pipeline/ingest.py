@@ -1,6 +1,5 @@
 """ingest stage: data/raw/<task>.hdf5 -> data/processed/<task>/ (zarr replay buffer + normalization stats)."""
 
-import os
 from dataclasses import asdict
 
 from stage_support import (
@@ -8,6 +7,7 @@ from stage_support import (
     PROJECT_DIR,
     RAW_DIR,
     STAGING_DIR,
+    camera_settings,
     fail,
     load,
     mlflow_stage,
@@ -16,7 +16,7 @@ from stage_support import (
 )
 
 from carp.data.ingest import ingest_demonstrations
-from carp.data.rendering import RenderingError, RenderSettings, offscreen_backend
+from carp.data.rendering import RenderingError
 from carp.data.robomimic_io import DatasetError
 from carp.data.staging import remove_stale_entries
 
@@ -30,12 +30,9 @@ def main() -> None:
     # Earlier versions staged next to the output, inside train_tokenizer's dependency data/processed; a killed run's
     # leftover there would stay in that dependency's hash.
     remove_stale_entries(PROCESSED_DIR)
-    camera_settings = None
     try:
-        if params.data.observations == "image":
-            # Cameras a file does not store are rendered offscreen; MuJoCo reads MUJOCO_GL when first imported.
-            os.environ.setdefault("MUJOCO_GL", offscreen_backend())
-            camera_settings = RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
+        # Cameras a file does not store are rendered offscreen, as an image policy's rollouts render them.
+        cameras = camera_settings(params)
         summary = ingest_demonstrations(
             raw,
             output,
@@ -44,7 +41,7 @@ def main() -> None:
             filter_key=params.data.filter_key,
             valid_fraction=params.data.valid_fraction,
             staging_dir=STAGING_DIR,
-            camera_settings=camera_settings,
+            camera_settings=cameras,
         )
     except (DatasetError, RenderingError) as error:
         fail(str(error))
@@ -54,8 +51,8 @@ def main() -> None:
         f"{args.task}: {summary.episodes} episodes ({summary.valid_episodes} held out), {summary.steps} steps, "
         f"obs {summary.obs_dim}-D, actions {summary.action_dim}-D -> {output.relative_to(PROJECT_DIR)}"
     )
-    if camera_settings is not None:
-        print(f"{args.task}: images {', '.join(camera_settings.image_keys)} at {camera_settings.image_size} px")
+    if cameras is not None:
+        print(f"{args.task}: images {', '.join(cameras.image_keys)} at {cameras.image_size} px")
 
 
 if __name__ == "__main__":

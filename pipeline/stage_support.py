@@ -20,6 +20,8 @@ from carp.config import ConfigError, Params, flatten_params, load_params
 if TYPE_CHECKING:
     import torch
 
+    from carp.data.rendering import RenderSettings
+
 logger = logging.getLogger("carp.pipeline")
 
 PROJECT_DIR = Path(__file__).resolve().parents[1]
@@ -65,19 +67,27 @@ def parse_args(description: str, per_task: bool = False, per_policy: bool = Fals
     return parser.parse_args()
 
 
-def policy_stage_args(description: str, takes_images: bool = True) -> tuple[argparse.Namespace, Params]:
-    """Command line and params of a per-(task, family) stage; exit with one line when ``--policy`` is not listed
-    or the stage does not take the observations (``takes_images`` False and ``data.observations: image``)."""
+def policy_stage_args(description: str) -> tuple[argparse.Namespace, Params]:
+    """Command line and params of a per-(task, family) stage; exit with one line when ``--policy`` is not listed."""
     args = parse_args(description, per_task=True, per_policy=True)
     params = load(args.params)
     if args.policy not in params.policies:
         fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
-    if params.data.observations != "state" and not takes_images:
-        fail(
-            f"{args.params}: data.observations={params.data.observations}: rollouts do not render the cameras yet, "
-            "so image policies train (train_policy) but are not evaluated; set data.observations: state to evaluate"
-        )
     return args, params
+
+
+def camera_settings(params: Params) -> "RenderSettings | None":
+    """The cameras ingest renders and an image policy's rollouts render, alike; None for state observations.
+
+    Selects MuJoCo's offscreen backend first (MuJoCo reads ``MUJOCO_GL`` when first imported; spawned workers
+    inherit it).
+    """
+    if params.data.observations != "image":
+        return None
+    from carp.data.rendering import RenderSettings, offscreen_backend
+
+    os.environ.setdefault("MUJOCO_GL", offscreen_backend())
+    return RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
 
 
 def policy_dir(task: str, policy: str) -> Path:

@@ -1,16 +1,19 @@
-"""The ingest stage script with `data.observations: image`: a robomimic image file ingests; a bad one is refused."""
+"""`data.observations: image` in the pipeline: a robomimic image file ingests, a bad one is refused, and an image run
+trains and evaluates end to end."""
 
+import json
 import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+import torch
 import yaml
 import zarr
 
 from tests.conftest import IMAGE_KEYS, write_synthetic_file
-from tests.pipeline.workspace import dvc, make_workspace, run
+from tests.pipeline.workspace import dvc, make_workspace, run, stages_run
 
 pytestmark = pytest.mark.slow
 
@@ -20,7 +23,8 @@ IMAGE_SIZE = 8
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory) -> Path:
     data = {"observations": "image", "image_size": IMAGE_SIZE}
-    return make_workspace(tmp_path_factory.mktemp("ingest-images"), {"data": data})
+    image_encoder = {"crop_size": IMAGE_SIZE}  # the policies' crop fits the images
+    return make_workspace(tmp_path_factory.mktemp("ingest-images"), {"data": data, "image_encoder": image_encoder})
 
 
 def _ingest(workspace: Path):
@@ -70,3 +74,33 @@ def test_image_settings_of_a_state_run_rerun_ingest_alone_with_an_identical_outp
     assert run(dvc("repro", "ingest@lift"), workspace, timeout=600).returncode == 0
     after = yaml.safe_load((workspace / "dvc.lock").read_text())["stages"]["ingest@lift"]["outs"]
     assert after == before  # same directory hash: train_tokenizer and every later stage stay cached
+
+
+def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_path):
+    # Collection renders nothing; ingest renders both cameras from the demos' states; every family stage of the
+    # default pipeline then trains and evaluates with the camera encoder (light trunk, small images).
+    params = {
+        "data": {"observations": "image", "image_size": 40, "num_demos": 2},
+        "image_encoder": {"crop_size": 36, "base_channels": 16, "num_keypoints": 4, "feature_dim": 8},
+    }
+    workspace = make_workspace(tmp_path / "carp", params)
+    first = run(dvc("repro"), workspace, timeout=1500)
+    assert first.returncode == 0, first.stderr[-3000:]
+    group = zarr.open_group(str(workspace / "data" / "processed" / "lift" / "replay.zarr"), mode="r")
+    assert list(group.attrs["image_keys"]) == list(IMAGE_KEYS) and group["data/agentview_image"].shape[1:] == (
+        40,
+        40,
+        3,
+    )
+    checkpoint = torch.load(workspace / "models/policy/lift/carp/policy.pt", weights_only=False)
+    assert checkpoint["observations"]["kind"] == "image"
+    assert tuple(checkpoint["observations"]["image_encoder"]["cameras"]) == ("agentview", "robot0_eye_in_hand")
+    evaluation = json.loads((workspace / "reports/eval/lift/carp.json").read_text())
+    assert evaluation["episodes"] == 2 and evaluation["backend"] == "torch"  # the encoder runs in PyTorch
+    assert evaluation["render_step_ms_median"] > 0 and evaluation["latency_predict_ms_median"] > 0
+    assert evaluation["batched_latency_predict_ms_median"] > 0
+    assert "## Success rate" in (workspace / "reports/report.md").read_text()
+
+    second = run(dvc("repro"), workspace, timeout=600)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert stages_run(second.stdout) == {"check_inputs"}, second.stdout

@@ -152,3 +152,6 @@ def test_inference_budget_counts_the_chunks_of_400_control_steps(inputs):
         == "lift, carp (greedy, onnxruntime): 0.12 s of inference over 400 control steps (50 chunks of 2.50 ms)"
     )
     assert lines[1].startswith("lift, diffusion_transformer (DDIM-10, torch): 2.02 s")
+    # An image policy's cameras are rendered at every control step: that time comes apart from the policy's.
+    seen = inference_budget_lines({"lift": {"carp": {**lift, "render_step_ms_median": 60.0}}})
+    assert seen[0].endswith("(50 chunks of 2.50 ms); rendering the cameras: 24.00 s (60.00 ms per step)")

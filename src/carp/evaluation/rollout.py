@@ -6,6 +6,10 @@ the expert). Episodes run in worker processes, one env per process; a crash insi
 failure with its reason and the evaluation goes on. That holds for a worker process that dies as well (a native crash
 in the simulator or in ONNX Runtime, the out-of-memory killer): the episode it was running is run once more on a
 fresh worker and, if that worker dies too, recorded as crashed with the way it died (``worker killed by SIGKILL``).
+
+A policy trained on camera images sees them the way ingest stored them: after every step the cameras are rendered
+from the simulator's current state with the same renderer and settings that render a demo's stored states
+(:func:`camera_observation`), and the rendering time of each step is recorded apart from the policy's.
 """
 
 import logging
@@ -17,12 +21,16 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from einops import rearrange
 from tqdm import tqdm
 
 from carp import simulation
+
+if TYPE_CHECKING:
+    from carp.data.rendering import CameraRenderer, RenderSettings
 
 logger = logging.getLogger(__name__)
 
@@ -41,12 +49,14 @@ class ActionSource(Protocol):
     def reset(self, env, seed: int) -> None:
         """Called after every env reset with the episode's seed (sources that sample derive their draws from it)."""
 
-    def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming | None]:
+    def act(self, observation_history: np.ndarray, env, **seen: np.ndarray) -> tuple[np.ndarray, ChunkTiming | None]:
         """Decide the next actions.
 
         Args:
             observation_history: (To, Do) the last ``To`` low-dim observations, oldest first.
             env: the live env (only privileged sources such as scripted experts may read it).
+            seen: ``images`` (To, cameras, 3, h, w) uint8, the last ``To`` camera observations, in an evaluation
+                with cameras (only sources of image policies are run there).
 
         Returns:
             actions (n, 7) to execute in order, and the chunk's timing (None when not measured).
@@ -65,12 +75,23 @@ class EpisodeResult:
     prediction_seconds: list[float] = field(default_factory=list)
     decoding_seconds: list[float] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
+    render_seconds: list[float] = field(default_factory=list)
 
 
 def flatten_observation(obs: dict, obs_keys: Sequence[str]) -> np.ndarray:
     """Concatenate the low-dim keys (robomimic names) of a robosuite observation into (Do,)."""
     features = simulation.low_dim_observations(obs)
     return np.concatenate([features[key] for key in obs_keys])
+
+
+def camera_observation(renderer: "CameraRenderer", env) -> np.ndarray:
+    """The cameras as an image policy sees them now: (cameras, 3, h, w) uint8, in the renderer's camera order.
+
+    Rendered from the simulator's flattened state, as ingest renders a demo's stored states
+    (`carp.data.rendering.render_states`), so a rollout shows the policy the pixels it was trained on.
+    """
+    images = renderer.render(env.sim.get_state().flatten())
+    return np.stack([rearrange(images[key], "h w rgb -> rgb h w") for key in renderer.settings.image_keys])
 
 
 def run_episode(
@@ -81,6 +102,7 @@ def run_episode(
     obs_steps: int,
     max_steps: int,
     render_camera: str | None = None,
+    cameras: "RenderSettings | None" = None,
 ) -> EpisodeResult:
     """Roll out one seeded episode until success or ``max_steps``; exceptions become a failed result.
 
@@ -92,21 +114,41 @@ def run_episode(
         obs_steps: ``To``.
         max_steps: step limit.
         render_camera: when set, an offscreen RGB frame of this camera is kept after every step.
+        cameras: the cameras (and render settings) an image policy sees, rendered after every step into the
+            ``images`` history its source receives; None for state policies.
     """
     started = time.perf_counter()
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
+    renderer = None
+
+    def observe_cameras() -> np.ndarray:
+        rendering_started = time.perf_counter()
+        images = camera_observation(renderer, env)
+        result.render_seconds.append(time.perf_counter() - rendering_started)
+        return images
+
     try:
         obs = simulation.reset_env(env, seed)
         source.reset(env, seed)
         history = deque([flatten_observation(obs, obs_keys)] * obs_steps, maxlen=obs_steps)
+        image_history = None
+        if cameras is not None:
+            from carp.data.rendering import CameraRenderer
+
+            # Every reset builds a new model (object sizes and placements), so each episode has its own renderer.
+            renderer = CameraRenderer(env.sim.model._model, cameras)
+            image_history = deque([observe_cameras()] * obs_steps, maxlen=obs_steps)
         while result.steps < max_steps and not result.success:
-            actions, timing = source.act(np.stack(history), env)
+            seen = {} if image_history is None else {"images": np.stack(image_history)}
+            actions, timing = source.act(np.stack(history), env, **seen)
             if timing is not None:
                 result.prediction_seconds.append(timing.prediction)
                 result.decoding_seconds.append(timing.decoding)
             for action in actions:
                 obs, _, _, _ = env.step(action)
                 history.append(flatten_observation(obs, obs_keys))
+                if image_history is not None:
+                    image_history.append(observe_cameras())
                 result.steps += 1
                 if render_camera is not None:
                     frame = env.sim.render(camera_name=render_camera, height=256, width=256)
@@ -120,6 +162,9 @@ def run_episode(
         result.success = False
         result.error = f"{type(error).__name__}: {error}"
         logger.warning("episode with seed %d crashed:\n%s", seed, traceback.format_exc())
+    finally:
+        if renderer is not None:
+            renderer.close()
     result.seconds = time.perf_counter() - started
     return result
 
@@ -161,6 +206,7 @@ def _run_job(job: EpisodeJob) -> EpisodeResult:
         settings["obs_steps"],
         settings["max_steps"],
         render_camera=settings["video_camera"] if job.record_video else None,
+        cameras=settings["cameras"],
     )
 
 
@@ -320,6 +366,7 @@ def evaluate_episodes(
     video_episodes: int = 0,
     video_camera: str = "agentview",
     description: str = "evaluate",
+    cameras: "RenderSettings | None" = None,
 ) -> list[EpisodeResult]:
     """Run one episode per seed across ``workers`` processes (one env each); results in seed order.
 
@@ -336,6 +383,8 @@ def evaluate_episodes(
         video_episodes: the first this many seeds keep rendered frames.
         video_camera: camera used for videos.
         description: progress bar label.
+        cameras: the cameras an image policy sees (rendered after every step, see :func:`run_episode`); None for
+            state policies.
 
     Raises:
         WorkerStartError: a worker process could not build its env or action source.
@@ -345,6 +394,7 @@ def evaluate_episodes(
         "obs_steps": obs_steps,
         "max_steps": max_steps,
         "video_camera": video_camera if video_episodes > 0 else None,
+        "cameras": cameras,
     }
     jobs = [EpisodeJob(seed=int(seed), record_video=index < video_episodes) for index, seed in enumerate(seeds)]
     results: dict[int, EpisodeResult] = {}

@@ -2,10 +2,10 @@
 
 import functools
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -18,6 +18,9 @@ from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
 from carp.policies.base import Policy
 from carp.policies.registry import load_policy
+
+if TYPE_CHECKING:
+    from carp.data.rendering import RenderSettings
 
 logger = logging.getLogger(__name__)
 
@@ -36,6 +39,7 @@ def evaluate_policy(
     video_episodes: int = 0,
     task_index: int | None = None,
     backend: str = "onnxruntime",
+    cameras: "RenderSettings | None" = None,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
@@ -52,6 +56,9 @@ def evaluate_policy(
 
     `inference` holds the family's inference settings (`configure_inference`), e.g. CARP's `{"top_k": 1}`; they are
     copied into the summary.
+
+    An image policy gets `cameras`: every step renders them from the simulator state as ingest rendered the demos,
+    and the summary adds the rendering time per step (`render_step_ms_*`), apart from the policy's latency.
 
     With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
     calls this at module level needs the usual `if __name__ == "__main__":` guard.
@@ -82,6 +89,7 @@ def evaluate_policy(
             workers=workers,
             video_episodes=video_episodes,
             description="evaluate",
+            cameras=cameras,
         )
     summary: dict[str, Any] = summarize_episodes(
         successes=[r.success for r in results],
@@ -90,6 +98,8 @@ def evaluate_policy(
         prediction_seconds=[s for r in results for s in r.prediction_seconds],
         decoding_seconds=[s for r in results for s in r.decoding_seconds],
     )
+    if cameras is not None:
+        summary.update(latency_summary([s for r in results for s in r.render_seconds], "render_step"))
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
@@ -125,7 +135,13 @@ def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def batched_latency(policy, observations: np.ndarray, batch_size: int = 64, repeats: int = 20) -> dict[str, float]:
+def batched_latency(
+    policy,
+    observations: np.ndarray,
+    batch_size: int = 64,
+    repeats: int = 20,
+    images: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> dict[str, float]:
     """Per-chunk latency of the policy on a batch (keys ``batched_latency_*``), after two warm-up calls.
 
     Args:
@@ -133,12 +149,15 @@ def batched_latency(policy, observations: np.ndarray, batch_size: int = 64, repe
         observations: (N, To, Do) raw observations; tiled or cut to ``batch_size``.
         batch_size: B.
         repeats: timed calls.
+        images: for an image policy, reads the camera images of windows (indices into `observations` -> (b, To,
+            cameras, 3, h, w) uint8); the latency then includes the camera encoder.
     """
     indices = np.arange(batch_size) % observations.shape[0]
     batch = torch.as_tensor(observations[indices], dtype=torch.float32)
+    seen = {} if images is None else {"images": images(indices)}
     prediction, decoding = [], []
     for call in range(repeats + 2):
-        timed = policy.predict_action_timed(batch)
+        timed = policy.predict_action_timed(batch, **seen)
         if call >= 2:
             prediction.append(timed.prediction_seconds)
             decoding.append(timed.decoding_seconds)

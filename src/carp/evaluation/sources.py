@@ -88,10 +88,19 @@ class PolicySource:
         """
         self._generator.manual_seed(seed)
 
-    def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming]:
-        """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time."""
+    def act(
+        self, observation_history: np.ndarray, env, images: np.ndarray | None = None
+    ) -> tuple[np.ndarray, ChunkTiming]:
+        """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time.
+
+        Args:
+            observation_history: (To, Do) raw low-dim observations, oldest first.
+            env: not read (the policy sees only its observations).
+            images: (To, cameras, 3, h, w) uint8 camera observations for an image policy; None for state.
+        """
+        seen = {} if images is None else {"images": images[None]}
         timed = self.policy.predict_action_timed(
-            observation_history[None], task_index=self.task_index, generator=self._generator
+            observation_history[None], task_index=self.task_index, generator=self._generator, **seen
         )
         started = time.perf_counter()
         executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.controller)
