@@ -27,7 +27,13 @@ from carp.policies.base import (
     count_parameters,
 )
 from carp.policies.carp.sampling import check_top_k
-from carp.policies.observations import as_image_tensor, build_observation_encoder, encoder_checkpoint
+from carp.policies.observations import (
+    as_image_tensor,
+    build_observation_encoder,
+    checkpoint_image_encoder,
+    encoder_checkpoint,
+    restore_observation_encoder,
+)
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import atomic_torch_save
@@ -252,6 +258,24 @@ class TokenizedPolicy(PolicyModule):
         if self.num_tasks > 0 and not bool(((task_ids >= 0) & (task_ids < self.num_tasks)).all()):
             raise ValueError(f"task indices must be in [0, {self.num_tasks}), got {task_ids.tolist()}")
         return task_ids  # (B,)
+
+    @classmethod
+    def with_checkpoint_parts(cls, transformer: nn.Module, checkpoint: dict[str, Any]) -> "TokenizedPolicy":
+        """A policy of this family around `transformer` (weights loaded) with the checkpoint's other parts.
+
+        The tokenizer (checked against its recorded sha256), the normalizers, the metadata and the observation
+        encoder with its weights come from `checkpoint`, as :meth:`to_checkpoint` wrote them. Subclasses take
+        `(tokenizer_artifact, transformer, obs_normalizer, action_normalizer, metadata, image_encoder)`.
+        """
+        policy = cls(
+            checkpoint_tokenizer(checkpoint),
+            transformer,
+            *checkpoint_normalizers(checkpoint),
+            checkpoint["metadata"],
+            checkpoint_image_encoder(checkpoint),
+        )
+        restore_observation_encoder(policy.observation_encoder, checkpoint)
+        return policy
 
     def tokenizer_checkpoint(self) -> dict[str, Any]:
         """The checkpoint entries of the frozen tokenizer: its artifact and the artifact's sha256."""

@@ -24,13 +24,10 @@ from carp.policies.carp.sampling import generate_chunk
 from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
-from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
 from carp.policies.wrapper import (
     TokenizedPolicy,
     check_policy_type,
     check_tokenizer_fit,
-    checkpoint_normalizers,
-    checkpoint_tokenizer,
 )
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
@@ -201,15 +198,7 @@ class CarpPolicy(TokenizedPolicy):
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
         # The specs first: a tokenizer of another shape is named as such rather than as a hash difference.
         check_specs_match(transformer.spec, TokenizerSpec.from_dict(checkpoint["tokenizer"]["spec"]))
-        policy = cls(
-            checkpoint_tokenizer(checkpoint),
-            transformer,
-            *checkpoint_normalizers(checkpoint),
-            checkpoint["metadata"],
-            checkpoint_image_encoder(checkpoint),
-        )
-        restore_observation_encoder(policy.observation_encoder, checkpoint)
-        return policy
+        return cls.with_checkpoint_parts(transformer, checkpoint)
 
     @classmethod
     def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":

@@ -20,8 +20,7 @@ from carp.policies.base import TimedPrediction
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.generation import check_tokenizer_matches, generate_tokens
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
-from carp.policies.wrapper import TokenizedPolicy, check_policy_type, checkpoint_normalizers, checkpoint_tokenizer
+from carp.policies.wrapper import TokenizedPolicy, check_policy_type
 from carp.tokenizer.artifact import TokenizerArtifact
 
 POLICY_TYPE = "next_token"
@@ -143,12 +142,4 @@ class NextTokenPolicy(TokenizedPolicy):
             shapes["num_tasks"],
         )
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
-        policy = cls(
-            checkpoint_tokenizer(checkpoint),
-            transformer,
-            *checkpoint_normalizers(checkpoint),
-            checkpoint["metadata"],
-            checkpoint_image_encoder(checkpoint),
-        )
-        restore_observation_encoder(policy.observation_encoder, checkpoint)
-        return policy
+        return cls.with_checkpoint_parts(transformer, checkpoint)
