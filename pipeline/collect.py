@@ -20,12 +20,13 @@ def main() -> None:
     if user_file:
         source = (PROJECT_DIR / user_file).resolve()
         try:
-            # The same checks as ingest (obs keys, action width, filter mask), so a file ingest would refuse is
-            # refused here, before anything is written at the output.
+            # The same checks as ingest (low-dim obs keys, action width, filter mask), so a file ingest would refuse
+            # is refused here, before anything is written at the output. An image run reads the proprioception
+            # only: a camera file need not hold the object's pose.
             demos = import_demonstrations(
                 source,
                 output,
-                params.data.obs_keys,
+                params.data.low_dim_keys,
                 action_dim=ABSOLUTE_ACTION_DIM,
                 filter_key=params.data.filter_key,
                 staging_dir=STAGING_DIR,

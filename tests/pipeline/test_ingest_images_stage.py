@@ -104,3 +104,25 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     second = run(dvc("repro"), workspace, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]
     assert stages_run(second.stdout) == {"check_inputs"}, second.stdout
+
+
+def test_an_image_runs_user_file_needs_the_proprioception_not_the_object_pose(tmp_path):
+    data = {"observations": "image", "image_size": IMAGE_SIZE, "raw_files": {"lift": "user/lift.hdf5"}}
+    workspace = make_workspace(tmp_path / "carp", {"data": data, "image_encoder": {"crop_size": IMAGE_SIZE}})
+    user_file = workspace / "user" / "lift.hdf5"
+    user_file.parent.mkdir()
+    write_synthetic_file(user_file, image_size=IMAGE_SIZE)
+    with h5py.File(user_file, "r+") as handle:
+        for demo in handle["data"].values():
+            del demo["obs/object"]
+    collect = [sys.executable, "pipeline/collect.py", "--task", "lift"]
+    copied = run(collect, workspace, timeout=300)
+    assert copied.returncode == 0, copied.stderr
+    assert (workspace / "data" / "raw" / "lift.hdf5").exists()
+    # A state run reads the object's pose, and is refused by name.
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    params["data"]["observations"] = "state"
+    (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    refused = run(collect, workspace, timeout=300)
+    errors = [line for line in refused.stderr.splitlines() if line.startswith("error:")]
+    assert refused.returncode == 1 and len(errors) == 1 and "'object'" in errors[0], refused.stderr
