@@ -5,6 +5,7 @@ from importlib.metadata import version
 
 import pandas as pd
 from stage_support import (
+    PROCESSED_DIR,
     PROJECT_DIR,
     REPORTS_DIR,
     TOKENIZER_REPORT_DIR,
@@ -16,6 +17,8 @@ from stage_support import (
     setup_logging,
 )
 
+from carp.data.image_windows import episode_images
+from carp.data.ingest import BUFFER_DIRNAME
 from carp.reporting.report import ReportInputs, write_report
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
@@ -42,6 +45,9 @@ def main() -> None:
             for task in params.tasks
         },
         reconstruction_figure=TOKENIZER_REPORT_DIR / "reconstruction.png",
+        camera_frames={
+            task: frames for task in params.tasks if (frames := episode_images(PROCESSED_DIR / task / BUFFER_DIRNAME))
+        },
         sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
         versions={name: version(name) for name in ("robosuite", "mujoco", "torch", "dvc", "mlflow")},
         git_commit=git_commit(),

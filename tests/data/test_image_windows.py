@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zarr
 
-from carp.data.image_windows import ImageWindowReader
+from carp.data.image_windows import ImageWindowReader, episode_images
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import FRAMES_PER_CHUNK, ReplayBuffer
@@ -113,3 +113,15 @@ def test_state_buffer_and_unknown_split_are_refused(tmp_path, synthetic_file, im
         ImageWindowReader(tmp_path / "state" / BUFFER_DIRNAME, HORIZON, OBS_STEPS, ACTION_STEPS)
     with pytest.raises(ValueError, match="split='test': must be one of"):
         ImageWindowReader(image_buffer[0], HORIZON, OBS_STEPS, ACTION_STEPS, split="test")
+
+
+def test_episode_images_are_one_demos_frames_and_empty_without_cameras(image_buffer, tmp_path):
+    root, episodes = image_buffer
+    for index in (0, 2):
+        frames = episode_images(root, index)
+        assert list(frames) == list(IMAGE_KEYS)
+        for key in IMAGE_KEYS:
+            np.testing.assert_array_equal(frames[key], episodes[index].obs[key])
+    write_synthetic_file(tmp_path / "raw.hdf5")
+    ingest_demonstrations(tmp_path / "raw.hdf5", tmp_path / "processed", PROPRIOCEPTION_KEYS)
+    assert episode_images(tmp_path / "processed" / BUFFER_DIRNAME) == {}

@@ -99,7 +99,10 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     assert evaluation["episodes"] == 2 and evaluation["backend"] == "torch"  # the encoder runs in PyTorch
     assert evaluation["render_step_ms_median"] > 0 and evaluation["latency_predict_ms_median"] > 0
     assert evaluation["batched_latency_predict_ms_median"] > 0
-    assert "## Success rate" in (workspace / "reports/report.md").read_text()
+    report = (workspace / "reports/report.md").read_text()
+    assert "## Success rate" in report and "## Camera images" in report
+    assert (workspace / "reports/figures/cameras_lift.png").exists()
+    assert "rendering the cameras:" in report
 
     second = run(dvc("repro"), workspace, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]

@@ -1,10 +1,12 @@
 import base64
+import dataclasses
 import re
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -92,6 +94,19 @@ def test_report_contains_every_section_and_numbers(tmp_path, inputs):
     for figure in re.findall(r"!\[[^]]*\]\(([^)]+)\)", markdown):
         assert (markdown_path.parent / figure).exists()
     assert (markdown_path.parent / "figures" / "sweep_scales.png").exists()
+
+
+def test_camera_images_get_a_grid_per_task_only_when_a_run_has_them(tmp_path, inputs):
+    assert "## Camera images" not in write_report(inputs, tmp_path / "state")[0].read_text()
+    frames = {
+        key: np.random.default_rng(0).integers(0, 256, (9, 12, 12, 3), dtype=np.uint8)
+        for key in ("agentview_image", "robot0_eye_in_hand_image")
+    }
+    markdown_path, _ = write_report(dataclasses.replace(inputs, camera_frames={"lift": frames}), tmp_path / "image")
+    markdown = markdown_path.read_text()
+    assert "## Camera images" in markdown and "figures/cameras_lift.png" in markdown
+    grid = plt.imread(markdown_path.parent / "figures" / "cameras_lift.png")
+    assert grid.shape[0] > 100 and grid.shape[1] > grid.shape[0]  # six columns of frames, two rows
 
 
 def test_html_is_self_contained(tmp_path, inputs):

@@ -105,4 +105,22 @@ class ImageWindowReader:
         )
 
 
-__all__ = ["ImageWindowReader", "ImageWindows"]
+def episode_images(store: Path | MutableMapping, episode: int = 0) -> dict[str, np.ndarray]:
+    """Every camera's frames of one episode of a replay buffer, or an empty dict for a buffer without images.
+
+    Args:
+        store: the ``replay.zarr`` folder or a zarr 2 store holding it.
+        episode: index of the episode.
+
+    Returns:
+        obs key (``<camera>_image``) -> (T, H, W, 3) uint8 upright RGB frames, in the buffer's camera order.
+    """
+    group = zarr.open_group(str(store) if isinstance(store, Path) else store, mode="r")
+    if "image_keys" not in group.attrs:
+        return {}
+    ends = group["meta/episode_ends"][:]
+    start, end = (int(ends[episode - 1]) if episode > 0 else 0), int(ends[episode])
+    return {key: group[f"data/{key}"][start:end] for key in group.attrs["image_keys"]}
+
+
+__all__ = ["ImageWindowReader", "ImageWindows", "episode_images"]

@@ -16,9 +16,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
+from carp.reporting.image_grid import save_frame_grid  # noqa: E402
 
 
 @dataclass
@@ -43,6 +45,8 @@ class ReportInputs:
         policy_histories: task -> policy family -> per-epoch losses (and CARP's token accuracies); their
             ``epoch_seconds`` sum to the training wall time of the comparison table.
         reconstruction_figure: raw vs reconstructed actions PNG.
+        camera_frames: task -> obs key -> (T, H, W, 3) uint8 frames of one demo, for runs on camera images; the
+            report draws a grid of them per task to check by eye that the rendered observations look right.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
         versions: package -> version (robosuite, mujoco, torch, ...).
         git_commit: commit the pipeline ran at.
@@ -54,6 +58,7 @@ class ReportInputs:
     tokenizer_history: pd.DataFrame | None = None
     policy_histories: Mapping[str, Mapping[str, pd.DataFrame]] = field(default_factory=dict)
     reconstruction_figure: Path | None = None
+    camera_frames: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict)
     sweep_trials: pd.DataFrame | None = None
     versions: Mapping[str, str] = field(default_factory=dict)
     git_commit: str = "unknown"
@@ -314,6 +319,20 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             tables=[latency_table(inputs.evaluation)],
         ),
     ]
+    if inputs.camera_frames:
+        sections.append(
+            Section(
+                "Camera images",
+                paragraphs=[
+                    "Evenly spaced frames of each task's first demo as stored for the policy (before its crop): the "
+                    "scene, the objects and the gripper should be visible and upright."
+                ],
+                figures=[
+                    save_frame_grid(frames, figures_dir / f"cameras_{task}.png", title=task)
+                    for task, frames in inputs.camera_frames.items()
+                ],
+            )
+        )
     tokenizer = Section("Action tokenizer")
     if inputs.tokenizer_metrics:
         metrics = inputs.tokenizer_metrics
