@@ -134,8 +134,9 @@ def stop_process_group() -> None:
 def end_with_launcher() -> None:
     """Have Linux kill this process when the launcher that started it dies.
 
-    torchrun starts every process in a session of its own, so killing the launcher's process group (what stopping a
-    DVC stage does) would otherwise leave them training and writing training states that a rerun would race with.
+    torchrun starts every process in a process group of its own (setsid), so killing the launcher's group (what
+    stopping a DVC stage does) would otherwise leave them training and writing training states that a rerun would
+    race with.
     Elsewhere than on Linux this does nothing.
     """
     try:
