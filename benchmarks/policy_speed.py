@@ -73,7 +73,8 @@ def time_chunks(policy: CarpPolicy | OnnxPolicy, batch_size: int, calls: int) ->
     timings = {"total": [], "prediction": [], "decoding": [], "cpu": []}
     for _ in range(calls):
         cpu_started = time.thread_time()
-        _, prediction, decoding, _ = policy.predict_action_timed(obs)
+        timed = policy.predict_action_timed(obs)
+        prediction, decoding = timed.prediction_seconds, timed.decoding_seconds
         timings["cpu"].append((time.thread_time() - cpu_started) * 1e3)
         timings["prediction"].append(prediction * 1e3)
         timings["decoding"].append(decoding * 1e3)

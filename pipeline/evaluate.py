@@ -3,7 +3,7 @@
 import os
 
 from stage_support import (
-    EVAL_REPORT_DIR,
+    EVAL_VIDEO_DIR,
     PROCESSED_DIR,
     camera_settings,
     evaluation_report,
@@ -15,9 +15,7 @@ from stage_support import (
 )
 
 from carp.data.dataset import load_task_windows
-from carp.data.image_windows import ImageWindowReader
-from carp.data.ingest import BUFFER_DIRNAME
-from carp.evaluation.runner import batched_latency, episodes_table, evaluate_policy, save_gif
+from carp.evaluation.runner import buffer_latency, episodes_table, evaluate_policy, write_episode_videos
 from carp.outputs import write_json
 from carp.policies.registry import load_policy
 from carp.training.checkpoint import CheckpointError
@@ -59,32 +57,24 @@ def main() -> None:
             cameras=cameras,
         )
         policy.configure_inference(**inference)
-        split = "valid" if len(windows.valid_obs) else "train"
-        images = None
-        if cameras is not None:
-            reader = ImageWindowReader(
-                PROCESSED_DIR / args.task / BUFFER_DIRNAME,
+        summary.update(
+            buffer_latency(
+                policy,
+                PROCESSED_DIR / args.task,
                 data.action_horizon,
                 data.obs_steps,
                 data.action_steps,
-                split,
+                with_images=cameras is not None,
             )
-            images = reader.images
-        observations = windows.valid_obs if split == "valid" else windows.train_obs
-        summary.update(batched_latency(policy, observations, images=images))
+        )
         report = evaluation_report(args.task, args.policy)
         write_json(report, summary)
         episodes = report.with_name(f"{args.policy}_episodes.csv")
         episodes_table(results).to_csv(episodes, index=False)
         run.log_metrics(summary)
         run.log_artifact(episodes)
-        for result in results:
-            if result.frames:
-                run.log_artifact(
-                    save_gif(
-                        result.frames, EVAL_REPORT_DIR / "videos" / f"{args.task}_{args.policy}_seed{result.seed}.gif"
-                    )
-                )
+        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}"):
+            run.log_artifact(video)
     print(
         f"{args.task} {args.policy} ({summary['backend']}): success {summary['successes']}/{summary['episodes']} "
         f"({100 * summary['success_rate']:.1f}%, 95% CI {100 * summary['success_rate_ci_low']:.1f}-"

@@ -5,6 +5,7 @@ from importlib.metadata import version
 
 import pandas as pd
 from stage_support import (
+    EVAL_VIDEO_DIR,
     PROCESSED_DIR,
     PROJECT_DIR,
     REPORTS_DIR,
@@ -19,6 +20,7 @@ from stage_support import (
 
 from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
+from carp.evaluation.runner import episode_videos
 from carp.reporting.report import ReportInputs, write_report
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
@@ -47,6 +49,10 @@ def main() -> None:
         reconstruction_figure=TOKENIZER_REPORT_DIR / "reconstruction.png",
         camera_frames={
             task: frames for task in params.tasks if (frames := episode_images(PROCESSED_DIR / task / BUFFER_DIRNAME))
+        },
+        videos={
+            task: [video for policy in params.policies for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}")]
+            for task in params.tasks
         },
         sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
         versions={name: version(name) for name in ("robosuite", "mujoco", "torch", "dvc", "mlflow")},

@@ -39,6 +39,7 @@ REPORTS_DIR = PROJECT_DIR / "reports"
 TOKENIZER_REPORT_DIR = REPORTS_DIR / "tokenizer"
 POLICY_REPORT_DIR = REPORTS_DIR / "policy"
 EVAL_REPORT_DIR = REPORTS_DIR / "eval"
+EVAL_VIDEO_DIR = EVAL_REPORT_DIR / "videos"
 # Training states for resuming after an interruption; not DVC outputs (DVC deletes outputs before a stage runs).
 CHECKPOINT_DIR = PROJECT_DIR / "checkpoints"
 

@@ -82,6 +82,7 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     params = {
         "data": {"observations": "image", "image_size": 40, "num_demos": 2},
         "image_encoder": {"crop_size": 36, "base_channels": 16, "num_keypoints": 4, "feature_dim": 8},
+        "eval": {"video": True, "video_episodes": 1},
     }
     workspace = make_workspace(tmp_path / "carp", params)
     first = run(dvc("repro"), workspace, timeout=1500)
@@ -99,10 +100,13 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     assert evaluation["episodes"] == 2 and evaluation["backend"] == "torch"  # the encoder runs in PyTorch
     assert evaluation["render_step_ms_median"] > 0 and evaluation["latency_predict_ms_median"] > 0
     assert evaluation["batched_latency_predict_ms_median"] > 0
+    assert 0 < evaluation["latency_encode_ms_median"] < evaluation["latency_predict_ms_median"]
     report = (workspace / "reports/report.md").read_text()
     assert "## Success rate" in report and "## Camera images" in report
     assert (workspace / "reports/figures/cameras_lift.png").exists()
     assert "rendering the cameras:" in report
+    assert "## Rollout videos" in report and "(eval/videos/lift_carp_seed100000.gif)" in report
+    assert (workspace / "reports/eval/videos/lift_carp_seed100000.gif").stat().st_size > 0
 
     second = run(dvc("repro"), workspace, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]

@@ -86,6 +86,8 @@ def test_every_family_trains_its_camera_encoder_end_to_end_and_round_trips(name,
     after = loaded.predict_action_timed(obs, generator=torch.Generator().manual_seed(3), images=images)
     np.testing.assert_array_equal(after.actions, before.actions)
     assert before.actions.shape == (3, 8, 2)
+    # The camera encoder's time is reported as a part of the prediction's.
+    assert 0 < before.encoding_seconds < before.prediction_seconds
     # The network is conditioned on the cameras: other images give other features; the proprioception comes last.
     with torch.inference_mode():
         features = loaded.observation_features(obs, OBS_STEPS, images)

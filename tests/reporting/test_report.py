@@ -11,10 +11,13 @@ import pandas as pd
 import pytest
 
 from carp.evaluation.metrics import summarize_episodes
+from carp.evaluation.rollout import EpisodeResult
+from carp.evaluation.runner import write_episode_videos
 from carp.reporting.report import (
     ReportInputs,
     comparison_table,
     inference_budget_lines,
+    latency_table,
     success_table,
     write_report,
 )
@@ -109,6 +112,18 @@ def test_camera_images_get_a_grid_per_task_only_when_a_run_has_them(tmp_path, in
     assert grid.shape[0] > 100 and grid.shape[1] > grid.shape[0]  # six columns of frames, two rows
 
 
+def test_rollout_videos_are_shown_as_animated_gifs_in_both_documents(tmp_path, inputs):
+    assert "## Rollout videos" not in write_report(inputs, tmp_path / "none")[0].read_text()
+    frames = [np.full((16, 16, 3), shade, dtype=np.uint8) for shade in (0, 90, 180, 250)]
+    episode = EpisodeResult(seed=100000, success=True, steps=4, seconds=0.1, frames=frames)
+    videos = write_episode_videos([episode], tmp_path / "eval" / "videos", "lift_carp")
+    markdown_path, html_path = write_report(dataclasses.replace(inputs, videos={"lift": videos}), tmp_path / "out")
+    assert "## Rollout videos" in markdown_path.read_text()
+    assert "../eval/videos/lift_carp_seed100000.gif" in markdown_path.read_text()
+    embedded = re.findall(r"src='data:image/gif;base64,([^']+)'", html_path.read_text())
+    assert len(embedded) == 1 and base64.b64decode(embedded[0]) == videos[0].read_bytes()
+
+
 def test_html_is_self_contained(tmp_path, inputs):
     _, html_path = write_report(inputs, tmp_path / "reports")
     page = html_path.read_text()
@@ -170,3 +185,17 @@ def test_inference_budget_counts_the_chunks_of_400_control_steps(inputs):
     # An image policy's cameras are rendered at every control step: that time comes apart from the policy's.
     seen = inference_budget_lines({"lift": {"carp": {**lift, "render_step_ms_median": 60.0}}})
     assert seen[0].endswith("(50 chunks of 2.50 ms); rendering the cameras: 24.00 s (60.00 ms per step)")
+    with_encoder = {**lift, "render_step_ms_median": 60.0, "latency_encode_ms_median": 1.25}
+    seen = inference_budget_lines({"lift": {"carp": with_encoder}})
+    assert seen[0].endswith(
+        "(50 chunks of 2.50 ms), 1.25 ms of each in the camera encoder; "
+        "rendering the cameras: 24.00 s (60.00 ms per step)"
+    )
+
+
+def test_latency_table_gives_the_camera_encoders_share_for_image_policies_only(inputs):
+    lift = inputs.evaluation["lift"]["carp"]
+    image = {**lift, "latency_encode_ms_median": 1.25, "batched_latency_encode_ms_median": 9.5}
+    table = latency_table({"lift": {"carp": lift}, "can": {"carp": image}})
+    assert table.loc[table.task == "lift", "encoder median"].tolist() == ["-"] * 2
+    assert table.loc[table.task == "can", "encoder median"].tolist() == ["1.25", "9.50"]

@@ -41,6 +41,7 @@ class ChunkTiming:
 
     prediction: float = 0.0
     decoding: float = 0.0
+    encoding: float = 0.0  # the part of `prediction` spent encoding the observations (an image policy's cameras)
 
 
 class ActionSource(Protocol):
@@ -74,6 +75,7 @@ class EpisodeResult:
     error: str = ""
     prediction_seconds: list[float] = field(default_factory=list)
     decoding_seconds: list[float] = field(default_factory=list)
+    encoding_seconds: list[float] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
     render_seconds: list[float] = field(default_factory=list)
 
@@ -144,6 +146,7 @@ def run_episode(
             if timing is not None:
                 result.prediction_seconds.append(timing.prediction)
                 result.decoding_seconds.append(timing.decoding)
+                result.encoding_seconds.append(timing.encoding)
             for action in actions:
                 obs, _, _, _ = env.step(action)
                 history.append(flatten_observation(obs, obs_keys))

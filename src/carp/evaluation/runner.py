@@ -100,6 +100,8 @@ def evaluate_policy(
     )
     if cameras is not None:
         summary.update(latency_summary([s for r in results for s in r.render_seconds], "render_step"))
+        # The camera encoder's share of the prediction time, so the report can give the latency without it.
+        summary.update(latency_summary([s for r in results for s in r.encoding_seconds], "latency_encode"))
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
@@ -155,17 +157,81 @@ def batched_latency(
     indices = np.arange(batch_size) % observations.shape[0]
     batch = torch.as_tensor(observations[indices], dtype=torch.float32)
     seen = {} if images is None else {"images": images(indices)}
-    prediction, decoding = [], []
+    prediction, decoding, encoding = [], [], []
     for call in range(repeats + 2):
         timed = policy.predict_action_timed(batch, **seen)
         if call >= 2:
             prediction.append(timed.prediction_seconds)
             decoding.append(timed.decoding_seconds)
-    return {
+            encoding.append(timed.encoding_seconds)
+    summary = {
         "batched_latency_batch_size": batch_size,
         **latency_summary(prediction, "batched_latency_predict"),
         **latency_summary(decoding, "batched_latency_decode"),
     }
+    if images is not None:
+        summary.update(latency_summary(encoding, "batched_latency_encode"))
+    return summary
+
+
+def buffer_latency(
+    policy: Policy,
+    processed_dir: Path,
+    horizon: int,
+    obs_steps: int,
+    action_steps: int,
+    with_images: bool = False,
+    batch_size: int = 64,
+) -> dict[str, float]:
+    """`batched_latency` on a task's own windows: the held-out episodes, or the training ones when none are held out.
+
+    Args:
+        policy: a policy of any family, run in PyTorch.
+        processed_dir: the task's ``data/processed/<task>/`` directory.
+        horizon: ``H``, the window length the policy was trained on.
+        obs_steps: ``To``, observation steps per window.
+        action_steps: ``Ta``, executed actions per window.
+        with_images: the policy sees cameras: its batch carries the windows' stored images.
+        batch_size: B.
+    """
+    from carp.data.dataset import load_task_windows
+    from carp.data.image_windows import ImageWindowReader
+    from carp.data.ingest import BUFFER_DIRNAME
+
+    windows = load_task_windows(processed_dir, horizon, obs_steps, action_steps)
+    split = "valid" if len(windows.valid_obs) else "train"
+    observations = windows.valid_obs if split == "valid" else windows.train_obs
+    images = None
+    if with_images:
+        reader = ImageWindowReader(Path(processed_dir) / BUFFER_DIRNAME, horizon, obs_steps, action_steps, split)
+        images = reader.images
+    return batched_latency(policy, observations, batch_size=batch_size, images=images)
+
+
+VIDEO_SUFFIX = ".gif"
+
+
+def episode_videos(directory: Path, name: str) -> list[Path]:
+    """The GIFs `write_episode_videos` wrote under ``name`` (``<name>_seed<seed>.gif``), in seed order."""
+    paths = Path(directory).glob(f"{name}_seed*{VIDEO_SUFFIX}")
+    return sorted(paths, key=lambda path: int(path.stem.rsplit("_seed", 1)[1]))
+
+
+def write_episode_videos(results: Sequence[EpisodeResult], directory: Path, name: str) -> list[Path]:
+    """Write each recorded episode as ``<directory>/<name>_seed<seed>.gif`` and drop earlier ones of that name.
+
+    An earlier evaluation's GIFs of the same name would otherwise sit beside the new ones, and a report that shows
+    every GIF of a policy would show episodes of a policy that no longer exists.
+
+    Returns:
+        The GIFs written, in episode order.
+    """
+    recorded = [result for result in results if result.frames]
+    keep = {Path(directory) / f"{name}_seed{result.seed}{VIDEO_SUFFIX}" for result in recorded}
+    for stale in episode_videos(directory, name):
+        if stale not in keep:
+            stale.unlink()
+    return [save_gif(result.frames, Path(directory) / f"{name}_seed{result.seed}{VIDEO_SUFFIX}") for result in recorded]
 
 
 def save_gif(frames: Sequence[np.ndarray], path: Path, fps: int = 20, every: int = 2) -> Path:

@@ -105,4 +105,6 @@ class PolicySource:
         started = time.perf_counter()
         executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.controller)
         decoding_seconds = timed.decoding_seconds + time.perf_counter() - started
-        return executed, ChunkTiming(prediction=timed.prediction_seconds, decoding=decoding_seconds)
+        return executed, ChunkTiming(
+            prediction=timed.prediction_seconds, decoding=decoding_seconds, encoding=timed.encoding_seconds
+        )

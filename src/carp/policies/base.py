@@ -37,12 +37,15 @@ class TimedPrediction(NamedTuple):
         decoding_seconds: turning the prediction into raw actions (CARP: tokenizer decoding and un-normalization);
             only the un-normalization for families without a decoder.
         model_calls: sequential network calls that produced the chunk (K scales, L tokens or N denoising steps).
+        encoding_seconds: the part of `prediction_seconds` that turned the observations into the network's
+            features (for an image policy the camera encoder; for a state policy only the normalization).
     """
 
     actions: np.ndarray
     prediction_seconds: float
     decoding_seconds: float
     model_calls: int
+    encoding_seconds: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ class ReportInputs:
         reconstruction_figure: raw vs reconstructed actions PNG.
         camera_frames: task -> obs key -> (T, H, W, 3) uint8 frames of one demo, for runs on camera images; the
             report draws a grid of them per task to check by eye that the rendered observations look right.
+        videos: task -> the evaluation's recorded episodes as GIFs (``eval.video``), shown under each task.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
         versions: package -> version (robosuite, mujoco, torch, ...).
         git_commit: commit the pipeline ran at.
@@ -59,11 +60,15 @@ class ReportInputs:
     policy_histories: Mapping[str, Mapping[str, pd.DataFrame]] = field(default_factory=dict)
     reconstruction_figure: Path | None = None
     camera_frames: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict)
+    videos: Mapping[str, Sequence[Path]] = field(default_factory=dict)
     sweep_trials: pd.DataFrame | None = None
     versions: Mapping[str, str] = field(default_factory=dict)
     git_commit: str = "unknown"
     params_yaml: str = ""
 
+
+IMAGE_MEDIA_TYPES = {".png": "image/png", ".gif": "image/gif"}
+"""Media type of each kind of figure the HTML embeds (plots are PNG, rollout videos animated GIF)."""
 
 CONTROL_STEPS = 400
 """Control steps of the Table-1-style inference budget (the paper's supplementary table 1: 400 steps)."""
@@ -133,7 +138,11 @@ def token_choice(top_k: float | None) -> str:
 
 
 def latency_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFrame:
-    """Per (task, policy): per-chunk latency (ms) of prediction and decoding, at batch 1 in rollouts and batched."""
+    """Per (task, policy): per-chunk latency (ms) of prediction and decoding, at batch 1 in rollouts and batched.
+
+    For an image policy, "encoder median" is the camera encoder's share of the prediction ("-" for state policies),
+    so the latency without the encoder is the prediction minus it.
+    """
     rows = []
     for task, policies in evaluation.items():
         for policy, metrics in policies.items():
@@ -152,9 +161,14 @@ def latency_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFra
                         "predict p90": f"{metrics[f'{prefix}_predict_ms_p90']:.2f}",
                         "decode median": f"{metrics[f'{prefix}_decode_ms_median']:.2f}",
                         "decode p90": f"{metrics[f'{prefix}_decode_ms_p90']:.2f}",
+                        "encoder median": _milliseconds(metrics.get(f"{prefix}_encode_ms_median")),
                     }
                 )
     return pd.DataFrame(rows)
+
+
+def _milliseconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def inference_budget_lines(evaluation: Mapping[str, Mapping[str, Mapping]]) -> list[str]:
@@ -175,6 +189,11 @@ def inference_budget_lines(evaluation: Mapping[str, Mapping[str, Mapping]]) -> l
                 f"{task}, {policy} ({metrics.get('inference', '-')}, {metrics.get('backend', '-')}): "
                 f"{chunks * chunk_ms / 1000:.2f} s of inference over {CONTROL_STEPS} control steps "
                 f"({chunks} chunks of {chunk_ms:.2f} ms)"
+                + (
+                    f", {metrics['latency_encode_ms_median']:.2f} ms of each in the camera encoder"
+                    if "latency_encode_ms_median" in metrics
+                    else ""
+                )
                 + (
                     f"; rendering the cameras: {CONTROL_STEPS * metrics['render_step_ms_median'] / 1000:.2f} s "
                     f"({metrics['render_step_ms_median']:.2f} ms per step)"
@@ -333,6 +352,17 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
                 ],
             )
         )
+    if any(inputs.videos.values()):
+        sections.append(
+            Section(
+                "Rollout videos",
+                paragraphs=[
+                    "The first evaluation episodes of each policy from the agent-view camera, every second control "
+                    "step; the file names give the task, the policy and the episode's seed."
+                ],
+                figures=[Path(video) for videos in inputs.videos.values() for video in videos],
+            )
+        )
     tokenizer = Section("Action tokenizer")
     if inputs.tokenizer_metrics:
         metrics = inputs.tokenizer_metrics
@@ -425,7 +455,8 @@ def render_html(sections: Sequence[Section], title: str) -> str:
         parts += [table.to_html(index=False, border=0) for table in section.tables]
         for figure in section.figures:
             encoded = base64.b64encode(Path(figure).read_bytes()).decode()
-            parts.append(f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{encoded}'>")
+            media_type = IMAGE_MEDIA_TYPES[Path(figure).suffix.lower()]
+            parts.append(f"<img alt='{html.escape(figure.stem)}' src='data:{media_type};base64,{encoded}'>")
         if section.code:
             parts.append(f"<pre>{html.escape(section.code)}</pre>")
     parts.append("</body></html>")

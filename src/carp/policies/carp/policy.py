@@ -123,13 +123,16 @@ class CarpPolicy(TokenizedPolicy):
         with torch.inference_mode():
             started = time.perf_counter()
             observations = self.observation_features(obs, self.spec.obs_steps, images)  # (B, To, F)
+            encoded = time.perf_counter()
             task_ids = self.task_ids(task_index, observations.shape[0])
             chunk = generate_chunk(self.transformer, self.tokenizer, observations, task_ids, top_k, generator)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_latent(chunk.latent)  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
             decoded = time.perf_counter()
-        return TimedPrediction(actions, predicted - started, decoded - predicted, self.spec.num_scales)
+        return TimedPrediction(
+            actions, predicted - started, decoded - predicted, self.spec.num_scales, encoded - started
+        )
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Mean cross entropy of a teacher-forced forward pass over all L tokens (scalar float32).

@@ -105,11 +105,14 @@ class DiffusionPolicy(PolicyModule):
             started = time.perf_counter()
             denoiser = self.denoiser
             observations = self.observation_features(obs, denoiser.obs_steps, images)  # (B, To, F)
+            encoded = time.perf_counter()
             normalized_actions = self.sampler.sample(denoiser, observations, self.action_horizon, generator)
             predicted = time.perf_counter()
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()  # (B, H, A)
             decoded = time.perf_counter()
-        return TimedPrediction(actions, predicted - started, decoded - predicted, self.sampler.num_inference_steps)
+        return TimedPrediction(
+            actions, predicted - started, decoded - predicted, self.sampler.num_inference_steps, encoded - started
+        )
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """DP's loss: mean-squared error of the predicted noise at uniformly drawn diffusion steps (scalar).

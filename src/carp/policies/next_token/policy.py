@@ -88,13 +88,16 @@ class NextTokenPolicy(TokenizedPolicy):
             started = time.perf_counter()
             transformer = self.transformer
             features = self.observation_features(obs, transformer.obs_steps, images)  # (B, To, F)
+            encoded = time.perf_counter()
             task_ids = self.task_ids(task_index, features.shape[0])
             token_ids = generate_tokens(transformer, features, task_ids, self.top_k, generator)  # (B, L)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_ids(self.tokenizer.sequence_to_ids(token_ids))  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
             decoded = time.perf_counter()
-        return TimedPrediction(actions, predicted - started, decoded - predicted, transformer.sequence_length)
+        return TimedPrediction(
+            actions, predicted - started, decoded - predicted, transformer.sequence_length, encoded - started
+        )
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Mean cross entropy of the teacher-forced next-token logits over all L tokens (scalar float32).
