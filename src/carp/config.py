@@ -452,8 +452,9 @@ class EvalConfig:
             one per CPU core.
         max_steps: Task -> step limit of one episode, in control steps (20 Hz); each an integer >= 1. Every task in
             ``tasks`` needs an entry; an episode that has not succeeded by then counts as a failure.
-        video: Record GIF videos of the first ``video_episodes`` episodes of each task into ``reports/eval/videos/``
-            (needs offscreen rendering through EGL); true or false.
+        video: Record GIF videos of the first ``video_episodes`` episodes of each task and policy, from the agent-view
+            camera, into ``reports/eval/videos/``, which the report shows (needs offscreen rendering through EGL);
+            true or false.
         video_episodes: Episodes recorded per task when ``video`` is true; an integer >= 0.
         backend: ``onnxruntime`` runs batch-1 inference as exported ONNX graphs, several times faster per chunk than
             the eager modules (see ``carp.policies.carp.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
