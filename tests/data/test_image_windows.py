@@ -97,6 +97,28 @@ def test_a_batch_reads_only_the_chunks_holding_its_frames(image_buffer):
     assert sorted(image_reads) == sorted(expected)  # each needed chunk once, no other chunk
 
 
+@pytest.mark.parametrize("split", ["train", "valid", "all"])
+def test_preloaded_frames_give_the_same_windows_and_the_batches_read_nothing(image_buffer, split):
+    root, _ = image_buffer
+    lazy = ImageWindowReader(root, HORIZON, OBS_STEPS, ACTION_STEPS, split=split)
+    store = CountingStore(zarr.DirectoryStore(str(root)))
+    preloaded = ImageWindowReader(store, HORIZON, OBS_STEPS, ACTION_STEPS, split=split, preload_limit_bytes=1 << 20)
+    assert preloaded.preloaded and not lazy.preloaded
+    store.reads.clear()
+    indices = np.random.default_rng(0).integers(0, len(lazy), 50)  # repeats and any order
+    images = preloaded.images(indices)
+    assert not [key for key in store.reads if "_image/" in key]  # served from memory
+    np.testing.assert_array_equal(images, lazy.images(indices))
+    assert images.flags["C_CONTIGUOUS"]
+
+
+def test_a_split_larger_than_the_preload_limit_is_read_per_batch(image_buffer):
+    root, _ = image_buffer
+    frame_bytes = len(IMAGE_KEYS) * 8 * 8 * 3
+    reader = ImageWindowReader(root, HORIZON, OBS_STEPS, ACTION_STEPS, preload_limit_bytes=frame_bytes * 10)
+    assert len(np.unique(reader.rows[:, :OBS_STEPS])) > 10 and not reader.preloaded
+
+
 def test_splits_follow_the_held_out_episodes(image_buffer):
     root, _ = image_buffer
     buffer = ReplayBuffer.load(root)

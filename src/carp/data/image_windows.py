@@ -43,13 +43,23 @@ class ImageWindowReader:
         obs_steps: ``To``, observation steps per window.
         action_steps: ``Ta``, executed actions per window (sets the padding after an episode's end).
         split: ``train`` (episodes not held out), ``valid`` (held out) or ``all``.
+        preload_limit_bytes: when the split's observation frames, decoded, take at most this many bytes, they are
+            decoded once into memory and batches index them; otherwise (and with 0) every batch reads its frames
+            from the store. Training reads every window once per epoch, where a per-batch read of scattered chunks
+            costs about as much as the encoder's step on a CPU; a single pass over the split's chunks is far cheaper.
 
     Raises:
         ValueError: an unknown split, or a buffer without images (ingested with ``observations: state``).
     """
 
     def __init__(
-        self, store: Path | MutableMapping, horizon: int, obs_steps: int, action_steps: int, split: str = "all"
+        self,
+        store: Path | MutableMapping,
+        horizon: int,
+        obs_steps: int,
+        action_steps: int,
+        split: str = "all",
+        preload_limit_bytes: int = 0,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: must be one of {SPLITS}")
@@ -68,6 +78,20 @@ class ImageWindowReader:
         if split != "all":
             episodes = episodes[held_out] if split == "valid" else episodes[~held_out]
         self.rows = window_row_indices(episode_ends, horizon, obs_steps - 1, action_steps - 1, episodes)  # (N, H)
+        # Decoded frames of the split (cameras x (U, H, W, 3)) and each buffer row's position among them.
+        self._preloaded: list[np.ndarray] | None = None
+        self._preloaded_position: np.ndarray | None = None
+        frames = np.unique(self.rows[:, :obs_steps])
+        frame_bytes = sum(int(np.prod(array.shape[1:])) * array.dtype.itemsize for array in self._images)
+        if preload_limit_bytes > 0 and len(frames) * frame_bytes <= preload_limit_bytes:
+            self._preloaded = [array.get_orthogonal_selection(frames) for array in self._images]
+            self._preloaded_position = np.full(self._images[0].shape[0], -1, dtype=np.int64)
+            self._preloaded_position[frames] = np.arange(len(frames))
+
+    @property
+    def preloaded(self) -> bool:
+        """Whether the split's frames were decoded into memory (see ``preload_limit_bytes``)."""
+        return self._preloaded is not None
 
     def __len__(self) -> int:
         return int(self.rows.shape[0])
@@ -82,6 +106,10 @@ class ImageWindowReader:
             (N, To, cameras, 3, H, W) uint8 RGB images, in the order of ``window_indices``.
         """
         obs_rows = self.rows[np.asarray(window_indices, dtype=np.int64), : self.obs_steps]  # (N, To)
+        if self._preloaded is not None:
+            positions = self._preloaded_position[obs_rows]  # (N, To)
+            images = np.stack([frames[positions] for frames in self._preloaded], axis=2)  # (N, To, cameras, H, W, 3)
+            return np.ascontiguousarray(rearrange(images, "n t c h w rgb -> n t c rgb h w"))
         frames, inverse = np.unique(obs_rows, return_inverse=True)
         # Orthogonal selection reads each chunk holding a selected frame once; sorted unique rows keep it in order.
         per_camera = [array.get_orthogonal_selection(frames) for array in self._images]  # cameras x (U, H, W, 3)

@@ -33,6 +33,10 @@ FINAL_METRICS = ("loss", "token_accuracy")
 """Per-epoch metrics whose last value is also reported as `final_<name>` (a family that has them)."""
 
 
+IMAGE_PRELOAD_LIMIT_BYTES = 4 << 30
+"""Decoded camera frames a training split may hold in memory (per split); larger splits are read per batch."""
+
+
 @dataclass(frozen=True)
 class TaskPolicyInputs:
     """What a task's policy is trained from: the tokenizer reference and artifact and the task's windows.
@@ -106,7 +110,9 @@ def load_task_policy_inputs(
         return TaskPolicyInputs(reference, artifact, windows)
     store = Path(task_dir) / BUFFER_DIRNAME
     readers = {
-        split: ImageWindowReader(store, data.action_horizon, data.obs_steps, data.action_steps, split)
+        split: ImageWindowReader(
+            store, data.action_horizon, data.obs_steps, data.action_steps, split, IMAGE_PRELOAD_LIMIT_BYTES
+        )
         for split in ("train", "valid")
     }
     stored = (readers["train"].image_keys, readers["train"].image_size)
