@@ -9,7 +9,10 @@ Printed: the bytes per demo on disk of each camera's images (compressed, all chu
 then, per number of observation steps `To`, the throughput of reading random batches of windows with
 `carp.data.image_windows.ImageWindowReader` (images (B, To, cameras, 3, H, W) uint8, proprioception, actions): the
 median over `--batches` batches of the time per batch, and windows/s = batch size / that median. The first batch is
-read once before timing (it opens the chunk files' directory).
+read once before timing (it opens the chunk files' directory). Two ways of reading: `per batch` decodes the chunks
+holding each batch's frames (evaluation, and training splits too large for memory); `preloaded` is training's way
+when the split fits `carp.training.task_policy.IMAGE_PRELOAD_LIMIT_BYTES`, decoding every frame once when the reader
+opens (`open s`) and indexing memory afterwards.
 
 Usage: python benchmarks/image_windows.py [--buffer PATH] [--demos 20] [--steps 60] [--image-size 84]
                                           [--batch-size 64] [--batches 20] [--seed 0]
@@ -29,6 +32,7 @@ from carp.data.image_windows import ImageWindowReader
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.rendering import RenderSettings
 from carp.data.robomimic_io import Episode, write_demonstrations
+from carp.training.task_policy import IMAGE_PRELOAD_LIMIT_BYTES
 
 PROPRIOCEPTION = {"robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
 HORIZON, ACTION_STEPS = 16, 8
@@ -74,9 +78,14 @@ def bytes_per_demo(root: Path) -> list[tuple[str, float, float]]:
     return rows
 
 
-def window_throughput(root: Path, obs_steps: int, batch_size: int, batches: int, seed: int) -> float:
-    """Median seconds to read one random batch of windows."""
-    reader = ImageWindowReader(root, HORIZON, obs_steps, ACTION_STEPS)
+def window_throughput(
+    root: Path, obs_steps: int, batch_size: int, batches: int, seed: int, preload: bool = False
+) -> tuple[float, float]:
+    """Seconds to open the reader (decoding every frame when ``preload``) and median seconds per random batch."""
+    start = time.perf_counter()
+    limit = IMAGE_PRELOAD_LIMIT_BYTES if preload else 0
+    reader = ImageWindowReader(root, HORIZON, obs_steps, ACTION_STEPS, preload_limit_bytes=limit)
+    opened = time.perf_counter() - start
     rng = np.random.default_rng(seed)
     reader.read(rng.integers(len(reader), size=batch_size))
     seconds = []
@@ -85,7 +94,7 @@ def window_throughput(root: Path, obs_steps: int, batch_size: int, batches: int,
         start = time.perf_counter()
         reader.read(indices)
         seconds.append(time.perf_counter() - start)
-    return statistics.median(seconds)
+    return opened, statistics.median(seconds)
 
 
 def main() -> None:
@@ -124,10 +133,14 @@ def main() -> None:
             total += on_disk
             print(f"{key:<28}{on_disk:>20.0f}{raw:>16.0f}{raw / on_disk:>8.2f}")
         print(f"{'all cameras':<28}{total:>20.0f}")
-        print(f"{'To':<6}{'batch':>8}{'ms/batch':>12}{'windows/s':>12}")
-        for obs_steps in (1, 2):
-            seconds = window_throughput(root, obs_steps, args.batch_size, args.batches, args.seed)
-            print(f"{obs_steps:<6}{args.batch_size:>8}{seconds * 1e3:>12.2f}{args.batch_size / seconds:>12.0f}")
+        print(f"{'reads':<12}{'To':>4}{'batch':>8}{'open s':>9}{'ms/batch':>12}{'windows/s':>12}")
+        for preload in (False, True):
+            for obs_steps in (1, 2):
+                opened, seconds = window_throughput(root, obs_steps, args.batch_size, args.batches, args.seed, preload)
+                print(
+                    f"{'preloaded' if preload else 'per batch':<12}{obs_steps:>4}{args.batch_size:>8}{opened:>9.2f}"
+                    f"{seconds * 1e3:>12.3f}{args.batch_size / seconds:>12.0f}"
+                )
 
 
 if __name__ == "__main__":
