@@ -1,6 +1,7 @@
 """Run in a fresh interpreter with MUJOCO_GL set (mujoco reads it at import): a short scripted Lift episode through
 the evaluation's rollout loop with cameras, recording the image history the source receives at every decision and
-the simulator state it was rendered from; then the same states rendered as ingest renders a demo's stored states.
+the simulator state it was rendered from, and a video of the agent-view camera beside them; then the same states
+rendered as ingest renders a demo's stored states, and with the video's settings.
 
 Usage: python tests/evaluation/camera_rollout.py STEPS SEED OUTPUT.npz
 """
@@ -12,7 +13,7 @@ import numpy as np
 
 from carp import simulation
 from carp.data.rendering import RenderSettings, render_states
-from carp.evaluation.rollout import run_episode
+from carp.evaluation.rollout import run_episode, video_settings
 from carp.evaluation.sources import ExpertSource
 
 SETTINGS = RenderSettings(image_size=40)
@@ -38,13 +39,20 @@ def main() -> None:
     env_args = simulation.make_env_args("lift")
     env = simulation.make_env(env_args)
     source = RecordingExpert()
-    result = run_episode(env, source, seed, ("robot0_eef_pos",), OBS_STEPS, steps, cameras=SETTINGS)
-    ingested = render_states(simulation.make_env(env_args), {"seed": seed}, np.stack(source.states), SETTINGS)
+    result = run_episode(
+        env, source, seed, ("robot0_eef_pos",), OBS_STEPS, steps, render_camera="agentview", cameras=SETTINGS
+    )
+    states = np.stack(source.states)
+    ingested = render_states(simulation.make_env(env_args), {"seed": seed}, states, SETTINGS)
+    # The video frame after step i shows the state the next decision acted in.
+    video = render_states(simulation.make_env(env_args), {"seed": seed}, states[1:], video_settings("agentview"))
     np.savez(
         output,
         histories=np.stack(source.histories),
         render_seconds=np.asarray(result.render_seconds),
         steps=result.steps,
+        frames=np.stack(result.frames),
+        video=video["agentview_image"],
         error=result.error,
         **{f"ingested_{key}": images for key, images in ingested.items()},
     )

@@ -41,3 +41,7 @@ def test_rollout_cameras_are_the_ingested_frames_of_the_same_states(tmp_path):
     # Rendering is timed per rendered step: the reset's frame and one per step.
     render_seconds = recorded["render_seconds"]
     assert render_seconds.shape == (11,) and (render_seconds > 0).all()
+    # The video, drawn in the same process as the policy's cameras, shows the states it was recorded in.
+    frames = recorded["frames"]
+    assert frames.shape == (10, 256, 256, 3)
+    np.testing.assert_array_equal(frames[:-1], recorded["video"])

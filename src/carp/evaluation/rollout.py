@@ -96,6 +96,25 @@ def camera_observation(renderer: "CameraRenderer", env) -> np.ndarray:
     return np.stack([rearrange(images[key], "h w rgb -> rgb h w") for key in renderer.settings.image_keys])
 
 
+VIDEO_SIZE = 256
+"""Height and width of rollout video frames, in pixels."""
+
+
+def video_settings(camera: str) -> "RenderSettings":
+    """How rollout videos are drawn: `camera` at `VIDEO_SIZE` pixels, with shadows, reflections, skybox, anti-aliasing.
+
+    Videos are for people, so they get the full look; an image policy's cameras keep their own lean settings. They go
+    through `carp.data.rendering.CameraRenderer` like the policy's cameras because robosuite's offscreen renderer
+    draws without making its OpenGL context current: beside another context in the process (the policy's cameras)
+    it would draw into that one and read back garbage.
+    """
+    from carp.data.rendering import RenderSettings
+
+    return RenderSettings(
+        cameras=(camera,), image_size=VIDEO_SIZE, shadows=True, reflections=True, skybox=True, anti_aliasing=True
+    )
+
+
 def run_episode(
     env,
     source: ActionSource,
@@ -115,13 +134,13 @@ def run_episode(
         obs_keys: low-dim keys concatenated into the observation features, in training order.
         obs_steps: ``To``.
         max_steps: step limit.
-        render_camera: when set, an offscreen RGB frame of this camera is kept after every step.
+        render_camera: when set, a video frame of this camera (`video_settings`) is kept after every step.
         cameras: the cameras (and render settings) an image policy sees, rendered after every step into the
             ``images`` history its source receives; None for state policies.
     """
     started = time.perf_counter()
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
-    renderer = None
+    renderer = video = None
 
     def observe_cameras() -> np.ndarray:
         rendering_started = time.perf_counter()
@@ -140,6 +159,10 @@ def run_episode(
             # Every reset builds a new model (object sizes and placements), so each episode has its own renderer.
             renderer = CameraRenderer(env.sim.model._model, cameras)
             image_history = deque([observe_cameras()] * obs_steps, maxlen=obs_steps)
+        if render_camera is not None:
+            from carp.data.rendering import CameraRenderer
+
+            video = CameraRenderer(env.sim.model._model, video_settings(render_camera))
         while result.steps < max_steps and not result.success:
             seen = {} if image_history is None else {"images": np.stack(image_history)}
             actions, timing = source.act(np.stack(history), env, **seen)
@@ -153,9 +176,8 @@ def run_episode(
                 if image_history is not None:
                     image_history.append(observe_cameras())
                 result.steps += 1
-                if render_camera is not None:
-                    frame = env.sim.render(camera_name=render_camera, height=256, width=256)
-                    result.frames.append(np.flipud(frame).copy())
+                if video is not None:
+                    result.frames.append(video.render(env.sim.get_state().flatten())[f"{render_camera}_image"])
                 if simulation.is_success(env):
                     result.success = True
                     break
@@ -166,8 +188,9 @@ def run_episode(
         result.error = f"{type(error).__name__}: {error}"
         logger.warning("episode with seed %d crashed:\n%s", seed, traceback.format_exc())
     finally:
-        if renderer is not None:
-            renderer.close()
+        for context in (renderer, video):
+            if context is not None:
+                context.close()
     result.seconds = time.perf_counter() - started
     return result
 
@@ -193,8 +216,7 @@ def _init_worker(env_args: dict, source_factory: Callable[[], ActionSource], set
     import torch
 
     torch.set_num_threads(1)
-    render = settings["video_camera"] is not None
-    _worker_state["env"] = simulation.make_env(env_args, render_offscreen=render)
+    _worker_state["env"] = simulation.make_env(env_args)
     _worker_state["source"] = source_factory()
     _worker_state["settings"] = settings
 
