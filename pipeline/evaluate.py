@@ -60,6 +60,7 @@ def main() -> None:
         summary.update(
             buffer_latency(
                 policy,
+                windows,
                 PROCESSED_DIR / args.task,
                 data.action_horizon,
                 data.obs_steps,

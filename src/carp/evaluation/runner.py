@@ -20,6 +20,7 @@ from carp.policies.base import Policy
 from carp.policies.registry import load_policy
 
 if TYPE_CHECKING:
+    from carp.data.dataset import TaskWindows
     from carp.data.rendering import RenderSettings
 
 logger = logging.getLogger(__name__)
@@ -176,6 +177,7 @@ def batched_latency(
 
 def buffer_latency(
     policy: Policy,
+    windows: "TaskWindows",
     processed_dir: Path,
     horizon: int,
     obs_steps: int,
@@ -187,18 +189,17 @@ def buffer_latency(
 
     Args:
         policy: a policy of any family, run in PyTorch.
-        processed_dir: the task's ``data/processed/<task>/`` directory.
+        windows: the task's state windows (`carp.data.dataset.load_task_windows` with the same H, To, Ta).
+        processed_dir: the task's ``data/processed/<task>/`` directory, whose buffer holds the images.
         horizon: ``H``, the window length the policy was trained on.
         obs_steps: ``To``, observation steps per window.
         action_steps: ``Ta``, executed actions per window.
         with_images: the policy sees cameras: its batch carries the windows' stored images.
         batch_size: B.
     """
-    from carp.data.dataset import load_task_windows
     from carp.data.image_windows import ImageWindowReader
     from carp.data.ingest import BUFFER_DIRNAME
 
-    windows = load_task_windows(processed_dir, horizon, obs_steps, action_steps)
     split = "valid" if len(windows.valid_obs) else "train"
     observations = windows.valid_obs if split == "valid" else windows.train_obs
     images = None
