@@ -6,6 +6,7 @@ demos' stored simulator states (:mod:`carp.data.rendering`), so a low-dim file n
 needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) before MuJoCo is imported.
 """
 
+import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from carp.data.render_cache import RenderCache
 from carp.data.rendering import RenderingError, RenderSettings
 from carp.data.robomimic_io import Demonstrations
 from carp.data.robomimic_schema import (
@@ -25,6 +27,8 @@ from carp.data.robomimic_schema import (
 )
 
 STORED, RENDERED = "file", "rendered"
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -118,8 +122,13 @@ def check_renderable(demos: Demonstrations, settings: RenderSettings) -> None:
             )
 
 
-def rendered_episodes(demos: Demonstrations, settings: RenderSettings) -> Iterator[dict[str, np.ndarray]]:
+def rendered_episodes(
+    demos: Demonstrations, settings: RenderSettings, cache: RenderCache | None = None
+) -> Iterator[dict[str, np.ndarray]]:
     """Render the demos (checked by :func:`check_renderable`) one at a time, with a progress bar over frames.
+
+    With a ``cache``, every demo rendered is saved there before it is yielded, and a demo the cache holds is read
+    from it instead of rendered, so an ingestion interrupted after k demos renders only the others when run again.
 
     Yields:
         Per demo, in file order, obs key -> (T_i, image_size, image_size, 3) uint8 upright RGB images.
@@ -128,21 +137,31 @@ def rendered_episodes(demos: Demonstrations, settings: RenderSettings) -> Iterat
         RenderingError: no offscreen backend, or a demo whose model is unknown (names the file and demo).
     """
     from carp.data.rendering import render_states
-    from carp.simulation import make_env
 
-    env = make_env(demos.env_args)
+    env = None
     total = sum(episode.length for episode in demos.episodes)
+    if cache is not None and cache.saved_count():
+        logger.info("%s: %d demos rendered before are read from %s", demos.path, cache.saved_count(), cache.directory)
     try:
         with tqdm(total=total, desc=f"render {', '.join(settings.cameras)}", unit="frame") as progress:
-            for name, episode in zip(demos.names, demos.episodes, strict=True):
-                try:
-                    images = render_states(env, episode.attrs, episode.states, settings)
-                except RenderingError as error:
-                    raise RenderingError(f"{demos.path}: demo '{name}': {error}") from None
+            for index, (name, episode) in enumerate(zip(demos.names, demos.episodes, strict=True)):
+                images = cache.load(index, episode.length) if cache is not None else None
+                if images is None:
+                    if env is None:
+                        from carp.simulation import make_env
+
+                        env = make_env(demos.env_args)
+                    try:
+                        images = render_states(env, episode.attrs, episode.states, settings)
+                    except RenderingError as error:
+                        raise RenderingError(f"{demos.path}: demo '{name}': {error}") from None
+                    if cache is not None:
+                        cache.save(index, images)
                 progress.update(episode.length)
                 yield images
     finally:
-        env.close()
+        if env is not None:
+            env.close()
 
 
 __all__ = [

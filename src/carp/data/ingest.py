@@ -29,6 +29,7 @@ from carp.data.camera_images import (
     stored_episodes,
 )
 from carp.data.normalizer import MinMaxNormalizer, save_normalizers
+from carp.data.render_cache import RenderCache, render_key
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.robomimic_io import DatasetError, Demonstrations, read_demonstrations
@@ -140,16 +141,23 @@ def ingest_demonstrations(
 
     normalizers = {"obs": MinMaxNormalizer.fit(obs), "action": MinMaxNormalizer.fit(action)}
     output_dir.parent.mkdir(parents=True, exist_ok=True)
-    with staged(staging_dir or output_dir.parent, output_dir.name) as staging:
+    staging_dir = Path(staging_dir or output_dir.parent)
+    cache = None
+    if plan is not None and plan.rendered is not None:
+        key = render_key(demos.env_args, [(e.attrs, e.states) for e in demos.episodes], plan.rendered)
+        cache = RenderCache(staging_dir / f".{output_dir.name}.render-cache", key, plan.rendered)
+    with staged(staging_dir, output_dir.name) as staging:
         staging.mkdir()
         buffer.save(staging / BUFFER_DIRNAME)
         if camera_settings is not None:
-            _write_images(staging / BUFFER_DIRNAME, buffer, demos, camera_settings, plan)
+            _write_images(staging / BUFFER_DIRNAME, buffer, demos, camera_settings, plan, cache)
         save_normalizers(staging / NORMALIZATION_FILENAME, normalizers)
         (staging / SUMMARY_FILENAME).write_text(json.dumps(asdict(summary), indent=2))
         if output_dir.exists():
             shutil.rmtree(output_dir)
         os.replace(staging, output_dir)
+    if cache is not None:
+        cache.remove()
     return summary
 
 
@@ -164,9 +172,17 @@ def _plan_images(demos: Demonstrations, settings: RenderSettings) -> ImagePlan:
 
 
 def _write_images(
-    root: Path, buffer: ReplayBuffer, demos: Demonstrations, settings: RenderSettings, plan: ImagePlan
+    root: Path,
+    buffer: ReplayBuffer,
+    demos: Demonstrations,
+    settings: RenderSettings,
+    plan: ImagePlan,
+    cache: RenderCache | None,
 ) -> None:
-    """Fill ``data/<camera>_image`` of the saved store ``root`` one demo at a time, so no camera is ever held whole."""
+    """Fill ``data/<camera>_image`` of the saved store ``root`` one demo at a time, so no camera is ever held whole.
+
+    Rendered demos go through ``cache``, which keeps them until the ingestion is complete.
+    """
     steps = int(buffer.episode_ends[-1])
     arrays = {
         key: ReplayBuffer.create_image_array(root, key, steps, settings.image_size) for key in settings.image_keys
@@ -175,7 +191,7 @@ def _write_images(
     if plan.stored_keys:
         sources.append(stored_episodes(demos.path, demos.names, plan.stored_keys))
     if plan.rendered is not None:
-        sources.append(rendered_episodes(demos, plan.rendered))
+        sources.append(rendered_episodes(demos, plan.rendered, cache))
     starts, ends = buffer.episode_starts, buffer.episode_ends
     for episodes in sources:
         for index, images in enumerate(episodes):

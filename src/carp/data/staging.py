@@ -32,11 +32,11 @@ def staged(directory: Path, name: str) -> Iterator[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     remove_stale_entries(directory)
     path = directory / f".{name}.{os.getpid()}.tmp"
-    _remove(path)
+    remove_path(path)
     try:
         yield path
     finally:
-        _remove(path)
+        remove_path(path)
 
 
 def remove_stale_entries(directory: Path) -> list[Path]:
@@ -45,7 +45,7 @@ def remove_stale_entries(directory: Path) -> list[Path]:
     for path in sorted(Path(directory).iterdir()) if Path(directory).is_dir() else []:
         match = _ENTRY.fullmatch(path.name)
         if match is not None and not _process_exists(int(match["pid"])):
-            _remove(path)
+            remove_path(path)
             logger.info("removed %s, left behind by process %s", path, match["pid"])
             removed.append(path)
     return removed
@@ -63,7 +63,8 @@ def _process_exists(pid: int) -> bool:
     return True
 
 
-def _remove(path: Path) -> None:
+def remove_path(path: Path) -> None:
+    """Remove a file, link or folder tree if it exists."""
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path, ignore_errors=True)
     else:
