@@ -1,5 +1,6 @@
 """ingest stage: data/raw/<task>.hdf5 -> data/processed/<task>/ (zarr replay buffer + normalization stats)."""
 
+import os
 from dataclasses import asdict
 
 from stage_support import (
@@ -42,6 +43,7 @@ def main() -> None:
             valid_fraction=params.data.valid_fraction,
             staging_dir=STAGING_DIR,
             camera_settings=cameras,
+            render_workers=params.data.render_workers or os.cpu_count() or 1,
         )
     except (DatasetError, RenderingError) as error:
         fail(str(error))

@@ -103,6 +103,7 @@ def test_defaults_follow_the_design():
         ({"data": {"cameras": "agentview"}}, "data.cameras='agentview': expected a list"),
         ({"data": {"image_size": 0}}, "data.image_size=0: must be an integer >= 1"),
         ({"data": {"image_size": 84.5}}, "data.image_size=84.5: expected an integer"),
+        ({"data": {"render_workers": -1}}, "data.render_workers=-1: must be an integer >= 0"),
         ({"data": {"proprioception_keys": []}}, "data.proprioception_keys=[]: must name at least one key"),
         (
             {"data": {"proprioception_keys": ["robot0_eef_pos", "agentview_image"]}},

@@ -103,6 +103,8 @@ class DataConfig:
             otherwise rendered from the demos' stored simulator states.
         image_size: Height and width of the camera images in pixels (robomimic's image datasets: 84); an integer
             >= 1. Images a file stores must already have this size.
+        render_workers: Processes rendering camera images in ingest, each with its own simulator; an integer >= 0,
+            0 meaning one per CPU core. The rendered images do not depend on it, so DVC does not track it.
         proprioception_keys: Low-dim observation keys ingested with the images (``observations: image``),
             concatenated in this order; at least one, none of them a camera image. The default is the robot's own
             state (end-effector position and quaternion, gripper joints), without the object's privileged pose.
@@ -123,6 +125,7 @@ class DataConfig:
     observations: str = "state"
     cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
     image_size: int = 84
+    render_workers: int = 0
     proprioception_keys: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
     def demos_for(self, task: str) -> int:
@@ -158,6 +161,14 @@ class DataConfig:
         _require(all(camera for camera in cameras), "data.cameras", cameras, "camera names must not be empty")
         _require(len(set(cameras)) == len(cameras), "data.cameras", cameras, "must name each camera once")
         require_positive_int("data.image_size", self.image_size)
+        _require(
+            isinstance(self.render_workers, int)
+            and not isinstance(self.render_workers, bool)
+            and self.render_workers >= 0,
+            "data.render_workers",
+            self.render_workers,
+            "must be an integer >= 0 (0 = one per CPU core)",
+        )
         keys = list(self.proprioception_keys)
         _require(len(keys) > 0, "data.proprioception_keys", keys, "must name at least one key")
         _require(len(set(keys)) == len(keys), "data.proprioception_keys", keys, "must name each key once")

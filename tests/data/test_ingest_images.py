@@ -176,7 +176,9 @@ from carp.data.robomimic_io import read_demonstrations
 
 raw, output = Path(sys.argv[1]), Path(sys.argv[2])
 settings = RenderSettings(image_size=int(sys.argv[3]))
-ingest_demonstrations(raw, output, ["robot0_eef_pos"], camera_settings=settings, valid_fraction=0.0)
+ingest_demonstrations(
+    raw, output, ["robot0_eef_pos"], camera_settings=settings, valid_fraction=0.0, render_workers=2
+)
 reader = ImageWindowReader(output / BUFFER_DIRNAME, horizon=1, obs_steps=1, action_steps=1)
 windows = reader.read(np.arange(len(reader)))
 demos = read_demonstrations(raw, ["robot0_eef_pos"])
@@ -209,7 +211,8 @@ def test_ingestion_renders_missing_cameras_from_the_stored_states(tmp_path, lift
     ingested = frames["ingested"]  # (N, cameras, 3, H, W)
     assert ingested.shape[1:] == (2, 3, size, size) and ingested.dtype == np.uint8
     for camera, key in enumerate(IMAGE_KEYS):
-        # Every demo's frames, in buffer order, are the renderer's frames of its stored states.
+        # Every demo's frames, in buffer order, are the renderer's frames of its stored states, though two worker
+        # processes rendered them.
         np.testing.assert_array_equal(ingested[:, camera].transpose(0, 2, 3, 1), frames[key])
         assert (ingested[0, camera] != ingested[-1, camera]).any()  # the scene changes over a demo
         assert np.unique(ingested[0, camera].reshape(3, -1), axis=1).shape[1] > 10  # a rendered scene, not blank

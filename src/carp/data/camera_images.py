@@ -7,7 +7,10 @@ needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) be
 """
 
 import logging
+import multiprocessing
+from collections import deque
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -123,12 +126,14 @@ def check_renderable(demos: Demonstrations, settings: RenderSettings) -> None:
 
 
 def rendered_episodes(
-    demos: Demonstrations, settings: RenderSettings, cache: RenderCache | None = None
+    demos: Demonstrations, settings: RenderSettings, cache: RenderCache | None = None, workers: int = 1
 ) -> Iterator[dict[str, np.ndarray]]:
     """Render the demos (checked by :func:`check_renderable`) one at a time, with a progress bar over frames.
 
     With a ``cache``, every demo rendered is saved there before it is yielded, and a demo the cache holds is read
     from it instead of rendered, so an ingestion interrupted after k demos renders only the others when run again.
+    With ``workers`` > 1, that many spawned processes render demos ahead, each with its own simulator and OpenGL
+    context; at most two demos per worker wait to be yielded, so memory stays a few demos whatever the file's size.
 
     Yields:
         Per demo, in file order, obs key -> (T_i, image_size, image_size, 3) uint8 upright RGB images.
@@ -136,32 +141,97 @@ def rendered_episodes(
     Raises:
         RenderingError: no offscreen backend, or a demo whose model is unknown (names the file and demo).
     """
-    from carp.data.rendering import render_states
-
-    env = None
-    total = sum(episode.length for episode in demos.episodes)
-    if cache is not None and cache.saved_count():
-        logger.info("%s: %d demos rendered before are read from %s", demos.path, cache.saved_count(), cache.directory)
+    episodes = demos.episodes
+    saved = {
+        index
+        for index, episode in enumerate(episodes)
+        if cache is not None and cache.load(index, episode.length) is not None
+    }
+    if saved:
+        logger.info("%s: %d demos rendered before are read from %s", demos.path, len(saved), cache.directory)
+    missing = [index for index in range(len(episodes)) if index not in saved]
+    fresh = _render_in_order(demos, settings, missing, workers)
+    total = sum(episode.length for episode in episodes)
     try:
         with tqdm(total=total, desc=f"render {', '.join(settings.cameras)}", unit="frame") as progress:
-            for index, (name, episode) in enumerate(zip(demos.names, demos.episodes, strict=True)):
-                images = cache.load(index, episode.length) if cache is not None else None
+            for index, episode in enumerate(episodes):
+                images = cache.load(index, episode.length) if index in saved else None
                 if images is None:
-                    if env is None:
-                        from carp.simulation import make_env
-
-                        env = make_env(demos.env_args)
-                    try:
-                        images = render_states(env, episode.attrs, episode.states, settings)
-                    except RenderingError as error:
-                        raise RenderingError(f"{demos.path}: demo '{name}': {error}") from None
+                    # An entry damaged since it was checked is rendered here, out of the workers' order.
+                    source = fresh if index not in saved else _render_in_order(demos, settings, [index], 1)
+                    rendered_index, images = next(source)
+                    assert rendered_index == index
                     if cache is not None:
                         cache.save(index, images)
                 progress.update(episode.length)
                 yield images
     finally:
-        if env is not None:
+        fresh.close()
+
+
+def _render_in_order(
+    demos: Demonstrations, settings: RenderSettings, indices: Sequence[int], workers: int
+) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+    """Render the demos at ``indices``, yielding ``(index, images)`` in that order, here or on spawned workers."""
+    from carp.data.rendering import render_states
+    from carp.simulation import make_env
+
+    def named(index: int, error: RenderingError) -> RenderingError:
+        return RenderingError(f"{demos.path}: demo '{demos.names[index]}': {error}")
+
+    if not indices:
+        return
+    if workers <= 1 or len(indices) == 1:
+        env = make_env(demos.env_args)
+        try:
+            for index in indices:
+                episode = demos.episodes[index]
+                try:
+                    images = render_states(env, episode.attrs, episode.states, settings)
+                except RenderingError as error:
+                    raise named(index, error) from None
+                yield index, images
+        finally:
             env.close()
+        return
+    # spawn: each worker builds its own MuJoCo model and OpenGL context; MUJOCO_GL is inherited from the environment.
+    executor = ProcessPoolExecutor(
+        max_workers=min(workers, len(indices)),
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_start_render_worker,
+        initargs=(demos.env_args, settings),
+    )
+    queue = deque(indices)
+    in_flight: deque = deque()
+    try:
+        while queue or in_flight:
+            while queue and len(in_flight) < 2 * workers:
+                index = queue.popleft()
+                episode = demos.episodes[index]
+                in_flight.append((index, executor.submit(_render_in_worker, episode.attrs, episode.states)))
+            index, future = in_flight.popleft()
+            try:
+                images = future.result()
+            except RenderingError as error:
+                raise named(index, error) from None
+            yield index, images
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
+
+
+_worker_state: dict = {}
+
+
+def _start_render_worker(env_args: dict, settings: RenderSettings) -> None:
+    from carp.simulation import make_env
+
+    _worker_state.update(env=make_env(env_args), settings=settings)
+
+
+def _render_in_worker(attrs: dict, states: np.ndarray) -> dict[str, np.ndarray]:
+    from carp.data.rendering import render_states
+
+    return render_states(_worker_state["env"], attrs, states, _worker_state["settings"])
 
 
 __all__ = [

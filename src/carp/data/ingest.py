@@ -64,6 +64,7 @@ def ingest_demonstrations(
     valid_fraction: float = 0.1,
     staging_dir: Path | None = None,
     camera_settings: RenderSettings | None = None,
+    render_workers: int = 1,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
@@ -79,6 +80,8 @@ def ingest_demonstrations(
             parent.
         camera_settings: cameras and image size of an image buffer; ``None`` (the default) stores low-dim
             observations only.
+        render_workers: processes rendering the cameras the file does not store (see
+            :func:`carp.data.camera_images.rendered_episodes`).
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
@@ -150,7 +153,7 @@ def ingest_demonstrations(
         staging.mkdir()
         buffer.save(staging / BUFFER_DIRNAME)
         if camera_settings is not None:
-            _write_images(staging / BUFFER_DIRNAME, buffer, demos, camera_settings, plan, cache)
+            _write_images(staging / BUFFER_DIRNAME, buffer, demos, camera_settings, plan, cache, render_workers)
         save_normalizers(staging / NORMALIZATION_FILENAME, normalizers)
         (staging / SUMMARY_FILENAME).write_text(json.dumps(asdict(summary), indent=2))
         if output_dir.exists():
@@ -178,6 +181,7 @@ def _write_images(
     settings: RenderSettings,
     plan: ImagePlan,
     cache: RenderCache | None,
+    render_workers: int,
 ) -> None:
     """Fill ``data/<camera>_image`` of the saved store ``root`` one demo at a time, so no camera is ever held whole.
 
@@ -191,7 +195,7 @@ def _write_images(
     if plan.stored_keys:
         sources.append(stored_episodes(demos.path, demos.names, plan.stored_keys))
     if plan.rendered is not None:
-        sources.append(rendered_episodes(demos, plan.rendered, cache))
+        sources.append(rendered_episodes(demos, plan.rendered, cache, render_workers))
     starts, ends = buffer.episode_starts, buffer.episode_ends
     for episodes in sources:
         for index, images in enumerate(episodes):
