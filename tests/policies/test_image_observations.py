@@ -29,6 +29,11 @@ TINY_IMAGES = ImageEncoderConfig(
 WINDOWS = 16
 
 
+def obs_batch() -> np.ndarray:
+    """(3, To, Do) float32 proprioception."""
+    return np.random.default_rng(1).normal(size=(3, OBS_STEPS, OBS_DIM)).astype(np.float32)
+
+
 def image_context():
     return dataclasses.replace(tiny_context(), image_encoder=TINY_IMAGES)
 
@@ -79,9 +84,13 @@ def test_every_family_trains_its_camera_encoder_end_to_end_and_round_trips(name,
     loaded = load_policy(path)
     loaded.configure_inference(**TINY_INFERENCE.get(name, {}))
     assert loaded.observation_encoder.config == TINY_IMAGES
+    # Loaded for inference: no module trains, so the crops are the centred ones and a repeated call repeats.
+    assert [key for key, module in loaded.named_modules() if module.training] == []
+    with torch.inference_mode():
+        features = [loaded.observation_features(obs_batch(), OBS_STEPS, window_images(3)) for _ in range(2)]
+    torch.testing.assert_close(features[0], features[1], rtol=0, atol=0)
     assert loaded.num_parameters == policy.num_parameters
-    obs = np.random.default_rng(1).normal(size=(3, OBS_STEPS, OBS_DIM)).astype(np.float32)
-    images = window_images(3)
+    obs, images = obs_batch(), window_images(3)
     before = policy.predict_action_timed(obs, generator=torch.Generator().manual_seed(3), images=images)
     after = loaded.predict_action_timed(obs, generator=torch.Generator().manual_seed(3), images=images)
     np.testing.assert_array_equal(after.actions, before.actions)

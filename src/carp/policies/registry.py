@@ -210,7 +210,7 @@ def unregister_family(name: str) -> None:
 
 
 def policy_from_checkpoint(checkpoint: Any) -> Policy:
-    """Rebuild the policy a checkpoint dict holds, through the family named by its `policy_type`.
+    """Rebuild the policy a checkpoint dict holds, through the family named by its `policy_type`, in eval mode.
 
     Raises:
         ValueError: not a dict, another format version, or an unknown `policy_type`.
@@ -226,7 +226,8 @@ def policy_from_checkpoint(checkpoint: Any) -> Policy:
         family = get_family(policy_type)
     except KeyError as error:
         raise ValueError(f"policy_type={policy_type!r}: {error.args[0]}") from None
-    return family.from_checkpoint(checkpoint)
+    # A checkpoint is read for inference: every module in evaluation mode, so the camera crops are centred.
+    return family.from_checkpoint(checkpoint).train(False)
 
 
 def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
