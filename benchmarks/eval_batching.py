@@ -9,7 +9,7 @@ The evaluate stage runs episodes in `eval.workers` processes, one env each. Two 
 Both run the same seeds with the same checkpoint, episode limit and success check; the table reports simulator steps
 per second (the work done, independent of how many episodes succeed), episodes per minute and the success count.
 
-Usage: python benchmarks/eval_batching.py --checkpoint models/policy/lift/policy.pt --processed data/processed/lift
+Usage: python benchmarks/eval_batching.py --checkpoint models/policy/lift/carp/seed0/policy.pt --processed data/processed/lift
        [--workers 2] [--episodes 6] [--max-steps 200] [--repeats 2]
 """
 
@@ -121,7 +121,7 @@ class PolicySourceFactory:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=Path("models/policy/lift/policy.pt"))
+    parser.add_argument("--checkpoint", type=Path, default=Path("models/policy/lift/carp/seed0/policy.pt"))
     parser.add_argument("--processed", type=Path, default=Path("data/processed/lift"), help="for the env_args")
     parser.add_argument("--controller", default="absolute")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)

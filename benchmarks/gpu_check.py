@@ -120,7 +120,7 @@ def cuda_latency(workspace: Path, policy_name: str) -> dict[str, float]:
     from carp.policies.registry import load_policy
 
     params = load_params(workspace / "params.yaml")
-    policy = load_policy(workspace / "models/policy" / TASK / policy_name / "policy.pt", map_location="cuda")
+    policy = load_policy(workspace / "models/policy" / TASK / policy_name / "seed0" / "policy.pt", map_location="cuda")
     policy.configure_inference(**params.inference_settings(policy_name, TASK))
     data = params.data
     windows = load_task_windows(workspace / "data/processed" / TASK, data.action_horizon, data.obs_steps,
@@ -142,8 +142,8 @@ def cuda_latency(workspace: Path, policy_name: str) -> dict[str, float]:
 
 def report(workspace: Path, policy_name: str, batch_size: int) -> str:
     """The check's lines for one policy."""
-    training = training_summary(workspace / "reports/policy" / TASK / policy_name / "history.csv", batch_size)
-    evaluation = json.loads((workspace / "reports/eval" / TASK / f"{policy_name}.json").read_text())
+    training = training_summary(workspace / "reports/policy" / TASK / policy_name / "seed0" / "history.csv", batch_size)
+    evaluation = json.loads((workspace / "reports/eval" / TASK / policy_name / "seed0.json").read_text())
     latency = cuda_latency(workspace, policy_name)
     cpu_chunk = evaluation["latency_predict_ms_median"] + evaluation["latency_decode_ms_median"]
     return "\n".join(

@@ -1,7 +1,14 @@
-"""evaluate stage: models/policy/<task>/<policy>/ -> reports/eval/<task>/<policy>.json, <policy>_episodes.csv."""
+"""evaluate stage: models/policy/<task>/<policy>/seed<seed>/ -> reports/eval/<task>/<policy>/seed<seed>*.
+
+With validation episodes (`eval.validation_episodes`) every candidate policy of the run (the final one and its
+snapshots) runs on the validation seeds first; `eval.selection` then fixes one, and only that one runs on the test
+seeds. Writes the summary `seed<seed>.json`, the test episodes `seed<seed>_episodes.csv` and the validation episodes
+`seed<seed>_validation.csv` (empty without validation).
+"""
 
 import os
 
+import pandas as pd
 from stage_support import (
     EVAL_VIDEO_DIR,
     PROCESSED_DIR,
@@ -10,12 +17,14 @@ from stage_support import (
     fail,
     mlflow_stage,
     policy_dir,
+    policy_report_dir,
     policy_stage_args,
     setup_logging,
 )
 
 from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import buffer_latency, episodes_table, evaluate_policy, write_episode_videos
+from carp.evaluation.selection import evaluate_with_selection, find_candidates
 from carp.outputs import write_json
 from carp.policies.registry import load_policy
 from carp.training.checkpoint import CheckpointError
@@ -30,32 +39,56 @@ def main() -> None:
         # Worker processes are spawned after this point and inherit it.
         os.environ.setdefault("MUJOCO_GL", "egl")
     cameras = camera_settings(params)
-    checkpoint = policy_dir(args.task, args.policy) / "policy.pt"
+    run_dir = policy_dir(args.task, args.policy, args.seed)
+    history = policy_report_dir(args.task, args.policy, args.seed) / "history.csv"
     try:
-        policy = load_policy(checkpoint)
-    except (CheckpointError, FileNotFoundError) as error:
+        policy = load_policy(run_dir / "policy.pt")
+        candidates = find_candidates(run_dir, pd.read_csv(history)["loss"].tolist())
+    except (CheckpointError, FileNotFoundError, ValueError) as error:
         fail(str(error))
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
-    seeds = [config.seed + index for index in range(config.episodes)]
     workers = config.workers or os.cpu_count() or 1
     inference = params.inference_settings(args.policy, args.task)
-    tags = {"carp.policy_run_id": policy.metadata.get("mlflow_run_id", ""), "carp.policy_type": args.policy}
-    with mlflow_stage(params, f"evaluate@{args.task}-{args.policy}", args.task, tags) as run:
-        summary, results = evaluate_policy(
-            checkpoint,
-            env_args=windows.buffer.attrs["env_args"],
-            controller=data.controller,
-            obs_keys=data.low_dim_keys,
-            obs_steps=data.obs_steps,
-            action_steps=data.action_steps,
-            seeds=seeds,
-            max_steps=config.max_steps[args.task],
-            workers=min(workers, len(seeds)),
-            inference=inference,
-            video_episodes=config.video_episodes if config.video else 0,
-            backend=config.backend,
-            cameras=cameras,
+    tags = {
+        "carp.policy_run_id": policy.metadata.get("mlflow_run_id", ""),
+        "carp.policy_type": args.policy,
+        "carp.training_seed": str(args.seed),
+    }
+    with mlflow_stage(params, f"evaluate@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
+
+        def run_episodes(checkpoint, seeds):
+            return evaluate_policy(
+                checkpoint,
+                env_args=windows.buffer.attrs["env_args"],
+                controller=data.controller,
+                obs_keys=data.low_dim_keys,
+                obs_steps=data.obs_steps,
+                action_steps=data.action_steps,
+                seeds=seeds,
+                max_steps=config.max_steps[args.task],
+                workers=min(workers, len(seeds)),
+                inference=inference,
+                # Only the test episodes are recorded: they are the ones the report shows.
+                video_episodes=config.video_episodes if config.video and seeds == config.test_seeds() else 0,
+                backend=config.backend,
+                cameras=cameras,
+            )
+
+        evaluated = evaluate_with_selection(
+            candidates,
+            config.selection,
+            run_episodes,
+            lambda outcome: [result.success for result in outcome[1]],
+            config.validation_seeds(),
+            config.test_seeds(),
         )
+        summary, results = evaluated.test
+        summary.update(evaluated.selection.validation_summary(config.validation_top_k))
+        summary["candidates"] = len(candidates)
+        summary["training_seed"] = args.seed
+        if "validation_max_success_rate" in summary:
+            summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
+        policy = load_policy(evaluated.selection.chosen.path)
         policy.configure_inference(**inference)
         summary.update(
             buffer_latency(
@@ -68,20 +101,32 @@ def main() -> None:
                 with_images=cameras is not None,
             )
         )
-        report = evaluation_report(args.task, args.policy)
+        report = evaluation_report(args.task, args.policy, args.seed)
+        report.parent.mkdir(parents=True, exist_ok=True)
         write_json(report, summary)
-        episodes = report.with_name(f"{args.policy}_episodes.csv")
+        episodes = report.with_name(f"{report.stem}_episodes.csv")
         episodes_table(results).to_csv(episodes, index=False)
+        validation = report.with_name(f"{report.stem}_validation.csv")
+        validation_table(evaluated.validation).to_csv(validation, index=False)
         run.log_metrics(summary)
         run.log_artifact(episodes)
-        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}"):
+        run.log_artifact(validation)
+        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}_seed{args.seed}"):
             run.log_artifact(video)
     print(
-        f"{args.task} {args.policy} ({summary['backend']}): success {summary['successes']}/{summary['episodes']} "
+        f"{args.task} {args.policy} seed {args.seed} (epoch {summary['selected_epoch']}, {config.selection}, "
+        f"{summary['backend']}): success {summary['successes']}/{summary['episodes']} "
         f"({100 * summary['success_rate']:.1f}%, 95% CI {100 * summary['success_rate_ci_low']:.1f}-"
         f"{100 * summary['success_rate_ci_high']:.1f}%), latency per chunk "
         f"{summary['latency_predict_ms_median']:.2f} ms predict + {summary['latency_decode_ms_median']:.2f} ms decode"
     )
+
+
+def validation_table(validation: dict) -> pd.DataFrame:
+    """The validation episodes of every candidate: epoch, then the per-episode records."""
+    frames = [episodes_table(results).assign(epoch=epoch) for epoch, (_, results) in sorted(validation.items())]
+    columns = ["epoch", "seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]
+    return pd.concat(frames, ignore_index=True)[columns] if frames else pd.DataFrame(columns=columns)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from stage_support import (
 from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
+from carp.reporting.comparison import RunResults, pooled_metrics
 from carp.reporting.report import ReportInputs, write_report
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
@@ -31,18 +32,28 @@ def main() -> None:
     args = parse_args(__doc__)
     params = load(args.params)
     tokenizer_history = TOKENIZER_REPORT_DIR / "history.csv"
+    runs = {
+        task: {policy: {seed: _run_results(task, policy, seed) for seed in params.seeds} for policy in params.policies}
+        for task in params.tasks
+    }
+    # The training curves of each family's first seed; the others' histories sit beside them.
+    first_seed = params.seeds[0]
     inputs = ReportInputs(
         evaluation={
-            task: {policy: json.loads(evaluation_report(task, policy).read_text()) for policy in params.policies}
-            for task in params.tasks
+            task: {policy: pooled_metrics(seed_runs) for policy, seed_runs in task_runs.items()}
+            for task, task_runs in runs.items()
         },
+        runs=runs,
+        max_steps={task: params.eval.max_steps[task] for task in params.tasks},
+        margin=params.comparison.margin,
+        alpha=params.comparison.alpha,
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
         tokenizer_history=pd.read_csv(tokenizer_history) if tokenizer_history.exists() else None,
         policy_histories={
             task: {
-                policy: pd.read_csv(policy_report_dir(task, policy) / "history.csv")
+                policy: pd.read_csv(policy_report_dir(task, policy, first_seed) / "history.csv")
                 for policy in params.policies
-                if (policy_report_dir(task, policy) / "history.csv").exists()
+                if (policy_report_dir(task, policy, first_seed) / "history.csv").exists()
             }
             for task in params.tasks
         },
@@ -51,7 +62,12 @@ def main() -> None:
             task: frames for task in params.tasks if (frames := episode_images(PROCESSED_DIR / task / BUFFER_DIRNAME))
         },
         videos={
-            task: [video for policy in params.policies for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}")]
+            task: [
+                video
+                for policy in params.policies
+                for seed in params.seeds
+                for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}_seed{seed}")
+            ]
             for task in params.tasks
         },
         sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
@@ -62,6 +78,11 @@ def main() -> None:
     title = f"carp report: {', '.join(params.tasks)} ({', '.join(params.policies)})"
     markdown, html = write_report(inputs, REPORTS_DIR, title=title)
     print(f"wrote {markdown.relative_to(PROJECT_DIR)} and {html.relative_to(PROJECT_DIR)}")
+
+
+def _run_results(task: str, policy: str, seed: int) -> RunResults:
+    summary = evaluation_report(task, policy, seed)
+    return RunResults(json.loads(summary.read_text()), pd.read_csv(summary.with_name(f"{summary.stem}_episodes.csv")))
 
 
 def _json_or_none(path):

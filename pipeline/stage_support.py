@@ -58,22 +58,25 @@ def project_root() -> Path:
 
 
 def parse_args(description: str, per_task: bool = False, per_policy: bool = False) -> argparse.Namespace:
-    """Common command line: ``--params``, ``--task`` for per-task stages, ``--policy`` for per-family stages."""
+    """Common command line: ``--params``, ``--task`` for per-task stages, ``--policy --seed`` for per-family stages."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
     if per_task:
         parser.add_argument("--task", required=True)
     if per_policy:
         parser.add_argument("--policy", required=True, help="a policy family listed in `policies`")
+        parser.add_argument("--seed", type=int, required=True, help="a training seed listed in `seeds`")
     return parser.parse_args()
 
 
 def policy_stage_args(description: str) -> tuple[argparse.Namespace, Params]:
-    """Command line and params of a per-(task, family) stage; exit with one line when ``--policy`` is not listed."""
+    """Command line and params of a per-(task, family, seed) stage; one line and exit 1 when one is not listed."""
     args = parse_args(description, per_task=True, per_policy=True)
     params = load(args.params)
     if args.policy not in params.policies:
         fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    if args.seed not in params.seeds:
+        fail(f"{args.params}: seeds={list(params.seeds)}: --seed {args.seed} is not listed")
     return args, params
 
 
@@ -91,19 +94,24 @@ def camera_settings(params: Params) -> "RenderSettings | None":
     return RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
 
 
-def policy_dir(task: str, policy: str) -> Path:
-    """``models/policy/<task>/<policy>``: the checkpoint ``policy.pt`` of one (task, family) pair."""
-    return POLICY_DIR / task / policy
+def seed_name(seed: int) -> str:
+    """``seed<seed>``: the path part of one training seed's outputs."""
+    return f"seed{seed}"
 
 
-def policy_report_dir(task: str, policy: str) -> Path:
-    """``reports/policy/<task>/<policy>``: training history and metrics of one (task, family) pair."""
-    return POLICY_REPORT_DIR / task / policy
+def policy_dir(task: str, policy: str, seed: int) -> Path:
+    """``models/policy/<task>/<policy>/seed<seed>``: the checkpoint ``policy.pt`` (and ``snapshots/``) of one run."""
+    return POLICY_DIR / task / policy / seed_name(seed)
 
 
-def evaluation_report(task: str, policy: str) -> Path:
-    """``reports/eval/<task>/<policy>.json``: evaluation summary of one (task, family) pair."""
-    return EVAL_REPORT_DIR / task / f"{policy}.json"
+def policy_report_dir(task: str, policy: str, seed: int) -> Path:
+    """``reports/policy/<task>/<policy>/seed<seed>``: training history and metrics of one run."""
+    return POLICY_REPORT_DIR / task / policy / seed_name(seed)
+
+
+def evaluation_report(task: str, policy: str, seed: int) -> Path:
+    """``reports/eval/<task>/<policy>/seed<seed>.json``: evaluation summary of one run (episodes beside it)."""
+    return EVAL_REPORT_DIR / task / policy / f"{seed_name(seed)}.json"
 
 
 def load(path: Path) -> Params:

@@ -80,7 +80,12 @@ def main() -> None:
     runner = DvcExperimentRunner(
         PROJECT_DIR,
         TOKENIZER_REPORT_DIR / "metrics.json",
-        [evaluation_report(task, policy) for task in params.tasks for policy in params.policies],
+        [
+            evaluation_report(task, policy, seed)
+            for task in params.tasks
+            for policy in params.policies
+            for seed in params.seeds
+        ],
         config.git_remote,
         os.environ,
     )

@@ -1,4 +1,4 @@
-"""train_policy stage: a task's processed data + the referenced tokenizer -> models/policy/<task>/<policy>/policy.pt.
+"""train_policy stage: a task's processed data + the tokenizer -> models/policy/<task>/<policy>/seed<seed>/policy.pt.
 
 With `training.num_processes` above 1 the script checks its inputs, then starts itself again as that many processes
 under torchrun (`carp.training.distributed`); rank 0 logs to MLflow and writes the outputs, the others only train.
@@ -20,6 +20,7 @@ from stage_support import (
     policy_dir,
     policy_report_dir,
     policy_stage_args,
+    seed_name,
     select_device,
     setup_logging,
 )
@@ -94,30 +95,33 @@ def main() -> None:
             device,
         )  # fmt: skip
     family_config = params.family_config(args.policy)
-    checkpoint_dir = CHECKPOINT_DIR / "policy" / args.task / args.policy
+    training = params.training_for_seed(args.seed)
+    checkpoint_dir = CHECKPOINT_DIR / "policy" / args.task / args.policy / seed_name(args.seed)
     try:
         if rank != 0:
             train_task_policy(
-                args.policy, family_config, params.training, params.data, inputs, args.task, checkpoint_dir, device
+                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device
             )
             return
         tags = {
             "carp.tokenizer": inputs.reference.uri,
             "carp.training_precision": precision_name(resolve_precision(params.training.precision, device)),
             "carp.policy_type": args.policy,
+            "carp.training_seed": str(args.seed),
         }
         outputs = TaskPolicyOutputs(
-            policy_dir(args.task, args.policy) / "policy.pt", policy_report_dir(args.task, args.policy)
+            policy_dir(args.task, args.policy, args.seed) / "policy.pt",
+            policy_report_dir(args.task, args.policy, args.seed),
         )
-        with mlflow_stage(params, f"train_policy@{args.task}-{args.policy}", args.task, tags) as run:
+        with mlflow_stage(params, f"train_policy@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
             metrics = train_and_write_task_policy(
-                args.policy, family_config, params.training, params.data, inputs, args.task, checkpoint_dir, device,
-                outputs, run,
+                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device, outputs,
+                run,
             )  # fmt: skip
     finally:
         distributed.stop_process_group()
     print(
-        f"{args.task} {args.policy}: final loss {metrics['final_loss']:.4f}, held-out action RMSE "
+        f"{args.task} {args.policy} seed {args.seed}: final loss {metrics['final_loss']:.4f}, held-out action RMSE "
         f"{metrics.get('valid_action_rmse', float('nan')):.4f}"
     )
 

@@ -92,6 +92,26 @@ def test_defaults_follow_the_design():
         ),
         ({"tokenizer": {"tasks": ["can"]}}, "tokenizer.tasks=['can']: every tokenizer task must also be in tasks"),
         ({"colour": "red"}, "colour: unknown key"),
+        ({"seeds": []}, "seeds=[]: must list at least one training seed"),
+        ({"seeds": [0, 0]}, "seeds=[0, 0]: must not repeat a seed"),
+        ({"seeds": [-1]}, "seeds=[-1]: every seed must be >= 0"),
+        (
+            {"training": {"seed": 3}},
+            "training.seed=3: set by the pipeline for each run, not in params.yaml (training seeds",
+        ),
+        ({"training": {"snapshot_every": -1}}, "training.snapshot_every=-1: must be >= 0"),
+        ({"eval": {"selection": "best"}}, "eval.selection='best': must be one of ('final', 'best_validation',"),
+        ({"eval": {"selection": "best_validation"}}, "eval.validation_episodes=0: must be >= 1 with selection"),
+        (
+            {"eval": {"validation_seed": 100_040, "validation_episodes": 20}},
+            "eval.validation_seed=100040: validation seeds [100040, 100060) overlap the test seeds [100000, 100050)",
+        ),
+        (
+            {"eval": {"validation_seed": 250, "validation_episodes": 20}},
+            "eval.validation_seed=250: validation seeds [250, 270) overlap the collection seeds [0, 300)",
+        ),
+        ({"comparison": {"margin": 0}}, "comparison.margin=0.0: must lie in (0, 1)"),
+        ({"comparison": {"alpha": 0.5}}, "comparison.alpha=0.5: must lie in (0, 0.5)"),
         ({"data": [1, 2]}, "data: expected a mapping"),
         ({"data": {"observations": "depth"}}, "data.observations='depth': must be one of ('state', 'image')"),
         ({"data": {"cameras": []}}, "data.cameras=[]: must name at least one camera"),
@@ -170,6 +190,14 @@ def test_params_are_frozen_and_flatten():
     assert flat["codebook_size"] == "256"
     assert flat["carp.depth"] == "8" and flat["inference.carp.top_k"] == "1" and flat["training.epochs"] == "20"
     assert flat["scales"] == "[1, 2, 4]"
+
+
+def test_each_training_seed_gets_its_own_training_settings():
+    params = params_from_dict({"seeds": [0, 3], "eval": {"validation_episodes": 10}})
+    assert [params.training_for_seed(seed).seed for seed in params.seeds] == [0, 3]
+    assert params.training_for_seed(3).epochs == params.training.epochs
+    assert params.eval.validation_seeds()[:2] == [200_000, 200_001] and len(params.eval.validation_seeds()) == 10
+    assert params.eval.test_seeds() == list(range(100_000, 100_050))
 
 
 def test_policy_epochs_per_task_override_the_common_value():

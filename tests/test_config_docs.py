@@ -23,6 +23,7 @@ def test_every_field_of_every_config_section_is_documented():
         "eval.",
         "tracking.",
         "sweep.",
+        "comparison.",
         "image_encoder.",
         "carp.",
         "inference.carp.",

@@ -23,6 +23,9 @@ ACTION_DIMS = {"absolute": 10, "delta": 7}
 EVAL_BACKENDS = ("onnxruntime", "torch")
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 OBSERVATION_KINDS = ("state", "image")
+SELECTION_RULES = ("final", "best_validation", "lowest_loss")
+SET_BY_PIPELINE = "set_by_pipeline"
+"""Field metadata of a setting that the pipeline derives for each run and that ``params.yaml`` must not hold."""
 REGISTRY_URI_PREFIX = "models:/"
 # robomimic names a camera's images obs/<camera>_image (as carp.data.robomimic_schema does).
 IMAGE_KEY_SUFFIX = "_image"
@@ -375,7 +378,11 @@ class TrainingConfig:
         batch_size: Windows per optimizer step; an integer >= 1.
         checkpoint_every: Epochs between resumable training states in ``checkpoints/``; an integer >= 1. The last
             epoch is always saved.
-        seed: Seeds weight initialization and shuffling; any integer.
+        seed: The training seed of one run (weight initialization and shuffling); not a key of ``params.yaml``: the
+            pipeline trains once per entry of the top-level ``seeds`` and sets it from that entry.
+        snapshot_every: Epochs between the policy snapshots that training keeps for evaluation to select from
+            (``eval.selection``); an integer >= 0, where 0 keeps none. The final policy is always a candidate.
+        snapshot_last: Also keep a snapshot of each of the last this many epochs; an integer >= 0.
         precision: Matmul precision of training steps: ``auto`` trains with bfloat16 autocast where the hardware
             multiplies bfloat16 natively (CPUs with AMX or AVX512-BF16, CUDA GPUs that support it) and in float32
             elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
@@ -397,11 +404,19 @@ class TrainingConfig:
     epochs: int = 20
     batch_size: int = 64
     checkpoint_every: int = 1
-    seed: int = 0
+    seed: int = field(default=0, metadata={SET_BY_PIPELINE: True})
     precision: str = "auto"
     epochs_per_task: dict[str, int] = field(default_factory=dict)
     num_processes: int = 1
     epochs_per_policy: dict[str, int] = field(default_factory=dict)
+    snapshot_every: int = 0
+    snapshot_last: int = 0
+
+    def snapshot_epochs(self, epochs: int) -> tuple[int, ...]:
+        """The epochs (1-based, ascending) after which a run of `epochs` epochs keeps a policy snapshot."""
+        kept = {epoch for epoch in range(1, epochs + 1) if self.snapshot_every and epoch % self.snapshot_every == 0}
+        kept |= set(range(max(1, epochs - self.snapshot_last + 1), epochs + 1)) if self.snapshot_last else set()
+        return tuple(sorted(kept))
 
     def epochs_for(self, task: str, policy: str) -> int:
         """Epochs of family `policy` on `task`: its `epochs_per_policy` entry, else the task's, else `epochs`."""
@@ -425,6 +440,8 @@ class TrainingConfig:
             _require(policy in family_sections(), key, policy, f"family must be one of {list(family_sections())}")
             _require(isinstance(value, int) and value >= 1, key, value, "must be an integer >= 1")
         _require(self.num_processes >= 1, "training.num_processes", self.num_processes, "must be >= 1")
+        _require(self.snapshot_every >= 0, "training.snapshot_every", self.snapshot_every, "must be >= 0 (0 = none)")
+        _require(self.snapshot_last >= 0, "training.snapshot_last", self.snapshot_last, "must be >= 0")
         _require(
             self.num_processes <= self.batch_size,
             "training.num_processes",
@@ -470,6 +487,16 @@ class EvalConfig:
         backend: ``onnxruntime`` runs batch-1 inference as exported ONNX graphs, several times faster per chunk than
             the eager modules (see ``carp.policies.carp.onnx_policy``); ``torch`` runs the PyTorch modules. Both choose
             the same tokens.
+        selection: Which of a training run's candidate policies (its snapshots, ``training.snapshot_every`` and
+            ``snapshot_last``, and the final policy) is evaluated on the test seeds: ``final``, ``best_validation``
+            (the highest success on the validation seeds; ties go to the later epoch) or ``lowest_loss`` (the lowest
+            training loss of its epoch). The choice is fixed before any test episode runs.
+        validation_episodes: Episodes per candidate policy on the validation seeds; an integer >= 0, at least 1 with
+            ``selection: best_validation``. With 0 no validation episode runs.
+        validation_seed: First validation seed; an integer >= 0. Validation episode i uses ``validation_seed + i``;
+            the range must not overlap the test seeds ``[seed, seed + episodes)`` nor the collection seeds.
+        validation_top_k: The report's Diffusion-Policy-style figure: the mean validation success of the this many best
+            candidates, next to their maximum and the confirmed test success; an integer >= 1.
     """
 
     episodes: int = 50
@@ -479,6 +506,18 @@ class EvalConfig:
     video: bool = False
     video_episodes: int = 2
     backend: str = "onnxruntime"
+    selection: str = "final"
+    validation_episodes: int = 0
+    validation_seed: int = 200_000
+    validation_top_k: int = 3
+
+    def validation_seeds(self) -> list[int]:
+        """The seeds of the validation episodes, which select a checkpoint."""
+        return [self.validation_seed + index for index in range(self.validation_episodes)]
+
+    def test_seeds(self) -> list[int]:
+        """The seeds of the test episodes, which confirm the selected checkpoint."""
+        return [self.seed + index for index in range(self.episodes)]
 
     def __post_init__(self) -> None:
         _require(self.episodes >= 1, "eval.episodes", self.episodes, "must be >= 1")
@@ -489,6 +528,47 @@ class EvalConfig:
             _require(steps >= 1, f"eval.max_steps.{task}", steps, "must be >= 1")
         _require(self.video_episodes >= 0, "eval.video_episodes", self.video_episodes, "must be >= 0")
         _require(self.backend in EVAL_BACKENDS, "eval.backend", self.backend, f"must be one of {EVAL_BACKENDS}")
+        _require(
+            self.selection in SELECTION_RULES, "eval.selection", self.selection, f"must be one of {SELECTION_RULES}"
+        )
+        _require(self.validation_episodes >= 0, "eval.validation_episodes", self.validation_episodes, "must be >= 0")
+        _require(
+            self.selection != "best_validation" or self.validation_episodes >= 1,
+            "eval.validation_episodes",
+            self.validation_episodes,
+            "must be >= 1 with selection: best_validation",
+        )
+        _require(self.validation_seed >= 0, "eval.validation_seed", self.validation_seed, "must be >= 0")
+        _require(self.validation_top_k >= 1, "eval.validation_top_k", self.validation_top_k, "must be >= 1")
+        validation_end = self.validation_seed + self.validation_episodes
+        _require(
+            self.validation_episodes == 0
+            or validation_end <= self.seed
+            or self.validation_seed >= self.seed + self.episodes,
+            "eval.validation_seed",
+            self.validation_seed,
+            f"validation seeds [{self.validation_seed}, {validation_end}) overlap the test seeds "
+            f"[{self.seed}, {self.seed + self.episodes})",
+        )
+
+
+@dataclass(frozen=True)
+class ComparisonConfig:
+    """How the report compares policy families on a task (read by the report stage only).
+
+    Attributes:
+        margin: Equivalence margin in success rate (0.05 = 5 percentage points): two families are "on par" when the
+            (1 - 2 alpha) intervals of their paired difference lie inside (-margin, margin); a number in (0, 1).
+        alpha: Significance level of every test, after Holm's correction over all pairs of the run; a number in
+            (0, 0.5).
+    """
+
+    margin: float = 0.05
+    alpha: float = 0.05
+
+    def __post_init__(self) -> None:
+        _require(0 < self.margin < 1, "comparison.margin", self.margin, "must lie in (0, 1)")
+        _require(0 < self.alpha < 0.5, "comparison.alpha", self.alpha, "must lie in (0, 0.5)")
 
 
 @dataclass(frozen=True)
@@ -585,6 +665,9 @@ class Params:
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.
+        seeds: Training seeds: every family is trained and evaluated once per seed on every task (``train_policy``
+            and ``evaluate`` fan out over tasks x policies x seeds); integers >= 0, each at most once. The tokenizer
+            stays one per pipeline.
         device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
             rollouts run on the CPU.
         data: Demonstrations, ingestion and the time convention.
@@ -593,6 +676,7 @@ class Params:
         eval: Simulated evaluation.
         tracking: MLflow tracking.
         sweep: The Optuna sweep.
+        comparison: The report's comparison of families: equivalence margin and significance level.
         image_encoder: The camera encoder every family puts in front of its network with ``data.observations:
             image``; its cameras and image size are ``data.cameras`` and ``data.image_size``, which the section
             must not restate otherwise.
@@ -606,6 +690,7 @@ class Params:
     codebook_size: int = 512
     tasks: tuple[str, ...] = ("lift",)
     policies: tuple[str, ...] = ("carp",)
+    seeds: tuple[int, ...] = (0,)
     device: str = "auto"
     data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
@@ -613,6 +698,7 @@ class Params:
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
+    comparison: ComparisonConfig = field(default_factory=ComparisonConfig)
     image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
     families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
     inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
@@ -627,6 +713,9 @@ class Params:
         for name in self.policies:
             _require(name in known, "policies", list(self.policies), f"every family must be one of {list(known)}")
         _require(len(set(self.policies)) == len(self.policies), "policies", self.policies, "must not repeat a family")
+        _require(len(self.seeds) >= 1, "seeds", list(self.seeds), "must list at least one training seed")
+        _require(all(seed >= 0 for seed in self.seeds), "seeds", list(self.seeds), "every seed must be >= 0")
+        _require(len(set(self.seeds)) == len(self.seeds), "seeds", list(self.seeds), "must not repeat a seed")
         # Families without a section in the file take their defaults, so every registered family has a config.
         object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
         object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
@@ -668,6 +757,16 @@ class Params:
             f"evaluation seeds [{self.eval.seed}, {evaluation_end}) overlap the collection seeds "
             f"[{self.data.collection_seed}, {collection_end})",
         )
+        validation_end = self.eval.validation_seed + self.eval.validation_episodes
+        _require(
+            self.eval.validation_episodes == 0
+            or validation_end <= self.data.collection_seed
+            or self.eval.validation_seed >= collection_end,
+            "eval.validation_seed",
+            self.eval.validation_seed,
+            f"validation seeds [{self.eval.validation_seed}, {validation_end}) overlap the collection seeds "
+            f"[{self.data.collection_seed}, {collection_end})",
+        )
         for task in self.tokenizer.tasks:
             _require(
                 task in self.tasks,
@@ -677,6 +776,10 @@ class Params:
             )
         for task in self.tasks:
             _require(task in self.eval.max_steps, "eval.max_steps", self.eval.max_steps, f"has no entry for '{task}'")
+
+    def training_for_seed(self, seed: int) -> TrainingConfig:
+        """The training settings of the run with training seed `seed` (one entry of `seeds`)."""
+        return replace(self.training, seed=seed)
 
     def family_config(self, name: str) -> Any:
         """The params section of policy family `name` (its model and optimizer)."""
@@ -817,9 +920,15 @@ def _build(cls: type, raw: Any, prefix: str) -> Any:
     if dynamic:
         raw, values = _build_family_sections(raw, prefix)
         named = known | set(family_sections()) | {"inference"}
+    derived = {f.name for f in dataclasses.fields(cls) if f.metadata.get(SET_BY_PIPELINE)}
     for key in raw:
+        if key in derived:
+            raise ConfigError(
+                f"{prefix}{key}={raw[key]!r}: set by the pipeline for each run, not in params.yaml"
+                + (" (training seeds are the top-level list `seeds`, e.g. seeds: [0, 1, 2])" if key == "seed" else "")
+            )
         if key not in known:
-            names = ", ".join(sorted(named if dynamic else known))
+            names = ", ".join(sorted((named if dynamic else known) - derived))
             raise ConfigError(f"{prefix}{key}: unknown key (known: {names})")
     for name, value in raw.items():
         hint = hints[name]

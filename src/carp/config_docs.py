@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from carp.config import FAMILY_SECTIONS, Params, family_sections
+from carp.config import FAMILY_SECTIONS, SET_BY_PIPELINE, Params, family_sections
 
 _ENTRY = re.compile(r"^(\w+):\s*(.*)$")
 
@@ -128,6 +128,8 @@ def params_reference(root: type = Params) -> str:
         lines += ["", f"## {title}", "", summary, ""]
         for field in dataclasses.fields(cls):
             key = f"{prefix}{field.name}"
+            if field.metadata.get(SET_BY_PIPELINE):
+                continue  # not a key of params.yaml
             if field.metadata.get(FAMILY_SECTIONS):
                 names = ", ".join(
                     f"[`{_section_key(field.name, name)}`](#{_section_key(field.name, name)})"

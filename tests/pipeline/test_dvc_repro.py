@@ -25,19 +25,19 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         "data/processed/lift/normalization.json",
         "models/tokenizer/tokenizer.pt",
         "models/tokenizer_ref.json",
-        "models/policy/lift/carp/policy.pt",
+        "models/policy/lift/carp/seed0/policy.pt",
         "reports/tokenizer/metrics.json",
         "reports/tokenizer/reconstruction.png",
-        "reports/policy/lift/carp/metrics.json",
-        "reports/eval/lift/carp.json",
-        "reports/eval/lift/carp_episodes.csv",
+        "reports/policy/lift/carp/seed0/metrics.json",
+        "reports/eval/lift/carp/seed0.json",
+        "reports/eval/lift/carp/seed0_episodes.csv",
         "reports/report.md",
         "reports/report.html",
     ):
         assert (workspace / output).exists(), output
     with h5py.File(workspace / "data/raw/lift.hdf5", "r") as raw:
         assert len(raw["data"]) == 4
-    evaluation = json.loads((workspace / "reports/eval/lift/carp.json").read_text())
+    evaluation = json.loads((workspace / "reports/eval/lift/carp/seed0.json").read_text())
     assert evaluation["episodes"] == 2 and 0 <= evaluation["success_rate"] <= 1
     assert evaluation["latency_predict_ms_median"] > 0 and evaluation["top_k"] == 1
     reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())

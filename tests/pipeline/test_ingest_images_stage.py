@@ -93,10 +93,10 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
         40,
         3,
     )
-    checkpoint = torch.load(workspace / "models/policy/lift/carp/policy.pt", weights_only=False)
+    checkpoint = torch.load(workspace / "models/policy/lift/carp/seed0/policy.pt", weights_only=False)
     assert checkpoint["observations"]["kind"] == "image"
     assert tuple(checkpoint["observations"]["image_encoder"]["cameras"]) == ("agentview", "robot0_eye_in_hand")
-    evaluation = json.loads((workspace / "reports/eval/lift/carp.json").read_text())
+    evaluation = json.loads((workspace / "reports/eval/lift/carp/seed0.json").read_text())
     assert evaluation["episodes"] == 2 and evaluation["backend"] == "torch"  # the encoder runs in PyTorch
     assert evaluation["render_step_ms_median"] > 0 and evaluation["latency_predict_ms_median"] > 0
     assert evaluation["batched_latency_predict_ms_median"] > 0
@@ -105,8 +105,8 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     assert "## Success rate" in report and "## Camera images" in report
     assert (workspace / "reports/figures/cameras_lift.png").exists()
     assert "rendering the cameras:" in report
-    assert "## Rollout videos" in report and "(eval/videos/lift_carp_seed100000.gif)" in report
-    assert (workspace / "reports/eval/videos/lift_carp_seed100000.gif").stat().st_size > 0
+    assert "## Rollout videos" in report and "(eval/videos/lift_carp_seed0_seed100000.gif)" in report
+    assert (workspace / "reports/eval/videos/lift_carp_seed0_seed100000.gif").stat().st_size > 0
 
     second = run(dvc("repro"), workspace, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]

@@ -36,9 +36,9 @@ def test_two_processes_train_the_stage_and_rank_0_alone_logs_and_writes(tmp_path
     assert runs[0].data.params["training.num_processes"] == "2"
     losses = client.get_metric_history(runs[0].info.run_id, "loss")
     assert sorted(metric.step for metric in losses) == list(range(1, EPOCHS + 1))
-    history = pd.read_csv(workspace / "reports/policy/lift/diffusion_transformer/history.csv")
+    history = pd.read_csv(workspace / "reports/policy/lift/diffusion_transformer/seed0/history.csv")
     assert list(history["epoch"]) == list(range(1, EPOCHS + 1))
-    policy = load_policy(workspace / "models/policy/lift/diffusion_transformer/policy.pt")
+    policy = load_policy(workspace / "models/policy/lift/diffusion_transformer/seed0/policy.pt")
     assert policy.metadata["mlflow_run_id"] == runs[0].info.run_id
     state = workspace / "checkpoints/policy/lift/diffusion_transformer/training_state.pt"
     assert state.exists() and not list(state.parent.glob("*.tmp"))
@@ -55,7 +55,7 @@ def test_a_stage_started_by_another_torchrun_is_refused_in_one_line(tmp_path):
     torchrun = {"RANK": "0", "LOCAL_RANK": "0", "WORLD_SIZE": "3", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": "1"}
     completed = subprocess.run(
         [sys.executable, str(REPO / "pipeline/train_policy.py"), "--params", str(tmp_path / "params.yaml"), "--task",
-         "lift", "--policy", "carp"],
+         "lift", "--policy", "carp", "--seed", "0"],
         env={**os.environ, **torchrun}, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert completed.returncode == 1

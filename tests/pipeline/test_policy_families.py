@@ -30,15 +30,15 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     assert first.returncode == 0, first.stderr[-3000:]
     for policy in FAMILIES["policies"]:
         for output in (
-            f"models/policy/lift/{policy}/policy.pt",
-            f"reports/policy/lift/{policy}/metrics.json",
-            f"reports/policy/lift/{policy}/history.csv",
-            f"reports/eval/lift/{policy}.json",
-            f"reports/eval/lift/{policy}_episodes.csv",
+            f"models/policy/lift/{policy}/seed0/policy.pt",
+            f"reports/policy/lift/{policy}/seed0/metrics.json",
+            f"reports/policy/lift/{policy}/seed0/history.csv",
+            f"reports/eval/lift/{policy}/seed0.json",
+            f"reports/eval/lift/{policy}/seed0_episodes.csv",
         ):
             assert (workspace / output).exists(), output
-    carp = json.loads((workspace / "reports/eval/lift/carp.json").read_text())
-    baseline = json.loads((workspace / "reports/eval/lift/diffusion_transformer.json").read_text())
+    carp = json.loads((workspace / "reports/eval/lift/carp/seed0.json").read_text())
+    baseline = json.loads((workspace / "reports/eval/lift/diffusion_transformer/seed0.json").read_text())
     assert (carp["policy_type"], carp["backend"], carp["inference"]) == ("carp", "onnxruntime", "greedy")
     assert (baseline["policy_type"], baseline["backend"], baseline["inference"]) == (
         "diffusion_transformer",

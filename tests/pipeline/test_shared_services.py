@@ -35,7 +35,7 @@ RESTORED = (
     "data/raw/lift.hdf5",
     "data/processed/lift/normalization.json",
     "models/tokenizer/tokenizer.pt",
-    "models/policy/lift/carp/policy.pt",
+    "models/policy/lift/carp/seed0/policy.pt",
 )
 
 
@@ -153,7 +153,7 @@ def push_then_pull_into_a_fresh_clone(workspace: Path, clone: Path, env: dict | 
     run(["git", "commit", "-qm", "shared DVC remote"], workspace)
     run(dvc("push"), workspace, env)
     run(["git", "clone", "-q", str(workspace), str(clone)], clone.parent)
-    assert not (clone / "models/policy/lift/carp/policy.pt").exists()
+    assert not (clone / "models/policy/lift/carp/seed0/policy.pt").exists()
     run(dvc("pull"), clone, env)
     for output in RESTORED:
         assert (clone / output).read_bytes() == (workspace / output).read_bytes(), output

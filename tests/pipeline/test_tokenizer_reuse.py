@@ -64,9 +64,9 @@ def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
     assert json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())["sha256"] == reference["sha256"]
     assert {p.name: p.stat().st_mtime_ns for p in training_state.iterdir()} == state_before
     # The Square policy was trained against it and evaluated.
-    evaluation = json.loads((workspace / "reports/eval/square/carp.json").read_text())
+    evaluation = json.loads((workspace / "reports/eval/square/carp/seed0.json").read_text())
     assert evaluation["episodes"] == 1
-    checkpoint_metadata = torch.load(workspace / "models/policy/square/carp/policy.pt", weights_only=True)
+    checkpoint_metadata = torch.load(workspace / "models/policy/square/carp/seed0/policy.pt", weights_only=True)
     assert checkpoint_metadata["metadata"]["tokenizer"]["sha256"] == reference["sha256"]
 
     # A registered tokenizer that does not fit the params is refused with the differing field named.

@@ -56,7 +56,7 @@ def _with_other_codebook_size(checkpoint: dict) -> None:
     ids=["truncated", "another tokenizer of the same shape", "another codebook size"],
 )
 def test_evaluate_refuses_a_damaged_policy(workspace, damage, expected):
-    path = workspace / "models/policy/lift/carp/policy.pt"
+    path = workspace / "models/policy/lift/carp/seed0/policy.pt"
     path.parent.mkdir(parents=True, exist_ok=True)
     if damage is _truncate:
         tiny_policy().save(path)
@@ -65,7 +65,7 @@ def test_evaluate_refuses_a_damaged_policy(workspace, damage, expected):
         checkpoint = tiny_policy().to_checkpoint()
         damage(checkpoint)
         torch.save(checkpoint, path)
-    completed = _stage(workspace, "evaluate.py", "--task", "lift", "--policy", "carp")
+    completed = _stage(workspace, "evaluate.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     _assert_refused(completed, expected)
     if damage is _with_other_tokenizer:
         recorded = tiny_policy().tokenizer_artifact.sha256
@@ -93,7 +93,7 @@ def test_train_policy_refuses_a_damaged_or_unreferenced_tokenizer(workspace, dam
             f"models/tokenizer/tokenizer.pt: tokenizer weights have sha256 {artifact.sha256[:12]}..., not the sha256 "
             f"000000000000... recorded in {workspace / 'models/tokenizer_ref.json'}"
         )
-    completed = _stage(workspace, "train_policy.py", "--task", "lift", "--policy", "carp")
+    completed = _stage(workspace, "train_policy.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     _assert_refused(completed, expected)
     assert json.loads((workspace / "models/tokenizer_ref.json").read_text())["sha256"] == recorded
     assert not (workspace / "models/policy").exists() and not (workspace / "reports/policy").exists()

@@ -34,17 +34,17 @@ PARAMS = {
     "training": {"epochs": POLICY_EPOCHS, "checkpoint_every": 1},
     "eval": {"episodes": 4, "workers": 2, "video": False},
 }
-TIMING_COLUMNS = {"epoch_seconds", "samples_per_second", "seconds"}
+TIMING_COLUMNS = {"epoch_seconds", "samples_per_second", "seconds", "chunk_ms_median"}
 REFERENCE_OUTPUTS = (
     "models/tokenizer/tokenizer.pt",
     "models/tokenizer/tokenizer.json",
     "reports/tokenizer/metrics.json",
     "reports/tokenizer/history.csv",
-    "models/policy/lift/carp/policy.pt",
-    "reports/policy/lift/carp/metrics.json",
-    "reports/policy/lift/carp/history.csv",
-    "reports/eval/lift/carp.json",
-    "reports/eval/lift/carp_episodes.csv",
+    "models/policy/lift/carp/seed0/policy.pt",
+    "reports/policy/lift/carp/seed0/metrics.json",
+    "reports/policy/lift/carp/seed0/history.csv",
+    "reports/eval/lift/carp/seed0.json",
+    "reports/eval/lift/carp/seed0_episodes.csv",
 )
 
 
@@ -169,23 +169,23 @@ def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipelin
     workspace, reference = pipeline["workspace"], pipeline["reference"]
     state = workspace / "checkpoints/policy/lift/carp/training_state.pt"
     state.unlink()
-    process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
+    process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     _kill_when(process, state.exists)
     killed_at = _training_epochs(state)
     assert 0 < killed_at < POLICY_EPOCHS
 
-    log = _rerun(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp")
+    log = _rerun(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     assert f"resuming carp training from {state}" in log
-    resumed = torch.load(workspace / "models/policy/lift/carp/policy.pt", weights_only=True)
-    expected = torch.load(reference / "models/policy/lift/carp/policy.pt", weights_only=True)
+    resumed = torch.load(workspace / "models/policy/lift/carp/seed0/policy.pt", weights_only=True)
+    expected = torch.load(reference / "models/policy/lift/carp/seed0/policy.pt", weights_only=True)
     _assert_same_tensors(expected.pop("transformer_state"), resumed.pop("transformer_state"))
     _assert_same_tensors(expected["tokenizer"].pop("state_dict"), resumed["tokenizer"].pop("state_dict"))
     # The rerun is another MLflow run; everything else in the metadata is the same.
     assert resumed["metadata"].pop("mlflow_run_id") != expected["metadata"].pop("mlflow_run_id")
     assert resumed == expected
-    name = "reports/policy/lift/carp/metrics.json"
+    name = "reports/policy/lift/carp/seed0/metrics.json"
     assert json.loads((workspace / name).read_text()) == json.loads((reference / name).read_text())
-    history = "reports/policy/lift/carp/history.csv"
+    history = "reports/policy/lift/carp/seed0/history.csv"
     _assert_same_table(reference / history, workspace / history)
     _assert_no_leftover_temporaries(workspace / "checkpoints")
 
@@ -193,23 +193,23 @@ def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipelin
 @pytest.mark.slow
 def test_evaluate_killed_mid_way_runs_again_to_the_same_episodes_and_leaves_no_onnx_folder(pipeline):
     workspace, reference, temp_directory = pipeline["workspace"], pipeline["reference"], pipeline["tmp"]
-    outputs = workspace / "reports/eval/lift"
-    for name in ("carp.json", "carp_episodes.csv"):
+    outputs = workspace / "reports/eval/lift/carp"
+    for name in ("seed0.json", "seed0_episodes.csv"):
         (outputs / name).unlink()
 
     def graphs_exported() -> bool:
         return any(temp_directory.glob("carp-onnx-*/decoding.onnx"))
 
-    process = _stage(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp")
+    process = _stage(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     _kill_when(process, graphs_exported)
     left_behind = sorted(temp_directory.glob("carp-onnx-*"))
     assert len(left_behind) == 1, "the killed evaluation's folder is still there until the next evaluation"
-    assert not (outputs / "carp.json").exists() and not (outputs / "carp_episodes.csv").exists()
+    assert not (outputs / "seed0.json").exists() and not (outputs / "seed0_episodes.csv").exists()
 
-    _rerun(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp")
+    _rerun(pipeline, "pipeline/evaluate.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     assert not list(temp_directory.glob("carp-onnx-*")), "no ONNX folder outlives the evaluations"
-    _assert_same_table(reference / "reports/eval/lift/carp_episodes.csv", outputs / "carp_episodes.csv")
-    summary = "reports/eval/lift/carp.json"
+    _assert_same_table(reference / "reports/eval/lift/carp/seed0_episodes.csv", outputs / "seed0_episodes.csv")
+    summary = "reports/eval/lift/carp/seed0.json"
     resumed, expected = (json.loads((path / summary).read_text()) for path in (workspace, reference))
     assert {key: value for key, value in resumed.items() if "latency" not in key} == {
         key: value for key, value in expected.items() if "latency" not in key

@@ -119,7 +119,7 @@ def test_rollout_videos_are_shown_as_animated_gifs_in_both_documents(tmp_path, i
     videos = write_episode_videos([episode], tmp_path / "eval" / "videos", "lift_carp")
     markdown_path, html_path = write_report(dataclasses.replace(inputs, videos={"lift": videos}), tmp_path / "out")
     assert "## Rollout videos" in markdown_path.read_text()
-    assert "../eval/videos/lift_carp_seed100000.gif" in markdown_path.read_text()
+    assert "../eval/videos/lift_carp_seed0_seed100000.gif" in markdown_path.read_text()
     embedded = re.findall(r"src='data:image/gif;base64,([^']+)'", html_path.read_text())
     assert len(embedded) == 1 and base64.b64decode(embedded[0]) == videos[0].read_bytes()
 

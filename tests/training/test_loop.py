@@ -6,11 +6,13 @@ from torch import nn
 
 from carp.config import TrainingConfig
 from carp.training.loop import (
+    SNAPSHOT_DIRNAME,
     OptimizerRecipe,
     PolicyTrainingData,
     TrainingStep,
     make_optimizer,
     matrix_decay_groups,
+    snapshot_path,
     train_with_loss,
 )
 
@@ -115,3 +117,51 @@ def test_matrix_decay_groups_decay_weight_matrices_only():
         "norm.weight",
         "token_embedding.weight",
     ]
+
+
+class SavingPolicy(LinearPolicy):
+    """A linear policy that saves its weights, as a family's policy saves its checkpoint."""
+
+    def save(self, path) -> None:
+        torch.save({name: value.clone() for name, value in self.state_dict().items()}, path)
+
+
+def _train_with_snapshots(tmp_path, epochs: int, ema: bool = False) -> SavingPolicy:
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    torch.manual_seed(0)
+    training = TrainingConfig(epochs=epochs, batch_size=4, checkpoint_every=1, snapshot_every=2, snapshot_last=1)
+    average = (lambda module: AveragedModel(module, multi_avg_fn=get_ema_multi_avg_fn(0.5))) if ema else None
+    recipe = OptimizerRecipe(learning_rate=1e-2, ema=average)
+    return train_with_loss(SavingPolicy(), _data(), recipe, training, tmp_path, {"name": "saving"})
+
+
+def test_snapshots_are_kept_at_the_asked_epochs_and_hold_the_averaged_weights(tmp_path):
+    final = _train_with_snapshots(tmp_path, epochs=5, ema=True)
+    snapshots = sorted(path.name for path in (tmp_path / SNAPSHOT_DIRNAME).iterdir())
+    assert snapshots == ["epoch0002.pt", "epoch0004.pt", "epoch0005.pt"]
+    # The last epoch's snapshot is what evaluation loads: the EMA weights the returned policy holds.
+    last = torch.load(snapshot_path(tmp_path / SNAPSHOT_DIRNAME, 5))
+    assert torch.equal(last["linear.weight"], final.linear.weight)
+    assert not torch.equal(
+        torch.load(snapshot_path(tmp_path / SNAPSHOT_DIRNAME, 2))["linear.weight"], last["linear.weight"]
+    )
+
+
+def test_a_fresh_run_clears_snapshots_a_resumed_run_keeps_them(tmp_path):
+    snapshot_dir = tmp_path / SNAPSHOT_DIRNAME
+    snapshot_dir.mkdir()
+    stale = snapshot_path(snapshot_dir, 3)
+    stale.write_bytes(b"from another run")
+    _train_with_snapshots(tmp_path, epochs=2)
+    assert sorted(path.name for path in snapshot_dir.iterdir()) == ["epoch0002.pt"]
+    kept = snapshot_path(snapshot_dir, 2).read_bytes()
+    # The finished state resumes at its last epoch: nothing retrains, the snapshot stays as it was.
+    _train_with_snapshots(tmp_path, epochs=2)
+    assert snapshot_path(snapshot_dir, 2).read_bytes() == kept
+
+
+def test_snapshot_epochs_combine_every_n_and_the_last_k():
+    assert TrainingConfig(snapshot_every=3, snapshot_last=2).snapshot_epochs(10) == (3, 6, 9, 10)
+    assert TrainingConfig(snapshot_last=20).snapshot_epochs(3) == (1, 2, 3)
+    assert TrainingConfig().snapshot_epochs(10) == ()

@@ -46,7 +46,7 @@ def summarize_episodes(
     prediction_seconds: Sequence[float],
     decoding_seconds: Sequence[float],
 ) -> dict[str, float]:
-    """The metrics of one task's evaluation (the keys of ``reports/eval/<task>.json``).
+    """The metrics of one task's evaluation (the keys of ``reports/eval/<task>/<policy>/seed<seed>.json``).
 
     Args:
         successes: per episode, whether the env's success check fired.

@@ -121,10 +121,15 @@ def policy_facts(policy: Policy) -> dict[str, Any]:
 
 
 def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
-    """Per-episode records: seed, success, steps, seconds, chunks, error."""
+    """Per-episode records: seed, success, steps, seconds, chunks, median chunk latency (ms), error.
+
+    ``chunk_ms_median`` is the episode's median of prediction plus decoding per chunk at batch 1 (NaN without a
+    chunk); the report's latency ratios resample it over episodes.
+    """
     rows = []
     for result in results:
         record = asdict(result)
+        chunk_seconds = np.add(record["prediction_seconds"], record["decoding_seconds"])
         rows.append(
             {
                 "seed": record["seed"],
@@ -132,6 +137,7 @@ def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
                 "steps": record["steps"],
                 "seconds": round(record["seconds"], 3),
                 "chunks": len(record["prediction_seconds"]),
+                "chunk_ms_median": round(float(np.median(chunk_seconds)) * 1000, 4) if chunk_seconds.size else np.nan,
                 "error": record["error"],
             }
         )

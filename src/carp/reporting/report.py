@@ -19,7 +19,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from carp.evaluation import statistics  # noqa: E402
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
+from carp.reporting import comparison  # noqa: E402
+from carp.reporting.comparison import Runs  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
 
 
@@ -39,7 +42,7 @@ class ReportInputs:
     """Everything a report is made of (all optional except the evaluation metrics).
 
     Attributes:
-        evaluation: task -> policy family -> evaluation metrics dict (``reports/eval/<task>/<policy>.json``).
+        evaluation: task -> policy family -> evaluation metrics dict (``reports/eval/<task>/<policy>/seed<seed>.json``, pooled over the seeds with `runs`).
         tokenizer_metrics: tokenizer reconstruction metrics (``reports/tokenizer/metrics.json``).
         tokenizer_history: per-epoch tokenizer losses.
         policy_histories: task -> policy family -> per-epoch losses (and CARP's token accuracies); their
@@ -48,6 +51,13 @@ class ReportInputs:
         camera_frames: task -> obs key -> (T, H, W, 3) uint8 frames of one demo, for runs on camera images; the
             report draws a grid of them per task to check by eye that the rendered observations look right.
         videos: task -> the evaluation's recorded episodes as GIFs (``eval.video``), shown under each task.
+        runs: task -> policy family -> training seed -> that seed's summary and test episodes
+            (`carp.reporting.comparison.RunResults`); with it the report adds the per-seed tables, the paired
+            comparisons with their verdicts, the steps-to-success curves and the paper's claims. `evaluation` then
+            holds each family's figures pooled over its seeds (`carp.reporting.comparison.pooled_metrics`).
+        max_steps: task -> episode step limit (the curves' horizon).
+        margin: equivalence margin of the verdicts, in success rate.
+        alpha: significance level of the verdicts after Holm's correction.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
         versions: package -> version (robosuite, mujoco, torch, ...).
         git_commit: commit the pipeline ran at.
@@ -61,6 +71,10 @@ class ReportInputs:
     reconstruction_figure: Path | None = None
     camera_frames: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict)
     videos: Mapping[str, Sequence[Path]] = field(default_factory=dict)
+    runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
+    max_steps: Mapping[str, int] = field(default_factory=dict)
+    margin: float = 0.05
+    alpha: float = 0.05
     sweep_trials: pd.DataFrame | None = None
     versions: Mapping[str, str] = field(default_factory=dict)
     git_commit: str = "unknown"
@@ -316,6 +330,8 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         )
         for task, policies in inputs.evaluation.items()
     ]
+    if inputs.runs:
+        sections += comparison_sections(inputs, figures_dir)
     sections += [
         Section(
             "Success rate",
@@ -420,6 +436,60 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             code=inputs.params_yaml,
         )
     )
+    return sections
+
+
+def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
+    """The comparison sections: per task the seeds, families, paired verdicts and steps to success; then the claims."""
+    decided = comparison.compare_families(inputs.runs, margin=inputs.margin, alpha=inputs.alpha)
+    margin_points = 100 * inputs.margin
+    sections = []
+    for task, task_runs in inputs.runs.items():
+        section = Section(
+            f"Comparison on {task}",
+            paragraphs=[
+                "Each training seed's selected checkpoint, confirmed once on the test seeds. With validation "
+                "episodes, the best validation success over the candidates (what selecting on the test seeds would "
+                "report, as Diffusion Policy and robomimic do) and the mean of the best few stand next to it; the gap "
+                "is the optimism that selection on the test seeds would have added.",
+                "Each family over its seeds: the pooled rate with its Wilson interval, the mean over seeds with a "
+                "two-level bootstrap interval (seeds, then episodes), the between-seed intra-class correlation and "
+                "the episodes it is worth once seeds are taken into account.",
+            ],
+            tables=[comparison.seed_table(task_runs), comparison.family_table(task_runs)],
+        )
+        pairs = decided.get(task, [])
+        if pairs:
+            section.paragraphs.append(
+                "Pairs of families on the same episode seeds (and training seeds paired by number): the paired "
+                "difference with Newcombe's interval and the two-level bootstrap interval, the exact McNemar test on "
+                "the discordant episodes, a permutation test over seeds (from two seeds per family), a logrank test "
+                f"of the steps to success, and Holm's correction over every pair of the run at alpha {inputs.alpha}. "
+                f'"On par" means both 90% intervals lie within +-{margin_points:.0f} points; the verdict never ranks '
+                "what the data does not rank."
+            )
+            section.paragraphs += [f"{pair.verdict}: {pair.explanation}" for pair in pairs]
+            section.tables.append(statistics.comparison_table(pairs))
+        max_steps = inputs.max_steps.get(task)
+        if max_steps:
+            section.figures.append(
+                comparison.plot_steps_to_success(
+                    task_runs, max_steps, figures_dir / f"steps_to_success_{task}.png", f"steps to success ({task})"
+                )
+            )
+        sections.append(section)
+    claims = comparison.claims_table(inputs.runs, decided)
+    if not claims.empty:
+        sections.append(
+            Section(
+                "The paper's claims on this run",
+                paragraphs=[
+                    "Each claim of the CARP paper that this run's families can check, with the verdict of the paired "
+                    "comparison or the latency ratio behind it. Precision at insertion needs a task that measures it."
+                ],
+                tables=[claims],
+            )
+        )
     return sections
 
 

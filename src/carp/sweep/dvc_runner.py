@@ -41,7 +41,7 @@ class DvcExperimentRunner:
         Args:
             workspace: the project directory; its `params.yaml` receives each trial's values.
             tokenizer_metrics: the `train_tokenizer` stage's metrics JSON.
-            evaluation_reports: the evaluation summary JSON of every evaluated (task, policy) pair.
+            evaluation_reports: the evaluation summary JSON of every evaluated (task, policy, training seed) run.
             git_remote: where experiments are pushed; empty pushes nothing.
             environment: the variables the tokenizer stage runs with, to which the trial's `DVC_EXP_NAME` is added.
         """

@@ -14,9 +14,11 @@ returns, besides the loss, sums of per-window metrics over the batch that the lo
 token accuracies).
 """
 
+import copy
 import hashlib
 import logging
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,6 +40,14 @@ from carp.training.runtime import autocast_to, precision_name, resolve_device, r
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "training_state.pt"
+SNAPSHOT_DIRNAME = "snapshots"
+
+
+def snapshot_path(directory: Path, epoch: int) -> Path:
+    """``<directory>/epoch<NNNN>.pt``: the policy snapshot kept after `epoch` (1-based)."""
+    return Path(directory) / f"epoch{epoch:04d}.pt"
+
+
 FINAL_LEARNING_RATE_FRACTION = 0.01
 FUSED_ADAMW_DEVICES = ("cpu", "cuda")
 """Device types with PyTorch's fused AdamW kernel, which updates every parameter in one pass instead of ~10 small
@@ -189,6 +199,17 @@ def data_digest(data: PolicyTrainingData) -> str:
     return digest.hexdigest()
 
 
+def save_snapshot(policy: Policy, ema: AveragedModel | None, path: Path) -> None:
+    """Save `policy` as evaluation would load it: with the averaged weights of `ema` when there is one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if ema is None:
+        policy.save(path)
+        return
+    averaged = copy.deepcopy(policy)
+    averaged.load_state_dict(ema.module.state_dict())
+    averaged.save(path)
+
+
 def _loss_only(policy: Policy) -> Callable[[dict[str, torch.Tensor]], TrainingStep]:
     def step(batch: dict[str, torch.Tensor]) -> TrainingStep:
         return TrainingStep(policy.training_loss(batch))
@@ -232,6 +253,11 @@ def train_with_loss(
             None trains on the windows as given.
         training_step: the loss and metric sums of one batch (see `PolicyTrainingData.batch`), run under the loop's
             autocast; None takes `policy.training_loss` and no metrics.
+
+    After each epoch of `training.snapshot_epochs(epochs)` the policy as evaluation would see it (the EMA weights
+    where the family averages) is saved to ``<checkpoint_dir>/snapshots/epoch<NNNN>.pt`` (`snapshot_path`), for
+    checkpoint selection. They live beside the training state so that a resumed run keeps the earlier ones; a run
+    that starts from its first epoch clears them.
 
     Several processes (a process group started by `carp.training.distributed.start_process_group`, each process
     calling this function with the same arguments) take the same optimizer steps as one: each trains on its share of
@@ -285,6 +311,9 @@ def train_with_loss(
         | {"ema": ema is not None, "parameter_groups": recipe.parameter_groups is not None},
         "data_sha256": digest,
     }
+    if training.snapshot_epochs(epochs):
+        # Snapshots of epochs a finished run did not keep cannot be made afterwards: another set retrains.
+        metadata["loop"]["snapshot_epochs"] = list(training.snapshot_epochs(epochs))
     processes = distributed.current_processes()
     if processes.is_distributed:
         # Per-process random draws make a state resume exactly only on as many processes as wrote it.
@@ -300,6 +329,10 @@ def train_with_loss(
     step_of = distributed.step_function(policy, training_step or _loss_only(policy), processes)
     if start_epoch > 0:
         logger.info("resuming %s training from %s at epoch %d", policy.policy_type, checkpoint_path, start_epoch)
+    snapshot_dir = Path(checkpoint_dir) / SNAPSHOT_DIRNAME
+    snapshot_epochs = set(training.snapshot_epochs(epochs))
+    if processes.is_main and start_epoch == 0:
+        shutil.rmtree(snapshot_dir, ignore_errors=True)
     for epoch in range(start_epoch, epochs):
         policy.train()
         started = time.perf_counter()
@@ -345,6 +378,8 @@ def train_with_loss(
             "samples_per_second": count / seconds,
         }
         history.append(metrics)
+        if processes.is_main and epoch + 1 in snapshot_epochs:
+            save_snapshot(policy, ema, snapshot_path(snapshot_dir, epoch + 1))
         if processes.is_main and ((epoch + 1) % training.checkpoint_every == 0 or epoch + 1 == epochs):
             save_training_state(checkpoint_path, trainable, optimizer, scheduler, epoch + 1, metadata, history)
         logger.info(

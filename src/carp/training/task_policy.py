@@ -6,7 +6,8 @@ inside a tracking run, measures the held-out action errors and writes the checkp
 process that writes outputs).
 """
 
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,7 +25,7 @@ from carp.policies.context import PolicyContext
 from carp.policies.registry import train_policy
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
-from carp.training.loop import PolicyTrainingData
+from carp.training.loop import SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
 
 if TYPE_CHECKING:
     from carp.tracking.runs import StageRun
@@ -63,7 +64,8 @@ class TaskPolicyOutputs:
     """Where a trained policy and its reports go.
 
     Attributes:
-        checkpoint: the policy file (`policy.pt`), read by evaluation.
+        checkpoint: the policy file (`policy.pt`), read by evaluation; the kept snapshots go beside it into
+            `snapshots/` (`carp.training.loop.snapshot_path`).
         report_dir: receives `history.csv` (one row per epoch) and `metrics.json` (held-out errors, final values).
     """
 
@@ -183,6 +185,28 @@ def train_task_policy(
     )
 
 
+def publish_snapshots(source_dir: Path, output_dir: Path, epochs: Sequence[int], final_epoch: int) -> list[Path]:
+    """Copy the training's kept snapshots of `epochs` into the stage's output, leaving out the final epoch's.
+
+    The final policy is written as `policy.pt` itself, so its snapshot would be a second copy of it.
+
+    Raises:
+        FileNotFoundError: a snapshot the training should have kept is missing.
+    """
+    copied = []
+    for epoch in epochs:
+        if epoch == final_epoch:
+            continue
+        source = snapshot_path(source_dir, epoch)
+        if not source.exists():
+            raise FileNotFoundError(f"{source}: the policy snapshot of epoch {epoch} is missing (train again)")
+        target = snapshot_path(output_dir, epoch)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+        copied.append(target)
+    return copied
+
+
 def train_and_write_task_policy(
     family: str,
     family_config: Any,
@@ -233,6 +257,12 @@ def train_and_write_task_policy(
     run.log_metrics(held_out)
     outputs.checkpoint.parent.mkdir(parents=True, exist_ok=True)
     policy.save(outputs.checkpoint)
+    publish_snapshots(
+        Path(checkpoint_dir) / SNAPSHOT_DIRNAME,
+        outputs.checkpoint.parent / SNAPSHOT_DIRNAME,
+        training.snapshot_epochs(training.epochs_for(task, family)),
+        final_epoch=len(history),
+    )
     write_history(outputs.report_dir / "history.csv", history)
     last = history[-1]
     final = {f"final_{key}": last[key] for key in FINAL_METRICS if key in last}

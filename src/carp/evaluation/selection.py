@@ -1,0 +1,198 @@
+"""Checkpoint selection that never looks at the test seeds.
+
+A training run leaves candidate policies: the final one and the snapshots it kept (`carp.training.loop`). Diffusion
+Policy and robomimic report the best of many checkpoint evaluations scored on the same test initial states, so the
+test set picks the checkpoint and the figure is biased upwards (a true 80% policy scores about 0.92 as the maximum of
+60 evaluations of 50 episodes). Here a rule picks one candidate from what training and the *validation* seeds say;
+only then does the chosen one run on the test seeds, once. `evaluate_with_selection` is the one place that order is
+kept, and the validation figures it returns let the report show the optimistic numbers next to the confirmed one.
+"""
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Generic, TypeVar
+
+from carp.config import SELECTION_RULES
+
+Outcome = TypeVar("Outcome")
+
+FINAL_POLICY_NAME = "policy.pt"
+_SNAPSHOT_NAME = re.compile(r"^epoch(\d+)\.pt$")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A policy a training run left behind.
+
+    Attributes:
+        epoch: the epoch (1-based) after which it was saved.
+        path: its checkpoint file.
+        training_loss: the mean training loss of that epoch.
+    """
+
+    epoch: int
+    path: Path
+    training_loss: float
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """A candidate's result on the validation seeds: its successes out of the episodes it ran."""
+
+    candidate: Candidate
+    successes: int
+    episodes: int
+
+    @property
+    def success_rate(self) -> float:
+        """Successes over episodes."""
+        return self.successes / self.episodes
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The chosen candidate, by which rule, and every candidate's validation score (empty without validation)."""
+
+    chosen: Candidate
+    rule: str
+    validation: tuple[CandidateScore, ...] = ()
+
+    def validation_summary(self, top_k: int) -> dict[str, float]:
+        """What the validation episodes say, next to which the report puts the confirmed test success.
+
+        Keys: ``candidates``, ``selected_epoch``, and with validation episodes ``validation_max_success_rate`` (the
+        best candidate, what test-set selection would report), ``validation_top_k_mean_success_rate`` (the mean of the
+        `top_k` best, Diffusion Policy's other figure), ``validation_top_k`` and ``selected_validation_success_rate``.
+        """
+        summary: dict[str, float] = {"selected_epoch": self.chosen.epoch}
+        if not self.validation:
+            return summary
+        rates = sorted((score.success_rate for score in self.validation), reverse=True)
+        kept = rates[: min(top_k, len(rates))]
+        chosen = next(score for score in self.validation if score.candidate == self.chosen)
+        return summary | {
+            "validation_max_success_rate": rates[0],
+            "validation_top_k_mean_success_rate": sum(kept) / len(kept),
+            "validation_top_k": len(kept),
+            "selected_validation_success_rate": chosen.success_rate,
+        }
+
+
+def find_candidates(policy_dir: Path, epoch_losses: Sequence[float]) -> list[Candidate]:
+    """The final policy and the kept snapshots of one training run, by epoch.
+
+    Args:
+        policy_dir: the run's output directory (`policy.pt` and `snapshots/epoch<NNNN>.pt`).
+        epoch_losses: the mean training loss of every epoch, in order (the run's history); the final policy is the
+            last epoch's.
+
+    Raises:
+        FileNotFoundError: there is no final policy.
+        ValueError: the history is empty or a snapshot's epoch lies beyond it.
+    """
+    policy_dir = Path(policy_dir)
+    final = policy_dir / FINAL_POLICY_NAME
+    if not final.exists():
+        raise FileNotFoundError(f"{final}: no trained policy (run the train_policy stage)")
+    if not epoch_losses:
+        raise ValueError(f"{policy_dir}: the training history has no epoch")
+    found = {len(epoch_losses): Candidate(len(epoch_losses), final, float(epoch_losses[-1]))}
+    for path in sorted((policy_dir / "snapshots").glob("epoch*.pt")):
+        match = _SNAPSHOT_NAME.match(path.name)
+        if match is None:
+            continue
+        epoch = int(match.group(1))
+        if not 1 <= epoch <= len(epoch_losses):
+            raise ValueError(f"{path}: epoch {epoch} lies outside the training history's {len(epoch_losses)} epochs")
+        found.setdefault(epoch, Candidate(epoch, path, float(epoch_losses[epoch - 1])))
+    return [found[epoch] for epoch in sorted(found)]
+
+
+def select_candidate(
+    candidates: Sequence[Candidate], rule: str, validation: Sequence[CandidateScore] = ()
+) -> Selection:
+    """Apply `rule` (one of `carp.config.SELECTION_RULES`); ties go to the later epoch.
+
+    Args:
+        candidates: at least one.
+        rule: ``final`` (the last epoch), ``lowest_loss`` (the lowest training loss) or ``best_validation`` (the
+            most validation successes, which needs a score per candidate).
+        validation: the candidates' validation scores, if any ran.
+
+    Raises:
+        ValueError: no candidate, an unknown rule, or best_validation without a score for every candidate.
+    """
+    if not candidates:
+        raise ValueError("there is no candidate policy to select from")
+    if rule not in SELECTION_RULES:
+        raise ValueError(f"selection rule {rule!r} must be one of {SELECTION_RULES}")
+    if rule == "final":
+        chosen = max(candidates, key=lambda candidate: candidate.epoch)
+    elif rule == "lowest_loss":
+        chosen = min(candidates, key=lambda candidate: (candidate.training_loss, -candidate.epoch))
+    else:
+        scores = {score.candidate: score for score in validation}
+        missing = [candidate.epoch for candidate in candidates if candidate not in scores]
+        if missing:
+            raise ValueError(f"best_validation needs validation episodes; epochs {missing} have none")
+        chosen = max(candidates, key=lambda candidate: (scores[candidate].success_rate, candidate.epoch))
+    return Selection(chosen, rule, tuple(validation))
+
+
+@dataclass(frozen=True)
+class SelectedEvaluation(Generic[Outcome]):
+    """What `evaluate_with_selection` ran.
+
+    Attributes:
+        selection: the chosen candidate and the validation scores.
+        validation: epoch -> that candidate's validation outcome (as `run_episodes` returned it).
+        test: the chosen candidate's outcome on the test seeds.
+    """
+
+    selection: Selection
+    validation: dict[int, Outcome]
+    test: Outcome
+
+
+def evaluate_with_selection(
+    candidates: Sequence[Candidate],
+    rule: str,
+    run_episodes: Callable[[Path, list[int]], Outcome],
+    successes_of: Callable[[Outcome], list[bool]],
+    validation_seeds: Sequence[int],
+    test_seeds: Sequence[int],
+) -> SelectedEvaluation[Outcome]:
+    """Score every candidate on the validation seeds, fix the choice, then run the chosen one on the test seeds.
+
+    The order is the guarantee: no test seed runs before the choice is made, and no validation episode uses a test
+    seed.
+
+    Args:
+        candidates: the run's candidates (`find_candidates`).
+        rule: see `select_candidate`.
+        run_episodes: runs a checkpoint on seeds, one episode each, and returns an outcome.
+        successes_of: the per-episode successes of an outcome, in seed order.
+        validation_seeds: episodes per candidate; may be empty (then no validation runs).
+        test_seeds: episodes of the chosen candidate; at least one.
+
+    Raises:
+        ValueError: the two seed lists share a seed, there is no test seed, or the rule cannot be applied.
+    """
+    shared = sorted(set(validation_seeds) & set(test_seeds))
+    if shared:
+        raise ValueError(f"validation and test seeds must be disjoint; both hold {shared[:5]}")
+    if not test_seeds:
+        raise ValueError("there is no test seed")
+    validation: dict[int, Outcome] = {}
+    scores = []
+    if validation_seeds:
+        for candidate in candidates:
+            outcome = run_episodes(candidate.path, list(validation_seeds))
+            successes = successes_of(outcome)
+            validation[candidate.epoch] = outcome
+            scores.append(CandidateScore(candidate, int(sum(bool(s) for s in successes)), len(successes)))
+    selection = select_candidate(candidates, rule, scores)
+    test = run_episodes(selection.chosen.path, list(test_seeds))
+    return SelectedEvaluation(selection, validation, test)

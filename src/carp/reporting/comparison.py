@@ -1,0 +1,323 @@
+"""The report's comparison of policy families: per-seed results, pooled figures, paired verdicts, the paper's claims.
+
+Every number comes from `carp.evaluation.statistics`; this module only arranges the evaluations (task -> family ->
+training seed -> summary and test episodes) into what those functions take and into tables and figures. Episodes pair
+across families by their episode seed (the same initial state), and training seeds pair by number.
+"""
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from itertools import combinations
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from carp.evaluation import statistics  # noqa: E402
+
+
+@dataclass(frozen=True)
+class RunResults:
+    """One training seed's evaluation of one family on one task.
+
+    Attributes:
+        metrics: the evaluation summary (``reports/eval/<task>/<family>/seed<seed>.json``).
+        episodes: the test episodes (``seed<seed>_episodes.csv``): at least ``seed``, ``success`` and ``steps``.
+    """
+
+    metrics: Mapping[str, Any]
+    episodes: pd.DataFrame
+
+
+Runs = Mapping[int, RunResults]
+"""Training seed -> that seed's results, for one family on one task."""
+
+PAPER_CLAIMS = (
+    ("CARP's success is on par with DP-C", "carp", "diffusion_unet", "on par"),
+    ("CARP's success is better than next-token's", "carp", "next_token", "better"),
+)
+"""(claim, family, rival, what the paper says of the pair) for the success claims a run can check."""
+
+SPEED_CLAIMS = (
+    ("CARP is about 10x faster per chunk than DP-C", "carp", "diffusion_unet"),
+    ("CARP is faster per chunk than DP-T", "carp", "diffusion_transformer"),
+)
+"""(claim, family, slower rival) for the inference-speed claims: the rival's latency over the family's."""
+
+
+def outcomes_by_seed(runs: Runs, episode_seeds: Sequence[int] | None = None) -> dict[int, np.ndarray]:
+    """Training seed -> (N,) bool test successes ordered by episode seed, restricted to `episode_seeds` if given."""
+    outcomes = {}
+    for seed, run in sorted(runs.items()):
+        episodes = run.episodes.sort_values("seed")
+        if episode_seeds is not None:
+            episodes = episodes[episodes["seed"].isin(episode_seeds)]
+        outcomes[seed] = episodes["success"].to_numpy(dtype=bool)
+    return outcomes
+
+
+def steps_by_seed(runs: Runs, episode_seeds: Sequence[int] | None = None) -> dict[int, np.ndarray]:
+    """Training seed -> (N,) int steps of each test episode, in the order of `outcomes_by_seed`."""
+    steps = {}
+    for seed, run in sorted(runs.items()):
+        episodes = run.episodes.sort_values("seed")
+        if episode_seeds is not None:
+            episodes = episodes[episodes["seed"].isin(episode_seeds)]
+        steps[seed] = episodes["steps"].to_numpy(dtype=np.int64)
+    return steps
+
+
+def pooled_metrics(runs: Runs) -> dict[str, Any]:
+    """One family's metrics over its training seeds, in the keys of a single evaluation summary.
+
+    Successes and episodes add up; the mean episode length is over every episode; latencies and the policy's facts
+    are the median over seeds (the same network at every seed). ``seeds`` counts the training seeds.
+    """
+    summaries = [run.metrics for _, run in sorted(runs.items())]
+    pooled: dict[str, Any] = dict(summaries[0])
+    episodes = sum(int(summary["episodes"]) for summary in summaries)
+    successes = sum(int(summary["successes"]) for summary in summaries)
+    low, high = statistics.wilson_interval(successes, episodes)
+    pooled.update(
+        episodes=episodes,
+        successes=successes,
+        success_rate=successes / episodes,
+        success_rate_ci_low=low,
+        success_rate_ci_high=high,
+        crashed_episodes=sum(int(summary.get("crashed_episodes", 0)) for summary in summaries),
+        mean_episode_steps=float(np.mean(np.concatenate([run.episodes["steps"].to_numpy() for run in runs.values()]))),
+        seeds=len(summaries),
+    )
+    for key in summaries[0]:
+        if "latency" in key and key.endswith(("_median", "_p90")):
+            pooled[key] = float(np.median([summary[key] for summary in summaries if key in summary]))
+    return pooled
+
+
+def seed_table(task_runs: Mapping[str, Runs]) -> pd.DataFrame:
+    """One row per (family, training seed): the selected checkpoint and its confirmed test success.
+
+    With validation episodes the Diffusion-Policy-style validation figures stand next to it, with the gap between them.
+    """
+    rows = []
+    for family, runs in task_runs.items():
+        for seed, run in sorted(runs.items()):
+            metrics = run.metrics
+            successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
+            low, high = statistics.wilson_interval(successes, episodes)
+            validation = "validation_max_success_rate" in metrics
+            rows.append(
+                {
+                    "policy": family,
+                    "seed": seed,
+                    "checkpoint": f"epoch {metrics.get('selected_epoch', '-')} of {metrics.get('candidates', 1)}",
+                    "test success": f"{successes}/{episodes}",
+                    "test rate": f"{100 * successes / episodes:.1f}% ({100 * low:.1f}-{100 * high:.1f}%)",
+                    "validation max": _percent(metrics.get("validation_max_success_rate")) if validation else "-",
+                    "validation top-k mean": (
+                        f"{_percent(metrics['validation_top_k_mean_success_rate'])} "
+                        f"(k={int(metrics['validation_top_k'])})"
+                        if validation
+                        else "-"
+                    ),
+                    "max - test": (
+                        f"{100 * metrics['validation_max_test_gap']:+.1f} points"
+                        if "validation_max_test_gap" in metrics
+                        else "-"
+                    ),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataFrame:
+    """One row per family: pooled and per-seed success, between-seed spread.
+
+    The pooled rate with its Wilson interval, the mean over seeds with its two-level bootstrap interval, the
+    between-seed intra-class correlation and the effective number of episodes.
+    """
+    rows = []
+    for family, runs in task_runs.items():
+        outcomes = list(outcomes_by_seed(runs).values())
+        successes = [int(values.sum()) for values in outcomes]
+        trials = [len(values) for values in outcomes]
+        total = sum(trials)
+        low, high = statistics.wilson_interval(sum(successes), total)
+        mean = statistics.two_level_bootstrap(outcomes, level=level)
+        icc = statistics.intraclass_correlation(successes, trials)
+        effective = statistics.effective_episodes(total, total / len(trials), icc)
+        rows.append(
+            {
+                "policy": family,
+                "seeds": len(trials),
+                "episodes": total,
+                "pooled rate": f"{100 * sum(successes) / total:.1f}% ({100 * low:.1f}-{100 * high:.1f}%)",
+                "mean over seeds": f"{100 * mean.estimate:.1f}% ({100 * mean.low:.1f}-{100 * mean.high:.1f}%)",
+                "per seed": ", ".join(f"{100 * s / n:.0f}%" for s, n in zip(successes, trials)),
+                "between-seed ICC": f"{icc:.3f}",
+                "effective episodes": f"{effective:.0f}",
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def compare_families(
+    evaluations: Mapping[str, Mapping[str, Runs]], margin: float, alpha: float, level: float = 0.95
+) -> dict[str, list["statistics.PairComparison"]]:
+    """Every pair of families on every task, compared on the episodes they share, with Holm over all the pairs.
+
+    Returns:
+        task -> its pairs' comparisons, verdicts decided (`statistics.decide_pairs`).
+    """
+    pairs: list[tuple[str, statistics.PairComparison]] = []
+    for task, task_runs in evaluations.items():
+        for first, second in combinations(task_runs, 2):
+            shared = _shared_episode_seeds(task_runs[first], task_runs[second])
+            comparison = statistics.compare_pair(
+                first,
+                outcomes_by_seed(task_runs[first], shared),
+                second,
+                outcomes_by_seed(task_runs[second], shared),
+                first_steps_by_seed=steps_by_seed(task_runs[first], shared),
+                second_steps_by_seed=steps_by_seed(task_runs[second], shared),
+                margin=margin,
+                alpha=alpha,
+                level=level,
+            )
+            pairs.append((task, comparison))
+    decided = statistics.decide_pairs([comparison for _, comparison in pairs], margin=margin, alpha=alpha)
+    by_task: dict[str, list[statistics.PairComparison]] = {task: [] for task in evaluations}
+    for (task, _), comparison in zip(pairs, decided):
+        by_task[task].append(comparison)
+    return by_task
+
+
+def _shared_episode_seeds(first: Runs, second: Runs) -> list[int]:
+    seeds = [set(run.episodes["seed"]) for run in (*first.values(), *second.values())]
+    return sorted(set.intersection(*seeds))
+
+
+def plot_steps_to_success(task_runs: Mapping[str, Runs], max_steps: int, path: Path, title: str) -> Path:
+    """Kaplan-Meier curves: the share of episodes succeeded by each control step, per family (seeds pooled).
+
+    A failure is censored at its last step, so two families with the same final success can still differ in how
+    fast they get there.
+    """
+    figure, axis = plt.subplots(figsize=(6, 3.4))
+    for family, runs in task_runs.items():
+        steps = np.concatenate(list(steps_by_seed(runs).values()))
+        success = np.concatenate(list(outcomes_by_seed(runs).values()))
+        curve = statistics.kaplan_meier(steps, success, max_steps)
+        axis.step(
+            np.concatenate([[0], curve.steps]), 100 * np.concatenate([[0], curve.success_share]), where="post",
+            label=family,
+        )  # fmt: skip
+    axis.set_xlim(0, max_steps)
+    axis.set_ylim(0, 105)
+    axis.set_xlabel("control step")
+    axis.set_ylabel("episodes succeeded (%)")
+    axis.set_title(title)
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def latency_ratio(slower: Runs, faster: Runs, level: float = 0.95, resamples: int = 4000, seed: int = 0):
+    """How many times longer a chunk takes `slower` than `faster`, with a percentile bootstrap interval.
+
+    The ratio of the median per-episode chunk latencies, resampled over episodes; None when an episode table lacks
+    latencies.
+    """
+    samples = []
+    for runs in (slower, faster):
+        frames = [run.episodes for run in runs.values()]
+        if not all("chunk_ms_median" in frame for frame in frames):
+            return None
+        values = np.concatenate([frame["chunk_ms_median"].to_numpy(dtype=float) for frame in frames])
+        samples.append(values[np.isfinite(values)])
+    if not all(len(values) for values in samples):
+        return None
+    generator = np.random.default_rng(seed)
+    medians = [
+        np.median(values[generator.integers(0, len(values), size=(resamples, len(values)))], axis=1)
+        for values in samples
+    ]
+    ratios = medians[0] / medians[1]
+    tail = 100 * (1 - level) / 2
+    return statistics.Interval(
+        float(np.median(samples[0]) / np.median(samples[1])),
+        float(np.percentile(ratios, tail)),
+        float(np.percentile(ratios, 100 - tail)),
+    )
+
+
+def claims_table(
+    evaluations: Mapping[str, Mapping[str, Runs]], comparisons: Mapping[str, Sequence["statistics.PairComparison"]]
+) -> pd.DataFrame:
+    """The paper's claims that this run can check, per task: the verdict and the numbers behind it.
+
+    A success claim holds when the paired verdict says what the paper says ("on par" also holds when CARP comes out
+    better); a speed claim states the latency ratio with its interval and holds when the interval lies above 1.
+    Claims about families the run did not train are left out; precision needs a task that measures it.
+    """
+    rows = []
+    for task, task_runs in evaluations.items():
+        for claim, family, rival, paper in PAPER_CLAIMS:
+            comparison = _find_pair(comparisons.get(task, ()), family, rival)
+            if comparison is None:
+                continue
+            verdict = _oriented_verdict(comparison, family, rival)
+            holds = {
+                "on par": verdict in ("on par", "better"),
+                "better": verdict == "better",
+            }[paper]
+            status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
+            rows.append({"task": task, "claim": claim, "verdict": status, "evidence": comparison.explanation})
+        for claim, family, rival in SPEED_CLAIMS:
+            if family not in task_runs or rival not in task_runs:
+                continue
+            ratio = latency_ratio(task_runs[rival], task_runs[family])
+            if ratio is None:
+                continue
+            rows.append(
+                {
+                    "task": task,
+                    "claim": claim,
+                    "verdict": "holds" if ratio.low > 1 else "does not hold",
+                    "evidence": f"{rival} takes {ratio.estimate:.1f}x as long per chunk as {family} at batch 1 "
+                    f"(95% bootstrap interval {ratio.low:.1f}-{ratio.high:.1f}x over episodes' median latencies)",
+                }
+            )
+    return pd.DataFrame(rows, columns=["task", "claim", "verdict", "evidence"])
+
+
+def _find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, rival: str):
+    for comparison in comparisons:
+        if {comparison.first, comparison.second} == {family, rival}:
+            return comparison
+    return None
+
+
+def _oriented_verdict(comparison: "statistics.PairComparison", family: str, rival: str) -> str:
+    """The pair's verdict from `family`'s side: "better", "worse", "on par" or "not decided"."""
+    verdict = comparison.verdict
+    if verdict.startswith("on par"):
+        return "on par"
+    if verdict == f"{family} better":
+        return "better"
+    if verdict == f"{rival} better":
+        return "worse"
+    return "not decided"
+
+
+def _percent(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f}%"

@@ -1,0 +1,118 @@
+"""Checkpoint selection: candidates on disk, the rules, and that no test seed runs before the choice is fixed."""
+
+import pytest
+
+from carp.evaluation.selection import (
+    Candidate,
+    CandidateScore,
+    evaluate_with_selection,
+    find_candidates,
+    select_candidate,
+)
+
+VALIDATION_SEEDS = [200_000, 200_001, 200_002, 200_003]
+TEST_SEEDS = [100_000, 100_001, 100_002]
+
+
+def _run_dir(tmp_path, snapshot_epochs=(2, 4)):
+    (tmp_path / "policy.pt").write_bytes(b"final")
+    (tmp_path / "snapshots").mkdir()
+    for epoch in snapshot_epochs:
+        (tmp_path / "snapshots" / f"epoch{epoch:04d}.pt").write_bytes(b"snapshot")
+    return tmp_path
+
+
+def test_candidates_are_the_snapshots_and_the_final_policy_with_their_epochs_loss(tmp_path):
+    losses = [0.9, 0.5, 0.4, 0.2, 0.3]
+    candidates = find_candidates(_run_dir(tmp_path), losses)
+    assert [(c.epoch, c.path.name, c.training_loss) for c in candidates] == [
+        (2, "epoch0002.pt", 0.5),
+        (4, "epoch0004.pt", 0.2),
+        (5, "policy.pt", 0.3),
+    ]
+
+
+def test_a_missing_final_policy_or_a_snapshot_beyond_the_history_is_refused(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no trained policy"):
+        find_candidates(tmp_path, [0.5])
+    _run_dir(tmp_path, snapshot_epochs=(7,))
+    with pytest.raises(ValueError, match="epoch 7 lies outside the training history's 5 epochs"):
+        find_candidates(tmp_path, [0.5] * 5)
+
+
+CANDIDATES = [Candidate(2, "a", 0.5), Candidate(4, "b", 0.2), Candidate(5, "c", 0.2)]
+
+
+def _scores(successes):
+    return [CandidateScore(candidate, count, 10) for candidate, count in zip(CANDIDATES, successes)]
+
+
+def test_each_rule_picks_its_candidate_and_ties_go_to_the_later_epoch():
+    assert select_candidate(CANDIDATES, "final").chosen.epoch == 5
+    assert select_candidate(CANDIDATES, "lowest_loss").chosen.epoch == 5  # 0.2 twice: the later one
+    assert select_candidate(CANDIDATES, "best_validation", _scores([9, 6, 8])).chosen.epoch == 2
+    assert select_candidate(CANDIDATES, "best_validation", _scores([7, 7, 3])).chosen.epoch == 4
+
+
+def test_best_validation_without_scores_and_an_unknown_rule_are_refused():
+    with pytest.raises(ValueError, match=r"best_validation needs validation episodes; epochs \[2, 4, 5\]"):
+        select_candidate(CANDIDATES, "best_validation")
+    with pytest.raises(ValueError, match="'best' must be one of"):
+        select_candidate(CANDIDATES, "best")
+
+
+def test_the_validation_summary_shows_the_optimistic_figures_beside_the_choice():
+    selection = select_candidate(CANDIDATES, "final", _scores([9, 6, 8]))
+    summary = selection.validation_summary(top_k=2)
+    assert summary == {
+        "selected_epoch": 5,
+        "validation_max_success_rate": 0.9,
+        "validation_top_k_mean_success_rate": pytest.approx(0.85),
+        "validation_top_k": 2,
+        "selected_validation_success_rate": 0.8,
+    }
+    assert select_candidate(CANDIDATES, "final").validation_summary(top_k=3) == {"selected_epoch": 5}
+
+
+class RecordingEvaluator:
+    """Runs no simulator: records every call and answers with fixed successes per checkpoint."""
+
+    def __init__(self, successes_by_path):
+        self.successes_by_path = successes_by_path
+        self.calls = []
+
+    def __call__(self, path, seeds):
+        self.calls.append((path, list(seeds)))
+        return [index < self.successes_by_path[path] for index in range(len(seeds))]
+
+
+@pytest.mark.parametrize("rule", ["final", "best_validation", "lowest_loss"])
+def test_no_test_seed_runs_before_the_checkpoint_is_fixed(rule):
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2})
+    evaluated = evaluate_with_selection(
+        CANDIDATES, rule, evaluator, lambda outcome: outcome, VALIDATION_SEEDS, TEST_SEEDS
+    )
+    test_calls = [index for index, (_, seeds) in enumerate(evaluator.calls) if set(seeds) & set(TEST_SEEDS)]
+    # One test evaluation, the last call, of the chosen checkpoint; every call before it used validation seeds only.
+    assert test_calls == [len(evaluator.calls) - 1]
+    assert evaluator.calls[-1] == (evaluated.selection.chosen.path, TEST_SEEDS)
+    assert all(seeds == VALIDATION_SEEDS for _, seeds in evaluator.calls[:-1])
+    assert [path for path, _ in evaluator.calls[:-1]] == ["a", "b", "c"]
+    expected = {"final": "c", "best_validation": "a", "lowest_loss": "c"}[rule]
+    assert evaluated.selection.chosen.path == expected
+    assert evaluated.test == {"a": [True, True, True], "c": [True, True, False]}[expected]
+    assert sorted(evaluated.validation) == [2, 4, 5]
+
+
+def test_without_validation_seeds_only_the_test_episodes_run():
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2})
+    evaluated = evaluate_with_selection(CANDIDATES, "final", evaluator, lambda outcome: outcome, [], TEST_SEEDS)
+    assert evaluator.calls == [("c", TEST_SEEDS)]
+    assert evaluated.validation == {} and evaluated.test == [True, True, False]
+
+
+def test_overlapping_validation_and_test_seeds_are_refused_before_anything_runs():
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2})
+    with pytest.raises(ValueError, match=r"must be disjoint; both hold \[100001\]"):
+        evaluate_with_selection(CANDIDATES, "final", evaluator, lambda o: o, [100_001, 200_000], TEST_SEEDS)
+    assert evaluator.calls == []
