@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup render-deps repro test test-fast lint docs benchmark ui sweep exps tracking-server tracking-server-stop \
+.PHONY: setup render-deps repro test test-fast lint docs benchmark ui sweep study exps tracking-server tracking-server-stop \
 	object-store object-store-stop dvc-remote
 
 setup: $(STAMP)
@@ -69,6 +69,11 @@ ui: setup
 # Optuna sweep over scales and codebook size (README "Experiments and sweeps"); `make sweep TRIALS=4` sets the budget.
 sweep: setup
 	$(BIN)/python pipeline/sweep.py $(if $(TRIALS),--trials $(TRIALS))
+
+# The paper's studies as DVC experiments in this workspace (README "Comparisons"): `make study STUDY=data_efficiency`.
+STUDY ?= data_efficiency
+study: setup
+	$(BIN)/python pipeline/study.py $(STUDY)
 
 # Experiments side by side: state (a failed queued experiment shows Failed, and its metrics are not its own), swept
 # params, success rate, tokenizer reconstruction error, latency per chunk.

@@ -111,7 +111,7 @@ def main() -> None:
         run.log_metrics(summary)
         run.log_artifact(episodes)
         run.log_artifact(validation)
-        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}_seed{args.seed}"):
+        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}-{args.seed}"):
             run.log_artifact(video)
     print(
         f"{args.task} {args.policy} seed {args.seed} (epoch {summary['selected_epoch']}, {config.selection}, "

@@ -44,6 +44,8 @@ def main() -> None:
             staging_dir=STAGING_DIR,
             camera_settings=cameras,
             render_workers=params.data.render_workers or os.cpu_count() or 1,
+            subset_size=params.data.subset_size,
+            subset_seed=params.data.subset_seed,
         )
     except (DatasetError, RenderingError) as error:
         fail(str(error))

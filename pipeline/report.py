@@ -66,7 +66,7 @@ def main() -> None:
                 video
                 for policy in params.policies
                 for seed in params.seeds
-                for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}_seed{seed}")
+                for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}-{seed}")
             ]
             for task in params.tasks
         },

@@ -110,6 +110,8 @@ def test_defaults_follow_the_design():
             {"eval": {"validation_seed": 250, "validation_episodes": 20}},
             "eval.validation_seed=250: validation seeds [250, 270) overlap the collection seeds [0, 300)",
         ),
+        ({"data": {"subset_size": 150}}, "data.subset_size=150: must be <= the 100 demos collected for lift"),
+        ({"study": {"data_efficiency_sizes": [60, 30]}}, "study.data_efficiency_sizes=[60, 30]: must hold at least"),
         ({"comparison": {"margin": 0}}, "comparison.margin=0.0: must lie in (0, 1)"),
         ({"comparison": {"alpha": 0.5}}, "comparison.alpha=0.5: must lie in (0, 0.5)"),
         ({"data": [1, 2]}, "data: expected a mapping"),

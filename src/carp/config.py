@@ -111,6 +111,11 @@ class DataConfig:
         proprioception_keys: Low-dim observation keys ingested with the images (``observations: image``),
             concatenated in this order; at least one, none of them a camera image. The default is the robot's own
             state (end-effector position and quaternion, gripper joints), without the object's privileged pose.
+        subset_size: Demos of each task's file that ingest keeps, for data-efficiency studies; an integer >= 0, 0
+            keeping every demo, otherwise at most the demos the file holds. The kept demos are the first
+            ``subset_size`` of one seeded shuffle of the file's demos (``carp.data.subsets``): with the same file and
+            ``subset_seed`` a smaller subset is part of every larger one, and every family trains on the same demos.
+        subset_seed: Seed of that shuffle; an integer >= 0.
     """
 
     num_demos: int = 100
@@ -130,6 +135,8 @@ class DataConfig:
     image_size: int = 84
     render_workers: int = 0
     proprioception_keys: tuple[str, ...] = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+    subset_size: int = 0
+    subset_seed: int = 0
 
     def demos_for(self, task: str) -> int:
         """Scripted demos collected for `task`: its `num_demos_per_task` entry, else `num_demos`."""
@@ -177,6 +184,8 @@ class DataConfig:
         _require(len(set(keys)) == len(keys), "data.proprioception_keys", keys, "must name each key once")
         images = [key for key in keys if key.endswith(IMAGE_KEY_SUFFIX)]
         _require(not images, "data.proprioception_keys", keys, f"must be low-dim keys, not camera images {images}")
+        _require(self.subset_size >= 0, "data.subset_size", self.subset_size, "must be >= 0 (0 = every demo)")
+        _require(self.subset_seed >= 0, "data.subset_seed", self.subset_seed, "must be >= 0")
 
     @property
     def image_keys(self) -> tuple[str, ...]:
@@ -553,6 +562,28 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
+class StudyConfig:
+    """The paper's studies, each run as DVC experiments by ``make study STUDY=<name>`` (outside the default DAG).
+
+    Attributes:
+        data_efficiency_sizes: Demo counts of the data-efficiency study (supplementary Fig. 5): one experiment per
+            size with ``data.subset_size`` set to it and ``data.num_demos`` to the largest, so that every size draws
+            from one collected file and the subsets are nested; at least two, strictly increasing integers >= 1.
+    """
+
+    data_efficiency_sizes: tuple[int, ...] = (30, 60, 100, 200)
+
+    def __post_init__(self) -> None:
+        sizes = list(self.data_efficiency_sizes)
+        _require(
+            len(sizes) >= 2 and sizes[0] >= 1 and all(a < b for a, b in zip(sizes, sizes[1:])),
+            "study.data_efficiency_sizes",
+            sizes,
+            "must hold at least two strictly increasing sizes >= 1",
+        )
+
+
+@dataclass(frozen=True)
 class ComparisonConfig:
     """How the report compares policy families on a task (read by the report stage only).
 
@@ -677,6 +708,7 @@ class Params:
         tracking: MLflow tracking.
         sweep: The Optuna sweep.
         comparison: The report's comparison of families: equivalence margin and significance level.
+        study: The paper's studies run as DVC experiments (``make study``).
         image_encoder: The camera encoder every family puts in front of its network with ``data.observations:
             image``; its cameras and image size are ``data.cameras`` and ``data.image_size``, which the section
             must not restate otherwise.
@@ -699,6 +731,7 @@ class Params:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
     comparison: ComparisonConfig = field(default_factory=ComparisonConfig)
+    study: StudyConfig = field(default_factory=StudyConfig)
     image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
     families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
     inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
@@ -776,6 +809,12 @@ class Params:
             )
         for task in self.tasks:
             _require(task in self.eval.max_steps, "eval.max_steps", self.eval.max_steps, f"has no entry for '{task}'")
+            _require(
+                self.data.subset_size <= self.data.demos_for(task) or task in self.data.raw_files,
+                "data.subset_size",
+                self.data.subset_size,
+                f"must be <= the {self.data.demos_for(task)} demos collected for {task}",
+            )
 
     def training_for_seed(self, seed: int) -> TrainingConfig:
         """The training settings of the run with training seed `seed` (one entry of `seeds`)."""

@@ -13,6 +13,7 @@ from carp.data.normalizer import load_normalizers
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.robomimic_io import DatasetError
 from carp.data.rotation import rot6d_to_absolute_actions
+from carp.data.subsets import nested_subset
 from carp.data.windows import make_windows
 from tests.conftest import OBS_KEYS, OBS_WIDTHS, write_synthetic_file
 from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expected_message
@@ -60,6 +61,18 @@ def test_delta_actions_are_kept_as_they_are(tmp_path, synthetic_file):
 def test_filter_key_selects_demos(tmp_path, synthetic_file):
     summary = ingest_demonstrations(synthetic_file, tmp_path / "out", OBS_KEYS, filter_key="train")
     assert summary.episodes == 3
+
+
+def test_a_subset_keeps_the_nested_demos_in_file_order(tmp_path):
+    raw = tmp_path / "raw.hdf5"
+    write_synthetic_file(raw, lengths=(30, 25, 40, 20, 35, 22))
+    names = [f"demo_{index}" for index in range(6)]
+    ingest_demonstrations(raw, tmp_path / "out", OBS_KEYS, subset_size=3, subset_seed=4)
+    buffer = ReplayBuffer.load(tmp_path / "out" / BUFFER_DIRNAME)
+    assert buffer.attrs["demo_names"] == nested_subset(names, 3, seed=4)
+    assert len(buffer.episode_ends) == 3
+    with pytest.raises(DatasetError, match="holds 6 demos, fewer than a subset of 7"):
+        ingest_demonstrations(raw, tmp_path / "out", OBS_KEYS, subset_size=7)
 
 
 def _mutate(path: Path, change) -> None:

@@ -105,8 +105,8 @@ def test_an_image_run_reproduces_end_to_end_and_a_second_run_does_nothing(tmp_pa
     assert "## Success rate" in report and "## Camera images" in report
     assert (workspace / "reports/figures/cameras_lift.png").exists()
     assert "rendering the cameras:" in report
-    assert "## Rollout videos" in report and "(eval/videos/lift_carp_seed0_seed100000.gif)" in report
-    assert (workspace / "reports/eval/videos/lift_carp_seed0_seed100000.gif").stat().st_size > 0
+    assert "## Rollout videos" in report and "(eval/videos/lift_carp-0_seed100000.gif)" in report
+    assert (workspace / "reports/eval/videos/lift_carp-0_seed100000.gif").stat().st_size > 0
 
     second = run(dvc("repro"), workspace, timeout=600)
     assert second.returncode == 0, second.stderr[-3000:]

@@ -1,9 +1,11 @@
-"""End to end with two policy families: `dvc repro` on tiny params trains and evaluates CARP and a tiny DP-T beside it,
-the report compares them, and a change to one family's params makes only that family's stage stale."""
+"""End to end with two policy families and two training seeds: `dvc repro` on tiny params trains and evaluates CARP and
+a tiny DP-T beside it, selects each seed's checkpoint on validation seeds, the report compares them, and a change to
+one family's params makes only that family's stages stale."""
 
 import json
 import sys
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -11,6 +13,9 @@ from tests.pipeline.workspace import make_workspace, run, stages_run
 
 FAMILIES = {
     "policies": ["carp", "diffusion_transformer"],
+    "seeds": [0, 1],
+    "training": {"snapshot_every": 1},
+    "eval": {"selection": "best_validation", "validation_episodes": 2},
     "diffusion_transformer": {"num_layers": 1, "num_heads": 2, "width": 16, "num_train_steps": 10, "warmup_steps": 2},
     "inference": {"diffusion_transformer": {"sampler": "ddim", "num_inference_steps": 2}},
 }
@@ -29,15 +34,27 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
     for policy in FAMILIES["policies"]:
-        for output in (
-            f"models/policy/lift/{policy}/seed0/policy.pt",
-            f"reports/policy/lift/{policy}/seed0/metrics.json",
-            f"reports/policy/lift/{policy}/seed0/history.csv",
-            f"reports/eval/lift/{policy}/seed0.json",
-            f"reports/eval/lift/{policy}/seed0_episodes.csv",
-        ):
-            assert (workspace / output).exists(), output
+        for seed in FAMILIES["seeds"]:
+            for output in (
+                f"models/policy/lift/{policy}/seed{seed}/policy.pt",
+                f"models/policy/lift/{policy}/seed{seed}/snapshots/epoch0001.pt",
+                f"reports/policy/lift/{policy}/seed{seed}/metrics.json",
+                f"reports/policy/lift/{policy}/seed{seed}/history.csv",
+                f"reports/eval/lift/{policy}/seed{seed}.json",
+                f"reports/eval/lift/{policy}/seed{seed}_episodes.csv",
+            ):
+                assert (workspace / output).exists(), output
+            # Both candidates ran on the validation seeds only; the chosen one then on the test seeds.
+            validation = pd.read_csv(workspace / f"reports/eval/lift/{policy}/seed{seed}_validation.csv")
+            assert sorted(validation["epoch"].unique()) == [1, 2]
+            assert set(validation["seed"]) == {200_000, 200_001}
+            episodes = pd.read_csv(workspace / f"reports/eval/lift/{policy}/seed{seed}_episodes.csv")
+            assert set(episodes["seed"]) == {100_000, 100_001}
+    # The two seeds trained different policies.
+    weights = [(workspace / f"models/policy/lift/carp/seed{seed}/policy.pt").read_bytes() for seed in (0, 1)]
+    assert weights[0] != weights[1]
     carp = json.loads((workspace / "reports/eval/lift/carp/seed0.json").read_text())
+    assert carp["candidates"] == 2 and carp["selected_epoch"] in (1, 2) and carp["training_seed"] == 0
     baseline = json.loads((workspace / "reports/eval/lift/diffusion_transformer/seed0.json").read_text())
     assert (carp["policy_type"], carp["backend"], carp["inference"]) == ("carp", "onnxruntime", "greedy")
     assert (baseline["policy_type"], baseline["backend"], baseline["inference"]) == (
@@ -51,6 +68,12 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     table = report.split("## Policies on lift", 1)[1].split("##", 1)[0]
     assert "| carp " in table and "| diffusion_transformer " in table and "DDIM-2" in table
     assert "over 400 control steps" in report
+    comparison = report.split("## Comparison on lift", 1)[1].split("\n## ", 1)[0]
+    seed_rows = [line for line in comparison.splitlines() if line.startswith("| carp ") and "| epoch " in line]
+    assert len(seed_rows) == len(FAMILIES["seeds"])
+    assert "not decided: " in comparison  # 4 paired episodes rank nothing
+    assert "## The paper's claims on this run" in report and "CARP is faster per chunk than DP-T" in report
+    assert (workspace / "reports/figures/steps_to_success_lift.png").exists()
     assert (workspace / "reports/figures/success_vs_latency.png").exists()
 
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)
@@ -61,17 +84,27 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     params_file = workspace / "params.yaml"
     original = params_file.read_text()
     for change, expected in (
-        (("diffusion_transformer", "learning_rate", 3e-4), {"train_policy@lift-diffusion_transformer"}),
-        (("carp", "depth", 2), {"train_policy@lift-carp"}),
+        (
+            ("diffusion_transformer", "learning_rate", 3e-4),
+            {"train_policy@lift-diffusion_transformer-0", "train_policy@lift-diffusion_transformer-1"},
+        ),
+        (("carp", "depth", 2), {"train_policy@lift-carp-0", "train_policy@lift-carp-1"}),
         (
             ("inference", "diffusion_transformer", {"sampler": "ddpm", "num_inference_steps": 4}),
-            {"evaluate@lift-diffusion_transformer"},
+            {"evaluate@lift-diffusion_transformer-0", "evaluate@lift-diffusion_transformer-1"},
         ),
-        (("training", "epochs", 3), {"train_policy@lift-carp", "train_policy@lift-diffusion_transformer"}),
+        (("training", "epochs", 3), {f"train_policy@lift-{p}-{s}" for p in FAMILIES["policies"] for s in (0, 1)}),
+        (("eval", "episodes", 3), {f"evaluate@lift-{p}-{s}" for p in FAMILIES["policies"] for s in (0, 1)}),
     ):
         section, key, value = change
         params = yaml.safe_load(original)
         params[section][key] = value
         params_file.write_text(yaml.safe_dump(params, sort_keys=False))
         assert stale_stages(workspace) == expected, change
+    # Another training seed adds its own stages and leaves the others' alone.
+    params = yaml.safe_load(original)
+    params["seeds"] = [0, 1, 2]
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    added = {f"{stage}@lift-{p}-2" for stage in ("train_policy", "evaluate") for p in FAMILIES["policies"]}
+    assert stale_stages(workspace) == added | {"report"}
     params_file.write_text(original)

@@ -13,6 +13,7 @@ import pytest
 from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EpisodeResult
 from carp.evaluation.runner import write_episode_videos
+from carp.reporting.comparison import RunResults, pooled_metrics
 from carp.reporting.report import (
     ReportInputs,
     comparison_table,
@@ -119,7 +120,7 @@ def test_rollout_videos_are_shown_as_animated_gifs_in_both_documents(tmp_path, i
     videos = write_episode_videos([episode], tmp_path / "eval" / "videos", "lift_carp")
     markdown_path, html_path = write_report(dataclasses.replace(inputs, videos={"lift": videos}), tmp_path / "out")
     assert "## Rollout videos" in markdown_path.read_text()
-    assert "../eval/videos/lift_carp_seed0_seed100000.gif" in markdown_path.read_text()
+    assert "../eval/videos/lift_carp_seed100000.gif" in markdown_path.read_text()
     embedded = re.findall(r"src='data:image/gif;base64,([^']+)'", html_path.read_text())
     assert len(embedded) == 1 and base64.b64decode(embedded[0]) == videos[0].read_bytes()
 
@@ -199,3 +200,74 @@ def test_latency_table_gives_the_camera_encoders_share_for_image_policies_only(i
     table = latency_table({"lift": {"carp": lift}, "can": {"carp": image}})
     assert table.loc[table.task == "lift", "encoder median"].tolist() == ["-"] * 2
     assert table.loc[table.task == "can", "encoder median"].tolist() == ["1.25", "9.50"]
+
+
+def _runs(rates_by_seed: dict[int, float], chunk_ms: float, flip: int = 0) -> dict:
+    """One family's results over training seeds: 100 test episodes each at the given rate.
+
+    `flip` successes at the start and as many failures at the end swap outcome: the same rate, other episodes.
+    """
+    runs = {}
+    for seed, rate in rates_by_seed.items():
+        success = np.arange(100) < round(100 * rate)
+        success[:flip] = False
+        success[100 - flip :] = True
+        episodes = pd.DataFrame(
+            {
+                "seed": 100_000 + np.arange(100),
+                "success": success,
+                "steps": np.where(success, 60 + np.arange(100) % 30, 400),
+                "chunk_ms_median": chunk_ms + 0.01 * (np.arange(100) % 7),
+            }
+        )
+        metrics = summarize_episodes(
+            successes=success.tolist(),
+            steps=episodes["steps"].tolist(),
+            crashed=[False] * 100,
+            prediction_seconds=[chunk_ms / 1000] * 10,
+            decoding_seconds=[0.0] * 10,
+        ) | {"selected_epoch": 40, "candidates": 4, "validation_max_success_rate": min(1.0, rate + 0.06)}
+        metrics |= {"validation_top_k_mean_success_rate": rate + 0.03, "validation_top_k": 3}
+        metrics["validation_max_test_gap"] = metrics["validation_max_success_rate"] - metrics["success_rate"]
+        runs[seed] = RunResults(metrics, episodes)
+    return runs
+
+
+def test_comparison_sections_give_per_seed_rows_verdicts_and_the_papers_claims(tmp_path, inputs):
+    runs = {
+        "lift": {
+            "carp": _runs({0: 0.95, 1: 0.93, 2: 0.96}, chunk_ms=3.0),
+            "diffusion_unet": _runs({0: 0.95, 1: 0.93, 2: 0.96}, chunk_ms=45.0, flip=2),
+            "next_token": _runs({0: 0.55, 1: 0.50, 2: 0.60}, chunk_ms=50.0),
+        }
+    }
+    evaluation = {"lift": {family: pooled_metrics(seed_runs) for family, seed_runs in runs["lift"].items()}}
+    assert evaluation["lift"]["carp"]["successes"] == 95 + 93 + 96 and evaluation["lift"]["carp"]["seeds"] == 3
+    report = dataclasses.replace(inputs, evaluation=evaluation, runs=runs, max_steps={"lift": 400})
+    markdown = write_report(report, tmp_path / "reports")[0].read_text()
+    section = markdown.split("## Comparison on lift", 1)[1].split("\n## ", 1)[0]
+    # Three seed rows per family, with the selected checkpoint, validation max and the gap to the test success.
+    assert len([line for line in section.splitlines() if line.startswith("| carp ") and "epoch 40 of 4" in line]) == 3
+    assert "| +6.0 points" in section
+    assert "carp better" in section and "on par within" in section
+    assert (tmp_path / "reports" / "figures" / "steps_to_success_lift.png").exists()
+    claims = markdown.split("## The paper's claims on this run", 1)[1].split("\n## ", 1)[0]
+    cells = [
+        [cell.strip() for cell in line.split("|")[1:-1]] for line in claims.splitlines() if line.startswith("| lift")
+    ]
+    rows = {claim: verdict for _, claim, verdict, _ in cells}
+    assert rows == {
+        "CARP's success is on par with DP-C": "holds",
+        "CARP's success is better than next-token's": "holds",
+        "CARP is about 10x faster per chunk than DP-C": "holds",
+    }
+    assert "14.9x as long per chunk" in claims  # medians 45.03 and 3.03 ms
+
+
+def test_a_run_without_several_families_states_no_claim(tmp_path, inputs):
+    runs = {"lift": {"carp": _runs({0: 0.9}, chunk_ms=3.0)}}
+    evaluation = {"lift": {"carp": pooled_metrics(runs["lift"]["carp"])}}
+    markdown = write_report(
+        dataclasses.replace(inputs, evaluation=evaluation, runs=runs, max_steps={"lift": 400}), tmp_path / "one"
+    )[0].read_text()
+    assert "## Comparison on lift" in markdown and "## The paper's claims" not in markdown

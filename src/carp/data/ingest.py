@@ -15,7 +15,7 @@ import json
 import os
 import shutil
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from carp.data.robomimic_io import DatasetError, Demonstrations, read_demonstrat
 from carp.data.robomimic_schema import is_image_key
 from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
 from carp.data.staging import staged
+from carp.data.subsets import nested_subset
 
 BUFFER_DIRNAME = "replay.zarr"
 NORMALIZATION_FILENAME = "normalization.json"
@@ -65,6 +66,8 @@ def ingest_demonstrations(
     staging_dir: Path | None = None,
     camera_settings: RenderSettings | None = None,
     render_workers: int = 1,
+    subset_size: int = 0,
+    subset_seed: int = 0,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
@@ -82,6 +85,8 @@ def ingest_demonstrations(
             observations only.
         render_workers: processes rendering the cameras the file does not store (see
             :func:`carp.data.camera_images.rendered_episodes`).
+        subset_size: keep this many of the file's demos (`carp.data.subsets.nested_subset`); 0 keeps every demo.
+        subset_seed: seed of the subset's shuffle.
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
@@ -89,6 +94,15 @@ def ingest_demonstrations(
     """
     raw_path, output_dir = Path(raw_path), Path(output_dir)
     demos = read_demonstrations(raw_path, obs_keys, action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key)
+    if subset_size:
+        if subset_size > len(demos.names):
+            raise DatasetError(f"{raw_path}: holds {len(demos.names)} demos, fewer than a subset of {subset_size}")
+        kept = set(nested_subset(demos.names, subset_size, subset_seed))
+        demos = replace(
+            demos,
+            names=[name for name in demos.names if name in kept],
+            episodes=[episode for name, episode in zip(demos.names, demos.episodes) if name in kept],
+        )
     images = [key for key in obs_keys if is_image_key(key)]
     if images:
         # Checked after reading, so that a damaged file is reported as such first.

@@ -42,7 +42,8 @@ class ReportInputs:
     """Everything a report is made of (all optional except the evaluation metrics).
 
     Attributes:
-        evaluation: task -> policy family -> evaluation metrics dict (``reports/eval/<task>/<policy>/seed<seed>.json``, pooled over the seeds with `runs`).
+        evaluation: task -> policy family -> evaluation metrics dict (``reports/eval/<task>/<policy>/seed<seed>.json``;
+            pooled over the seeds with `runs`).
         tokenizer_metrics: tokenizer reconstruction metrics (``reports/tokenizer/metrics.json``).
         tokenizer_history: per-epoch tokenizer losses.
         policy_histories: task -> policy family -> per-epoch losses (and CARP's token accuracies); their
@@ -538,7 +539,13 @@ def write_report(inputs: ReportInputs, output_dir: Path, title: str = "carp repo
     output_dir = Path(output_dir)
     figures_dir = output_dir / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)
-    sections = build_sections(inputs, figures_dir)
+    return write_sections(build_sections(inputs, figures_dir), output_dir, title)
+
+
+def write_sections(sections: Sequence[Section], output_dir: Path, title: str) -> tuple[Path, Path]:
+    """Write `sections` as ``report.md`` and ``report.html`` into ``output_dir``, atomically; returns the two paths."""
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
     markdown_path, html_path = output_dir / "report.md", output_dir / "report.html"
     for path, text in (
         (markdown_path, render_markdown(sections, title, output_dir)),

@@ -1,0 +1,209 @@
+"""The data-efficiency study (CARP supplementary Fig. 5): success against the number of demos, per family.
+
+Each size is one DVC experiment of the whole pipeline with ``data.subset_size`` set to it and ``data.num_demos`` set to
+the largest size, so that collection runs once (DVC keeps its output) and every size ingests a nested subset of the
+same file (`carp.data.subsets`), identical for every family. After each experiment its evaluation files (each
+training seed's summary and test episodes) are copied into ``<output>/size<N>/``; a size whose copy is complete is
+not run again, so an interrupted study resumes where it stopped. The study's report then shows each family's curve
+with its two-level bootstrap band and, per size, the paired verdicts of the families.
+"""
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from carp.evaluation import statistics  # noqa: E402
+from carp.reporting.comparison import RunResults, Runs, compare_families, outcomes_by_seed  # noqa: E402
+from carp.reporting.report import Section, write_sections  # noqa: E402
+
+logger = logging.getLogger(__name__)
+
+EXPERIMENT_PREFIX = "data-efficiency"
+COMPLETE_MARKER = "complete.json"
+
+Evaluations = Mapping[str, Mapping[str, Runs]]
+"""task -> family -> training seed -> results: what one size's experiment evaluated."""
+
+
+@dataclass(frozen=True)
+class StudyLayout:
+    """What every experiment of the study trains and evaluates (the workspace's params at the study's start)."""
+
+    tasks: tuple[str, ...]
+    policies: tuple[str, ...]
+    seeds: tuple[int, ...]
+
+
+def experiment_overrides(size: int, sizes: Sequence[int]) -> list[str]:
+    """The `dvc exp run -S` values of one size: the subset, and the largest size as the collected demos."""
+    return [f"data.num_demos={max(sizes)}", f"data.subset_size={size}"]
+
+
+def summary_path(eval_dir: Path, task: str, policy: str, seed: int) -> Path:
+    """``<eval_dir>/<task>/<policy>/seed<seed>.json``, the evaluate stage's summary (its episodes beside it)."""
+    return Path(eval_dir) / task / policy / f"seed{seed}.json"
+
+
+def harvest(eval_dir: Path, point_dir: Path, layout: StudyLayout, size: int) -> None:
+    """Copy the evaluation of every (task, family, seed) into `point_dir`, then mark it complete, atomically.
+
+    Raises:
+        FileNotFoundError: the experiment left an evaluation file missing.
+    """
+    staging = point_dir.with_name(f".{point_dir.name}.tmp")
+    shutil.rmtree(staging, ignore_errors=True)
+    for task in layout.tasks:
+        for policy in layout.policies:
+            for seed in layout.seeds:
+                summary = summary_path(eval_dir, task, policy, seed)
+                for source in (summary, summary.with_name(f"{summary.stem}_episodes.csv")):
+                    if not source.exists():
+                        raise FileNotFoundError(f"{source}: the experiment of size {size} left no evaluation here")
+                    target = staging / source.relative_to(eval_dir)
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copyfile(source, target)
+    (staging / COMPLETE_MARKER).write_text(json.dumps({"size": size, **asdict(layout)}, indent=2) + "\n")
+    shutil.rmtree(point_dir, ignore_errors=True)
+    os.replace(staging, point_dir)
+
+
+def is_complete(point_dir: Path, layout: StudyLayout, size: int) -> bool:
+    """Whether `point_dir` holds a finished copy of this size's evaluation for this layout."""
+    marker = Path(point_dir) / COMPLETE_MARKER
+    if not marker.exists():
+        return False
+    recorded = json.loads(marker.read_text())
+    expected = json.loads(json.dumps({"size": size, **asdict(layout)}))
+    return recorded == expected
+
+
+def load_point(point_dir: Path, layout: StudyLayout) -> dict[str, dict[str, dict[int, RunResults]]]:
+    """One size's evaluations as the report's comparison reads them."""
+    runs: dict[str, dict[str, dict[int, RunResults]]] = {}
+    for task in layout.tasks:
+        runs[task] = {}
+        for policy in layout.policies:
+            runs[task][policy] = {}
+            for seed in layout.seeds:
+                summary = summary_path(point_dir, task, policy, seed)
+                runs[task][policy][seed] = RunResults(
+                    json.loads(summary.read_text()), pd.read_csv(summary.with_name(f"{summary.stem}_episodes.csv"))
+                )
+    return runs
+
+
+def run_study(
+    sizes: Sequence[int],
+    layout: StudyLayout,
+    eval_dir: Path,
+    output_dir: Path,
+    run_experiment: Callable[[str, list[str]], None],
+) -> dict[int, Evaluations]:
+    """Run every size not yet complete as an experiment, copy its evaluation, and load them all.
+
+    Args:
+        sizes: the demo counts, increasing.
+        layout: tasks, families and training seeds of the workspace.
+        eval_dir: the workspace's ``reports/eval``.
+        output_dir: the study's folder; ``size<N>/`` per size.
+        run_experiment: runs the pipeline as a named experiment with `-S` overrides (e.g. ``dvc exp run``) and
+            raises when it fails.
+
+    Returns:
+        size -> that size's evaluations.
+    """
+    points = {}
+    for size in sizes:
+        point_dir = Path(output_dir) / f"size{size}"
+        if is_complete(point_dir, layout, size):
+            logger.info("size %d: evaluated already (%s)", size, point_dir)
+        else:
+            run_experiment(f"{EXPERIMENT_PREFIX}-{size}", experiment_overrides(size, sizes))
+            harvest(Path(eval_dir), point_dir, layout, size)
+        points[size] = load_point(point_dir, layout)
+    return points
+
+
+def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, path: Path) -> Path:
+    """Each family's mean success over seeds against the demo count, with its two-level bootstrap 95% band."""
+    figure, axis = plt.subplots(figsize=(6, 3.4))
+    sizes = sorted(points)
+    for family in points[sizes[0]][task]:
+        intervals = [
+            statistics.two_level_bootstrap(list(outcomes_by_seed(points[size][task][family]).values()))
+            for size in sizes
+        ]
+        line = axis.plot(sizes, [100 * i.estimate for i in intervals], marker="o", label=family)[0]
+        axis.fill_between(
+            sizes,
+            [100 * i.low for i in intervals],
+            [100 * i.high for i in intervals],
+            color=line.get_color(),
+            alpha=0.2,
+        )
+    axis.set_xlabel("demos")
+    axis.set_ylabel("success rate (%)")
+    axis.set_ylim(0, 105)
+    axis.set_title(f"data efficiency ({task})")
+    axis.legend(fontsize=7)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def study_sections(points: Mapping[int, Evaluations], margin: float, alpha: float, figures_dir: Path) -> list[Section]:
+    """Per task: the curves, a table of each family's success per size, and per size the paired verdicts."""
+    sizes = sorted(points)
+    tasks = list(points[sizes[0]])
+    verdicts = {size: compare_families(points[size], margin=margin, alpha=alpha) for size in sizes}
+    sections = []
+    for task in tasks:
+        rows = []
+        for size in sizes:
+            for family, runs in points[size][task].items():
+                mean = statistics.two_level_bootstrap(list(outcomes_by_seed(runs).values()))
+                rows.append(
+                    {
+                        "demos": size,
+                        "policy": family,
+                        "seeds": len(runs),
+                        "mean success": f"{100 * mean.estimate:.1f}% ({100 * mean.low:.1f}-{100 * mean.high:.1f}%)",
+                    }
+                )
+        section = Section(
+            f"Data efficiency on {task}",
+            paragraphs=[
+                "Each size trains every family on the same nested subset of one collected file (a smaller subset is "
+                "part of every larger one); the band is the two-level bootstrap 95% interval of the mean over "
+                "training seeds. Verdicts per size pair the families on the same episode seeds, with Holm's "
+                "correction over that size's pairs."
+            ],
+            tables=[pd.DataFrame(rows)],
+            figures=[plot_success_against_demos(points, task, figures_dir / f"data_efficiency_{task}.png")],
+        )
+        for size in sizes:
+            section.paragraphs += [
+                f"{size} demos, {pair.verdict}: {pair.explanation}" for pair in verdicts[size].get(task, [])
+            ]
+        sections.append(section)
+    return sections
+
+
+def write_study_report(points: Mapping[int, Evaluations], margin: float, alpha: float, output_dir: Path) -> Path:
+    """``<output_dir>/report.md`` and ``report.html`` of the study; returns the Markdown path."""
+    sections = study_sections(points, margin, alpha, Path(output_dir) / "figures")
+    markdown, _ = write_sections(sections, output_dir, "carp study: data efficiency")
+    return markdown
