@@ -14,9 +14,9 @@ from carp.studies.data_efficiency import (
     write_study_report,
 )
 
-LAYOUT = StudyLayout(tasks=("lift",), policies=("carp", "diffusion_unet"), seeds=(0, 1))
+LAYOUT = StudyLayout(tasks=("lift",), policies=("carp", "diffusion_unet"), seeds=(0, 1, 2))
 SIZES = (30, 60, 100)
-EPISODES = 40
+EPISODES = 150
 
 
 class FakeExperiments:
@@ -70,9 +70,9 @@ def test_each_size_runs_once_and_an_interrupted_study_resumes_at_the_missing_siz
     assert thirty < hundred
 
     # Another layout (a third seed) is not the same study: every size runs again.
-    wider = StudyLayout(LAYOUT.tasks, LAYOUT.policies, (0, 1, 2))
+    wider = StudyLayout(LAYOUT.tasks, LAYOUT.policies, (0, 1, 2, 3))
     again = FakeExperiments(eval_dir)
-    with pytest.raises(FileNotFoundError, match="seed2.json: the experiment of size 30 left no evaluation here"):
+    with pytest.raises(FileNotFoundError, match="seed3.json: the experiment of size 30 left no evaluation here"):
         run_study(SIZES, wider, eval_dir, output, again)
 
 
@@ -84,5 +84,5 @@ def test_the_report_shows_each_familys_curve_and_the_verdicts_per_size(tmp_path)
     assert (output / "figures" / "data_efficiency_lift.png").stat().st_size > 0
     for size in SIZES:
         assert f"{size} demos, " in markdown
-    # At 100 demos carp (95%) against diffusion_unet (60%) over 80 paired episodes is decided.
+    # At 100 demos carp (95%) against diffusion_unet (60%) over 3 seeds of 150 paired episodes is decided.
     assert "100 demos, carp better" in markdown
