@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 from dvc.utils.serialize import parse_yaml
 
-from carp.config import ConfigError, Params, flatten_params, load_params, params_from_dict
+from carp.config import ConfigError, Params, flatten_params, load_params, params_from_dict, params_to_dict
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -192,6 +192,13 @@ def test_params_are_frozen_and_flatten():
     assert flat["codebook_size"] == "256"
     assert flat["carp.depth"] == "8" and flat["inference.carp.top_k"] == "1" and flat["training.epochs"] == "20"
     assert flat["scales"] == "[1, 2, 4]"
+    # The training seed is each run's own (a tag of its stage's run), not a param of the file.
+    assert "training.seed" not in flat and flat["seeds"] == "[0]"
+
+
+def test_params_round_trip_through_the_files_shape():
+    params = params_from_dict({"seeds": [0, 2], "policies": ["carp", "next_token"], "next_token": {"depth": 2}})
+    assert params_from_dict(params_to_dict(params)) == params
 
 
 def test_each_training_seed_gets_its_own_training_settings():

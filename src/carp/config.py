@@ -919,10 +919,17 @@ def _yaml_problem(error: YAMLError) -> str:
 def params_to_dict(params: Params) -> dict[str, Any]:
     """Plain nested dict (lists instead of tuples) of validated params, shaped as ``params.yaml``.
 
-    Each family's section comes out at the top level under its name, as it is written in the file.
+    Each family's section comes out at the top level under its name, as it is written in the file; settings the
+    pipeline sets per run (``training.seed``) are left out, as the file does not hold them.
     """
     values = _plain(dataclasses.asdict(params))
-    return {**values, **values.pop("families")}
+    for section_name, hint in typing.get_type_hints(Params).items():
+        if dataclasses.is_dataclass(hint):
+            for field_ in dataclasses.fields(hint):
+                if field_.metadata.get(SET_BY_PIPELINE):
+                    values[section_name].pop(field_.name)
+    families = values.pop("families")
+    return {**values, **families}
 
 
 def flatten_params(params: Params) -> dict[str, str]:
