@@ -24,6 +24,7 @@ def test_every_field_of_every_config_section_is_documented():
         "tracking.",
         "sweep.",
         "comparison.",
+        "study.",
         "image_encoder.",
         "carp.",
         "inference.carp.",
