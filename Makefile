@@ -13,12 +13,14 @@ export PATH := $(CURDIR)/$(BIN):$(PATH)
 
 setup: $(STAMP)
 
-$(STAMP): requirements.lock requirements-binaries.lock pyproject.toml
+# tools/carp-dvc-dry-run.pth lets `dvc repro --dry` answer before the first run (see carp.dvc_dry_run).
+$(STAMP): requirements.lock requirements-binaries.lock pyproject.toml tools/carp-dvc-dry-run.pth
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -r requirements.lock
 	$(BIN)/python -m pip install --quiet --require-hashes --no-deps -r requirements-binaries.lock
 	$(BIN)/python -m pip install --quiet --no-deps -e .
+	cp tools/carp-dvc-dry-run.pth "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 	touch $(STAMP)
 
 # Headless offscreen rendering (camera observations, evaluation videos) through EGL with Mesa: installs the Debian
