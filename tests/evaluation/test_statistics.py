@@ -10,6 +10,7 @@ from carp.evaluation import metrics
 from carp.evaluation.statistics import (
     Z_95,
     Interval,
+    compare_means,
     compare_pair,
     comparison_table,
     decide_pairs,
@@ -454,3 +455,19 @@ def test_decide_pairs_refuses_another_alpha_and_table_is_strings():
     assert table.loc[0, "comparison"] == "a vs b"
     assert table.loc[0, "difference, 95% CI (points)"].startswith("+8.0 [")
     assert table.loc[0, "seed permutation p"] == "n/a"
+
+
+def test_compare_means_matches_welchs_formula_and_skips_missing_measurements():
+    first = np.array([5.0, 6.0, 7.0, 8.0, np.nan])
+    second = np.array([7.0, 9.0, 11.0, 13.0])
+    result = compare_means(first, second)
+    # Welch by hand: means 6.5 and 10, variances 5/3 and 20/3, standard error sqrt(5/12 + 20/12) = 1.4434.
+    standard_error = math.sqrt((5 / 3) / 4 + (20 / 3) / 4)
+    degrees = standard_error**4 / (((5 / 3) / 4) ** 2 / 3 + ((20 / 3) / 4) ** 2 / 3)
+    t_value = -3.5 / standard_error
+    assert result.first_mean == 6.5 and result.second_mean == 10.0
+    assert result.first_variance == pytest.approx(5 / 3) and result.second_variance == pytest.approx(20 / 3)
+    assert result.p_value == pytest.approx(2 * stats.t.sf(abs(t_value), degrees))
+    half = stats.t.ppf(0.975, degrees) * standard_error
+    assert (result.difference.low, result.difference.high) == pytest.approx((-3.5 - half, -3.5 + half))
+    assert compare_means(np.array([1.0, np.nan]), second) is None

@@ -271,3 +271,22 @@ def test_a_run_without_several_families_states_no_claim(tmp_path, inputs):
         dataclasses.replace(inputs, evaluation=evaluation, runs=runs, max_steps={"lift": 400}), tmp_path / "one"
     )[0].read_text()
     assert "## Comparison on lift" in markdown and "## The paper's claims" not in markdown
+
+
+def test_a_tasks_precision_measure_gets_its_table_and_claim(tmp_path, inputs):
+    generator = np.random.default_rng(0)
+    runs = {"square": {"carp": _runs({0: 0.8, 1: 0.8}, 3.0), "diffusion_unet": _runs({0: 0.8, 1: 0.8}, 45.0, flip=3)}}
+    for family, centre in (("carp", 5.0), ("diffusion_unet", 7.0)):
+        for run in runs["square"][family].values():
+            offsets = generator.normal(centre, 1.2, 100)
+            offsets[::10] = np.nan  # episodes without a contact take no measure
+            run.episodes["insertion_offset_mm"] = offsets
+    evaluation = {"square": {family: pooled_metrics(seed_runs) for family, seed_runs in runs["square"].items()}}
+    report = dataclasses.replace(inputs, evaluation=evaluation, runs=runs, max_steps={"square": 400})
+    markdown = write_report(report, tmp_path / "reports")[0].read_text()
+    section = markdown.split("## Comparison on square", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| insertion_offset_mm")]
+    assert len(rows) == 2 and all("| 180 " in row for row in rows)  # 2 seeds x 90 measured episodes
+    claims = markdown.split("## The paper's claims on this run", 1)[1]
+    precision = next(line for line in claims.splitlines() if "insertion precision" in line)
+    assert "| holds " in precision and "carp more precise" in precision

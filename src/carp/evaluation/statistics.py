@@ -437,6 +437,58 @@ def paired_two_level_bootstrap(
     return _percentile_interval(estimate, draws, level)
 
 
+@dataclass(frozen=True)
+class MeanComparison:
+    """Two samples of a continuous per-episode measure (e.g. an insertion offset in mm) side by side.
+
+    Attributes:
+        first_mean: mean of the first sample.
+        second_mean: mean of the second sample.
+        first_variance: sample variance (n - 1) of the first.
+        second_variance: sample variance (n - 1) of the second.
+        difference: first mean minus second mean, with Welch's t interval.
+        p_value: Welch's two-sided t-test of equal means.
+        variance_p_value: Brown-Forsythe (median-centred Levene) test of equal variances.
+    """
+
+    first_mean: float
+    second_mean: float
+    first_variance: float
+    second_variance: float
+    difference: Interval
+    p_value: float
+    variance_p_value: float
+
+
+def compare_means(first: np.ndarray, second: np.ndarray, level: float = 0.95) -> MeanComparison | None:
+    """Welch's comparison of two samples' means, and a test of their variances; NaNs are left out.
+
+    Args:
+        first: (N1,) float measurements.
+        second: (N2,) float measurements.
+        level: confidence level of the difference's interval.
+
+    Returns:
+        None when either sample has fewer than 2 finite values.
+    """
+    first = np.asarray(first, dtype=np.float64)
+    second = np.asarray(second, dtype=np.float64)
+    first, second = first[np.isfinite(first)], second[np.isfinite(second)]
+    if first.size < 2 or second.size < 2:
+        return None
+    test = stats.ttest_ind(first, second, equal_var=False)
+    interval = test.confidence_interval(confidence_level=level)
+    return MeanComparison(
+        first_mean=float(first.mean()),
+        second_mean=float(second.mean()),
+        first_variance=float(first.var(ddof=1)),
+        second_variance=float(second.var(ddof=1)),
+        difference=Interval(float(first.mean() - second.mean()), float(interval.low), float(interval.high)),
+        p_value=float(test.pvalue),
+        variance_p_value=float(stats.levene(first, second, center="median").pvalue),
+    )
+
+
 def kaplan_meier(steps: np.ndarray, success: np.ndarray, max_steps: int) -> KaplanMeierCurve:
     """Kaplan-Meier curve of steps to success: failed episodes are right-censored at the step they stopped.
 

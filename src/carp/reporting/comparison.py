@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from scipy import stats  # noqa: E402
 
 from carp.evaluation import statistics  # noqa: E402
 
@@ -42,6 +43,14 @@ PAPER_CLAIMS = (
     ("CARP's success is better than next-token's", "carp", "next_token", "better"),
 )
 """(claim, family, rival, what the paper says of the pair) for the success claims a run can check."""
+
+PRECISION_CLAIMS = (
+    ("CARP's insertion precision is comparable to DP-C's", "carp", "diffusion_unet", "insertion_offset_mm"),
+)
+"""(claim, family, rival, per-episode measure) for the precision claims (CARP's Tables 4-5): lower is more precise."""
+
+EPISODE_RECORD_COLUMNS = frozenset({"seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"})
+"""Columns every episodes table has; any other numeric column is a task's own per-episode measure."""
 
 SPEED_CLAIMS = (
     ("CARP is about 10x faster per chunk than DP-C", "carp", "diffusion_unet"),
@@ -166,6 +175,51 @@ def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataF
     return pd.DataFrame(rows)
 
 
+def measure_columns(task_runs: Mapping[str, Runs]) -> list[str]:
+    """The task's per-episode measures (e.g. Square's ``insertion_offset_mm``) found in its episodes tables."""
+    columns: list[str] = []
+    for runs in task_runs.values():
+        for run in runs.values():
+            for column in run.episodes.columns:
+                numeric = pd.api.types.is_numeric_dtype(run.episodes[column])
+                if column not in EPISODE_RECORD_COLUMNS and numeric and column not in columns:
+                    columns.append(column)
+    return columns
+
+
+def pooled_measure(runs: Runs, column: str) -> np.ndarray:
+    """One family's values of a per-episode measure over all its seeds' test episodes (NaN where not measured)."""
+    frames = [run.episodes[column] for run in runs.values() if column in run.episodes]
+    return np.concatenate([frame.to_numpy(dtype=float) for frame in frames]) if frames else np.array([])
+
+
+def measure_table(task_runs: Mapping[str, Runs]) -> pd.DataFrame:
+    """Per family and task measure: episodes measured, mean with its t interval, variance (as CARP's Tables 4-5)."""
+    rows = []
+    for column in measure_columns(task_runs):
+        for family, runs in task_runs.items():
+            values = pooled_measure(runs, column)
+            values = values[np.isfinite(values)]
+            if values.size == 0:
+                rows.append({"measure": column, "policy": family, "episodes measured": 0})
+                continue
+            half = (
+                float(stats.t.ppf(0.975, values.size - 1) * values.std(ddof=1) / np.sqrt(values.size))
+                if values.size > 1
+                else float("nan")
+            )
+            rows.append(
+                {
+                    "measure": column,
+                    "policy": family,
+                    "episodes measured": int(values.size),
+                    "mean": f"{values.mean():.2f} (+-{half:.2f})",
+                    "variance": f"{values.var(ddof=1):.2f}" if values.size > 1 else "-",
+                }
+            )
+    return pd.DataFrame(rows)
+
+
 def compare_families(
     evaluations: Mapping[str, Mapping[str, Runs]], margin: float, alpha: float, level: float = 0.95
 ) -> dict[str, list["statistics.PairComparison"]]:
@@ -261,43 +315,82 @@ def latency_ratio(slower: Runs, faster: Runs, level: float = 0.95, resamples: in
 
 
 def claims_table(
-    evaluations: Mapping[str, Mapping[str, Runs]], comparisons: Mapping[str, Sequence["statistics.PairComparison"]]
+    evaluations: Mapping[str, Mapping[str, Runs]],
+    comparisons: Mapping[str, Sequence["statistics.PairComparison"]],
+    alpha: float = 0.05,
 ) -> pd.DataFrame:
     """The paper's claims that this run can check, per task: the verdict and the numbers behind it.
 
     A success claim holds when the paired verdict says what the paper says ("on par" also holds when CARP comes out
-    better); a speed claim states the latency ratio with its interval and holds when the interval lies above 1.
-    Claims about families the run did not train are left out; precision needs a task that measures it.
+    better); a speed claim states the latency ratio with its interval and holds when the interval lies above 1; a
+    precision claim compares the families' mean per-episode offset (Welch) and their variances, and holds when CARP's
+    mean is lower at `alpha`. Claims about families the run did not train, or measures its task lacks, are left out.
     """
     rows = []
     for task, task_runs in evaluations.items():
-        for claim, family, rival, paper in PAPER_CLAIMS:
-            comparison = _find_pair(comparisons.get(task, ()), family, rival)
-            if comparison is None:
-                continue
-            verdict = _oriented_verdict(comparison, family, rival)
-            holds = {
-                "on par": verdict in ("on par", "better"),
-                "better": verdict == "better",
-            }[paper]
-            status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
-            rows.append({"task": task, "claim": claim, "verdict": status, "evidence": comparison.explanation})
-        for claim, family, rival in SPEED_CLAIMS:
-            if family not in task_runs or rival not in task_runs:
-                continue
-            ratio = latency_ratio(task_runs[rival], task_runs[family])
-            if ratio is None:
-                continue
-            rows.append(
-                {
-                    "task": task,
-                    "claim": claim,
-                    "verdict": "holds" if ratio.low > 1 else "does not hold",
-                    "evidence": f"{rival} takes {ratio.estimate:.1f}x as long per chunk as {family} at batch 1 "
-                    f"(95% bootstrap interval {ratio.low:.1f}-{ratio.high:.1f}x over episodes' median latencies)",
-                }
-            )
+        pairs = comparisons.get(task, ())
+        rows += [{"task": task, **row} for row in _success_claims(pairs)]
+        rows += [{"task": task, **row} for row in _precision_claims(task_runs, alpha)]
+        rows += [{"task": task, **row} for row in _speed_claims(task_runs)]
     return pd.DataFrame(rows, columns=["task", "claim", "verdict", "evidence"])
+
+
+def _success_claims(pairs: Sequence["statistics.PairComparison"]) -> list[dict[str, str]]:
+    rows = []
+    for claim, family, rival, paper in PAPER_CLAIMS:
+        comparison = _find_pair(pairs, family, rival)
+        if comparison is None:
+            continue
+        verdict = _oriented_verdict(comparison, family, rival)
+        holds = verdict in ("on par", "better") if paper == "on par" else verdict == "better"
+        status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
+        rows.append({"claim": claim, "verdict": status, "evidence": comparison.explanation})
+    return rows
+
+
+def _precision_claims(task_runs: Mapping[str, Runs], alpha: float) -> list[dict[str, str]]:
+    rows = []
+    for claim, family, rival, column in PRECISION_CLAIMS:
+        if family not in task_runs or rival not in task_runs or column not in measure_columns(task_runs):
+            continue
+        result = statistics.compare_means(
+            pooled_measure(task_runs[family], column), pooled_measure(task_runs[rival], column)
+        )
+        if result is None:
+            continue
+        if result.p_value >= alpha:
+            verdict, finding = "not decided", "no difference in the means detected"
+        else:
+            better = result.difference.estimate < 0
+            verdict, finding = (
+                ("holds" if better else "does not hold"),
+                f"{family} {'more' if better else 'less'} precise",
+            )
+        evidence = (
+            f"{column}: {family} mean {result.first_mean:.2f}, variance {result.first_variance:.2f}; {rival} mean "
+            f"{result.second_mean:.2f}, variance {result.second_variance:.2f}; {finding} (Welch p = "
+            f"{result.p_value:.3g}, difference {result.difference.estimate:+.2f}, 95% interval "
+            f"{result.difference.low:+.2f} to {result.difference.high:+.2f}; equal variances p = "
+            f"{result.variance_p_value:.3g})"
+        )
+        rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
+    return rows
+
+
+def _speed_claims(task_runs: Mapping[str, Runs]) -> list[dict[str, str]]:
+    rows = []
+    for claim, family, rival in SPEED_CLAIMS:
+        if family not in task_runs or rival not in task_runs:
+            continue
+        ratio = latency_ratio(task_runs[rival], task_runs[family])
+        if ratio is None:
+            continue
+        evidence = (
+            f"{rival} takes {ratio.estimate:.1f}x as long per chunk as {family} at batch 1 (95% bootstrap interval "
+            f"{ratio.low:.1f}-{ratio.high:.1f}x over episodes' median latencies)"
+        )
+        rows.append({"claim": claim, "verdict": "holds" if ratio.low > 1 else "does not hold", "evidence": evidence})
+    return rows
 
 
 def _find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, rival: str):

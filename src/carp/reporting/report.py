@@ -471,6 +471,14 @@ def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section
             )
             section.paragraphs += [f"{pair.verdict}: {pair.explanation}" for pair in pairs]
             section.tables.append(statistics.comparison_table(pairs))
+        measures = comparison.measure_table(task_runs)
+        if not measures.empty:
+            section.paragraphs.append(
+                "The task's own per-episode measures over every test episode that took them (Square: the horizontal "
+                "distance in mm between the nut's and the peg's centres at their first contact, as in CARP's Tables "
+                "4-5; lower is more precise): the mean with its 95% t interval and the variance."
+            )
+            section.tables.append(measures)
         max_steps = inputs.max_steps.get(task)
         if max_steps:
             section.figures.append(
@@ -479,14 +487,14 @@ def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section
                 )
             )
         sections.append(section)
-    claims = comparison.claims_table(inputs.runs, decided)
+    claims = comparison.claims_table(inputs.runs, decided, alpha=inputs.alpha)
     if not claims.empty:
         sections.append(
             Section(
                 "The paper's claims on this run",
                 paragraphs=[
                     "Each claim of the CARP paper that this run's families can check, with the verdict of the paired "
-                    "comparison or the latency ratio behind it. Precision at insertion needs a task that measures it."
+                    "comparison, the latency ratio or the precision measure behind it."
                 ],
                 tables=[claims],
             )
