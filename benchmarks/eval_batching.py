@@ -9,8 +9,8 @@ The evaluate stage runs episodes in `eval.workers` processes, one env each. Two 
 Both run the same seeds with the same checkpoint, episode limit and success check; the table reports simulator steps
 per second (the work done, independent of how many episodes succeed), episodes per minute and the success count.
 
-Usage: python benchmarks/eval_batching.py --checkpoint models/policy/lift/carp/seed0/policy.pt --processed data/processed/lift
-       [--workers 2] [--episodes 6] [--max-steps 200] [--repeats 2]
+Usage: python benchmarks/eval_batching.py --checkpoint models/policy/lift/carp/seed0/policy.pt
+       --processed data/processed/lift [--workers 2] [--episodes 6] [--max-steps 200] [--repeats 2]
 """
 
 import argparse
