@@ -37,7 +37,7 @@ def stages(tmp_path_factory) -> dict[str, list[str]]:
 
 
 def test_train_policy_tracks_its_family_section_and_the_shared_loop_but_no_inference_setting(stages):
-    assert stages["train_policy@lift-carp"] == [
+    assert stages["train_policy@lift-carp-0"] == [
         "scales",
         "codebook_size",
         "data.obs_steps",
@@ -51,7 +51,7 @@ def test_train_policy_tracks_its_family_section_and_the_shared_loop_but_no_infer
 
 
 def test_evaluate_tracks_its_familys_inference_section_only(stages):
-    tracked = stages["evaluate@lift-carp"]
+    tracked = stages["evaluate@lift-carp-0"]
     assert "inference.carp" in tracked and "eval" in tracked
     assert "carp" not in tracked and "training" not in tracked
 
@@ -96,4 +96,4 @@ def test_only_ingest_tracks_the_image_settings(stages):
     image_settings = {"data.observations", "data.cameras", "data.image_size", "data.proprioception_keys"}
     assert image_settings <= set(stages["ingest@lift"])
     assert [name for name, keys in stages.items() if image_settings & set(keys) and name != "ingest@lift"] == []
-    assert [name for name, keys in stages.items() if "image_encoder" in keys] == ["train_policy@lift-carp"]
+    assert [name for name, keys in stages.items() if "image_encoder" in keys] == ["train_policy@lift-carp-0"]
