@@ -64,4 +64,4 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         assert status.returncode == 0, status.stderr[-3000:]
         stale = set(json.loads(status.stdout))
         trained = [stage for stage in stale if stage.startswith("train_")]
-        assert "evaluate@lift-carp" in stale and not trained, (section, stale)
+        assert "evaluate@lift-carp-0" in stale and not trained, (section, stale)

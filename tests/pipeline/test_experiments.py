@@ -119,7 +119,7 @@ def test_two_queued_experiments_run_at_once_on_a_fresh_store_keep_every_run(temp
 
     shown = experiments(workspace)
     assert set(shown) == set(sizes), run(dvc("queue", "status"), workspace).stdout
-    stages = {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+    stages = {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp-0", "evaluate@lift-carp-0"}
     for name, size in sizes.items():
         assert isinstance(shown[name]["metrics"]["success_rate"], float), name
         tagged = [r for r in mlflow_runs(workspace) if r.data.tags.get("carp.dvc_experiment") == name]
@@ -139,7 +139,7 @@ def test_temp_experiment_lands_in_the_workspace_store_with_its_name(template, tm
 
     tagged = [r for r in mlflow_runs(workspace) if r.data.tags.get("carp.dvc_experiment") == "tiny-temp"]
     stages = {r.data.tags["carp.dvc_stage"] for r in tagged}
-    assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+    assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp-0", "evaluate@lift-carp-0"}
     assert {r.data.tags["carp.git_commit"] for r in tagged} == {head(workspace)}
     assert {r.data.params["codebook_size"] for r in tagged} == {"8"}
     for r in tagged:
@@ -204,8 +204,8 @@ def test_two_trial_sweep_end_to_end(template, tmp_path):
     assert {r.data.tags["carp.dvc_stage"] for r in first} == {
         "train_tokenizer",
         "register_tokenizer",
-        "train_policy@lift-carp",
-        "evaluate@lift-carp",
+        "train_policy@lift-carp-0",
+        "evaluate@lift-carp-0",
     }
 
 
@@ -261,7 +261,7 @@ def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_
 
 def _second_trial_is_training(log: str) -> bool:
     marker = "dvc exp run --name sweep-tiny-t1"
-    return marker in log and "Running stage 'train_policy@lift-carp'" in log.split(marker, 1)[1]
+    return marker in log and "Running stage 'train_policy@lift-carp-0'" in log.split(marker, 1)[1]
 
 
 def _wait_until_group_is_gone(group: int) -> None:
@@ -341,7 +341,12 @@ def test_two_sweep_workers_share_a_postgresql_study_and_push_their_experiments(t
                 for r in runs
                 if r.data.tags.get("carp.dvc_experiment") == name and "carp.dvc_stage" in r.data.tags
             }
-            assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+            assert stages == {
+                "train_tokenizer",
+                "register_tokenizer",
+                "train_policy@lift-carp-0",
+                "evaluate@lift-carp-0",
+            }
 
 
 @pytest.mark.slow

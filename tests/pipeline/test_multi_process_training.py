@@ -40,7 +40,7 @@ def test_two_processes_train_the_stage_and_rank_0_alone_logs_and_writes(tmp_path
     assert list(history["epoch"]) == list(range(1, EPOCHS + 1))
     policy = load_policy(workspace / "models/policy/lift/diffusion_transformer/seed0/policy.pt")
     assert policy.metadata["mlflow_run_id"] == runs[0].info.run_id
-    state = workspace / "checkpoints/policy/lift/diffusion_transformer/training_state.pt"
+    state = workspace / "checkpoints/policy/lift/diffusion_transformer/seed0/training_state.pt"
     assert state.exists() and not list(state.parent.glob("*.tmp"))
 
     again = run(dvc("repro", STAGE), workspace)

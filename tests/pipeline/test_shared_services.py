@@ -26,8 +26,8 @@ STAGES = {
     "ingest@lift",
     "train_tokenizer",
     "register_tokenizer",
-    "train_policy@lift-carp",
-    "evaluate@lift-carp",
+    "train_policy@lift-carp-0",
+    "evaluate@lift-carp-0",
 }
 TIMEOUT_SECONDS = 1800
 # What `dvc pull` must bring back: demos, processed data, tokenizer and policy.
@@ -134,7 +134,7 @@ def test_two_queued_experiments_run_at_once_log_every_run_into_the_server(pipeli
         tagged = [r for r in runs if r.data.tags.get("carp.dvc_experiment") == name]
         stages = sorted(r.data.tags["carp.dvc_stage"] for r in tagged)
         assert stages == sorted(
-            {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp", "evaluate@lift-carp"}
+            {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp-0", "evaluate@lift-carp-0"}
         ), name
         assert {r.info.status for r in tagged} == {"FINISHED"}, name
         assert {r.data.params["codebook_size"] for r in tagged} == {str(size)}, name

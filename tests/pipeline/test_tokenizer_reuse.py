@@ -42,7 +42,7 @@ def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
     second = run(dvc("repro", "--downstream", "register_tokenizer"), workspace)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "Running stage 'train_tokenizer'" not in second.stdout + data.stdout
-    assert "Running stage 'train_policy@square-carp'" in second.stdout
+    assert "Running stage 'train_policy@square-carp-0'" in second.stdout
 
     # The registered weights were used as they are: same hash, same registry version, trained on lift and can.
     metadata = json.loads((workspace / "models/tokenizer/tokenizer.json").read_text())

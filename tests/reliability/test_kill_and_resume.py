@@ -60,7 +60,7 @@ def pipeline(tmp_path_factory) -> dict[str, Path]:
     temp_directory = root / "system-tmp"
     temp_directory.mkdir()
     completed = subprocess.run(
-        dvc("repro", "evaluate@lift-carp"),
+        dvc("repro", "evaluate@lift-carp-0"),
         cwd=workspace,
         env=_env(temp_directory),
         capture_output=True,
@@ -167,7 +167,7 @@ def test_a_truncated_training_state_is_discarded_with_one_warning_and_the_stage_
 @pytest.mark.slow
 def test_train_policy_killed_mid_way_resumes_to_the_uninterrupted_result(pipeline):
     workspace, reference = pipeline["workspace"], pipeline["reference"]
-    state = workspace / "checkpoints/policy/lift/carp/training_state.pt"
+    state = workspace / "checkpoints/policy/lift/carp/seed0/training_state.pt"
     state.unlink()
     process = _stage(pipeline, "pipeline/train_policy.py", "--task", "lift", "--policy", "carp", "--seed", "0")
     _kill_when(process, state.exists)
