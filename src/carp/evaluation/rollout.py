@@ -28,6 +28,7 @@ from einops import rearrange
 from tqdm import tqdm
 
 from carp import simulation
+from carp.evaluation.task_measures import measure_for
 
 if TYPE_CHECKING:
     from carp.data.rendering import CameraRenderer, RenderSettings
@@ -78,6 +79,7 @@ class EpisodeResult:
     encoding_seconds: list[float] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)
     render_seconds: list[float] = field(default_factory=list)
+    task_measures: dict[str, float] = field(default_factory=dict)
 
 
 def flatten_observation(obs: dict, obs_keys: Sequence[str]) -> np.ndarray:
@@ -141,6 +143,7 @@ def run_episode(
     started = time.perf_counter()
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
     renderer = video = None
+    measure = measure_for(env)
 
     def observe_cameras() -> np.ndarray:
         rendering_started = time.perf_counter()
@@ -151,6 +154,7 @@ def run_episode(
     try:
         obs = simulation.reset_env(env, seed)
         source.reset(env, seed)
+        measure.reset(env)
         history = deque([flatten_observation(obs, obs_keys)] * obs_steps, maxlen=obs_steps)
         image_history = None
         if cameras is not None:
@@ -176,6 +180,7 @@ def run_episode(
                 if image_history is not None:
                     image_history.append(observe_cameras())
                 result.steps += 1
+                measure.observe(env, result.steps)
                 if video is not None:
                     result.frames.append(video.render(env.sim.get_state().flatten())[f"{render_camera}_image"])
                 if simulation.is_success(env):
@@ -191,6 +196,7 @@ def run_episode(
         for context in (renderer, video):
             if context is not None:
                 context.close()
+    result.task_measures = measure.values()
     result.seconds = time.perf_counter() - started
     return result
 

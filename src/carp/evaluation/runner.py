@@ -103,11 +103,28 @@ def evaluate_policy(
         summary.update(latency_summary([s for r in results for s in r.render_seconds], "render_step"))
         # The camera encoder's share of the prediction time, so the report can give the latency without it.
         summary.update(latency_summary([s for r in results for s in r.encoding_seconds], "latency_encode"))
+    summary.update(measure_summary(results))
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
     summary["action_steps"] = action_steps  # chunks per control step, for the report's inference budget
     return summary, results
+
+
+def measure_summary(results: Sequence[EpisodeResult]) -> dict[str, float]:
+    """Per task measure, over the episodes that took it: ``<name>_mean``, ``<name>_variance``, ``<name>_episodes``.
+
+    The variance is the sample variance (n - 1); mean and variance are NaN with fewer than one and two values.
+    """
+    summary: dict[str, float] = {}
+    names = dict.fromkeys(name for result in results for name in result.task_measures)
+    for name in names:
+        values = np.array([result.task_measures.get(name, np.nan) for result in results], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        summary[f"{name}_mean"] = float(values.mean()) if values.size else float("nan")
+        summary[f"{name}_variance"] = float(values.var(ddof=1)) if values.size > 1 else float("nan")
+        summary[f"{name}_episodes"] = int(values.size)
+    return summary
 
 
 def policy_facts(policy: Policy) -> dict[str, Any]:
@@ -121,10 +138,11 @@ def policy_facts(policy: Policy) -> dict[str, Any]:
 
 
 def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
-    """Per-episode records: seed, success, steps, seconds, chunks, median chunk latency (ms), error.
+    """Per-episode records: seed, success, steps, seconds, chunks, median chunk latency (ms), error, task measures.
 
     ``chunk_ms_median`` is the episode's median of prediction plus decoding per chunk at batch 1 (NaN without a
-    chunk); the report's latency ratios resample it over episodes.
+    chunk); the report's latency ratios resample it over episodes. A task's own measures
+    (`carp.evaluation.task_measures`, e.g. Square's ``insertion_offset_mm``) follow as one column each.
     """
     rows = []
     for result in results:
@@ -139,6 +157,7 @@ def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
                 "chunks": len(record["prediction_seconds"]),
                 "chunk_ms_median": round(float(np.median(chunk_seconds)) * 1000, 4) if chunk_seconds.size else np.nan,
                 "error": record["error"],
+                **record["task_measures"],
             }
         )
     return pd.DataFrame(rows)
