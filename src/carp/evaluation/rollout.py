@@ -143,7 +143,7 @@ def run_episode(
     started = time.perf_counter()
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
     renderer = video = None
-    measure = measure_for(env)
+    measure = measure_for(simulation.task_of(env))
 
     def observe_cameras() -> np.ndarray:
         rendering_started = time.perf_counter()
