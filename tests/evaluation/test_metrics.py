@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from carp.evaluation.metrics import latency_summary, wilson_interval
+from carp.evaluation.metrics import latency_summary, measure_summary, wilson_interval
 
 
 @pytest.mark.parametrize(
@@ -35,3 +35,33 @@ def test_latency_summary_in_milliseconds():
     assert summary["predict_ms_median"] == pytest.approx(5.5)
     assert summary["predict_ms_p90"] == pytest.approx(9.1)
     assert math.isnan(latency_summary([], "decode")["decode_ms_median"])
+
+
+def test_measure_summary_averages_each_measure_over_the_episodes_that_measured_it():
+    nan = float("nan")
+    measures = [
+        {"insertion_offset_mm": 4.0, "insertion_contact_step": 30.0},
+        {"insertion_offset_mm": 6.0, "insertion_contact_step": 35.0},
+        {"insertion_offset_mm": 11.0, "insertion_contact_step": 40.0},
+        {"insertion_offset_mm": nan, "insertion_contact_step": nan},  # no contact
+        {},  # a worker that died records no measure
+    ]
+    summary = measure_summary(measures)
+    assert summary["insertion_offset_mm_mean"] == 7.0
+    assert summary["insertion_offset_mm_variance"] == pytest.approx(13.0)  # (9 + 1 + 16) / (3 - 1)
+    assert summary["insertion_offset_mm_episodes"] == 3
+    assert summary["insertion_contact_step_mean"] == 35.0 and summary["insertion_contact_step_variance"] == 25.0
+    assert list(summary) == [
+        f"{name}_{statistic}"
+        for name in ("insertion_offset_mm", "insertion_contact_step")
+        for statistic in ("mean", "variance", "episodes")
+    ]
+
+
+def test_measure_summary_of_too_few_values_is_nan_and_of_no_measures_empty():
+    one = measure_summary([{"insertion_offset_mm": 5.0}, {"insertion_offset_mm": float("nan")}])
+    assert one["insertion_offset_mm_mean"] == 5.0 and math.isnan(one["insertion_offset_mm_variance"])
+    assert one["insertion_offset_mm_episodes"] == 1
+    none = measure_summary([{"insertion_offset_mm": float("nan")}])
+    assert math.isnan(none["insertion_offset_mm_mean"]) and none["insertion_offset_mm_episodes"] == 0
+    assert measure_summary([{}, {}]) == {} and measure_summary([]) == {}

@@ -1,9 +1,10 @@
-"""Summary statistics of an evaluation: success rate with a Wilson score interval, episode lengths, latency.
+"""Summary statistics of an evaluation: success rate with its interval, episode lengths, latency, task measures.
 
-The interval itself lives in ``carp.evaluation.statistics``; it is imported here for this module's users.
+The success rate gets a Wilson score interval, a task's per-episode measures their mean and variance. The interval
+itself lives in ``carp.evaluation.statistics``; it is imported here for this module's users.
 """
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -48,3 +49,22 @@ def summarize_episodes(
         **latency_summary(prediction_seconds, "latency_predict"),
         **latency_summary(decoding_seconds, "latency_decode"),
     }
+
+
+def measure_summary(measures: Sequence[Mapping[str, float]]) -> dict[str, float]:
+    """Per task measure, over the episodes that measured it (a finite value): mean, variance and their count.
+
+    Keys ``<name>_mean``, ``<name>_variance`` (the sample variance, n - 1) and ``<name>_episodes``, for every name
+    found in any episode; the mean is NaN without a value and the variance NaN with fewer than two.
+
+    Args:
+        measures: per episode, its task measures (`EpisodeResult.task_measures`; empty for a task without any).
+    """
+    summary: dict[str, float] = {}
+    for name in dict.fromkeys(name for episode in measures for name in episode):
+        values = np.array([episode.get(name, np.nan) for episode in measures], dtype=np.float64)
+        values = values[np.isfinite(values)]
+        summary[f"{name}_mean"] = float(values.mean()) if values.size else float("nan")
+        summary[f"{name}_variance"] = float(values.var(ddof=1)) if values.size > 1 else float("nan")
+        summary[f"{name}_episodes"] = int(values.size)
+    return summary

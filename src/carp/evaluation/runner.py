@@ -12,7 +12,7 @@ import pandas as pd
 import torch
 
 from carp.config import EVAL_BACKENDS
-from carp.evaluation.metrics import latency_summary, summarize_episodes
+from carp.evaluation.metrics import latency_summary, measure_summary, summarize_episodes
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
@@ -103,28 +103,12 @@ def evaluate_policy(
         summary.update(latency_summary([s for r in results for s in r.render_seconds], "render_step"))
         # The camera encoder's share of the prediction time, so the report can give the latency without it.
         summary.update(latency_summary([s for r in results for s in r.encoding_seconds], "latency_encode"))
-    summary.update(measure_summary(results))
+    summary.update(measure_summary([r.task_measures for r in results]))
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
     summary["action_steps"] = action_steps  # chunks per control step, for the report's inference budget
     return summary, results
-
-
-def measure_summary(results: Sequence[EpisodeResult]) -> dict[str, float]:
-    """Per task measure, over the episodes that took it: ``<name>_mean``, ``<name>_variance``, ``<name>_episodes``.
-
-    The variance is the sample variance (n - 1); mean and variance are NaN with fewer than one and two values.
-    """
-    summary: dict[str, float] = {}
-    names = dict.fromkeys(name for result in results for name in result.task_measures)
-    for name in names:
-        values = np.array([result.task_measures.get(name, np.nan) for result in results], dtype=np.float64)
-        values = values[np.isfinite(values)]
-        summary[f"{name}_mean"] = float(values.mean()) if values.size else float("nan")
-        summary[f"{name}_variance"] = float(values.var(ddof=1)) if values.size > 1 else float("nan")
-        summary[f"{name}_episodes"] = int(values.size)
-    return summary
 
 
 def policy_facts(policy: Policy) -> dict[str, Any]:
