@@ -7,8 +7,9 @@ A stage with a missing dependency cannot have a run-cache entry, so this module 
 cached" for it in dry runs, which is what DVC does for any other uncached stage; real runs are untouched.
 
 `make setup` installs a `.pth` file (`tools/carp-dvc-dry-run.pth`) that calls :func:`install` when the project's
-Python starts; the patch is applied only if and when DVC's `dvc.stage.cache` is imported, so other programs pay
-nothing.
+Python starts, and does nothing where the `carp` on the path has no such module (another checkout or an older commit
+using the same venv); the patch is applied only if and when DVC's `dvc.stage.cache` is imported, so other programs
+pay nothing.
 """
 
 import importlib.abc

@@ -1,12 +1,15 @@
 """`dvc repro --dry`, `dvc exp run --dry` and `dvc status` answer on a fresh clone, before any stage has run."""
 
+import os
 import re
+import shutil
+import subprocess
 import sys
 
 import pytest
 
 from carp.dvc_dry_run import patch_stage_cache
-from tests.pipeline.workspace import make_workspace, run
+from tests.pipeline.workspace import REPO, make_workspace, run
 
 DVC = [sys.executable, "-m", "dvc"]
 
@@ -41,6 +44,30 @@ def test_the_patch_is_applied_once_and_only_to_dry_runs():
     patched = stage_cache.StageCache.restore
     patch_stage_cache(stage_cache)
     assert stage_cache.StageCache.restore is patched
+
+
+def test_the_startup_hook_applies_the_fix_only_where_the_checkout_has_it(tmp_path):
+    # One venv can serve several checkouts (PYTHONPATH, an older commit): the hook must not fail Python in those.
+    site_dir = tmp_path / "site-packages"
+    site_dir.mkdir()
+    shutil.copy(REPO / "tools/carp-dvc-dry-run.pth", site_dir)
+    older = tmp_path / "older"
+    (older / "carp").mkdir(parents=True)
+    (older / "carp/__init__.py").write_text("")
+    probe = (
+        "import site, sys; site.addsitedir(sys.argv[1]); "
+        "print(any(type(finder).__name__ == '_PatchAfterImport' for finder in sys.meta_path))"
+    )
+    for source, installed in ((REPO / "src", "True"), (older, "False")):
+        started = subprocess.run(
+            [sys.executable, "-S", "-c", probe, str(site_dir)],
+            env={**os.environ, "PYTHONPATH": str(source)},
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert started.returncode == 0 and started.stderr == "", started.stderr
+        assert started.stdout.strip() == installed, source
 
 
 @pytest.mark.slow
