@@ -78,3 +78,19 @@ def test_exp_run_with_an_added_unknown_key_fails(workspace):
     assert result.returncode != 0
     assert "carp.epoch: unknown key" in result.stderr
     run(["git", "checkout", "params.yaml"], workspace)
+
+
+@pytest.mark.slow
+def test_dry_run_after_a_run_lists_a_new_tasks_stages_and_not_the_built_ones(workspace):
+    params_file = workspace / "params.yaml"
+    original = params_file.read_text()
+    params = yaml.safe_load(original)
+    params["tasks"] = ["lift", "can"]
+    try:
+        params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+        dry = repro(workspace, "--dry", "ingest@lift", "ingest@can")
+        assert dry.returncode == 0, dry.stderr[-3000:]
+        assert stages_run(dry.stdout) == {"check_inputs", "collect@can", "ingest@can"}, dry.stdout
+        assert not (workspace / "data/raw/can.hdf5").exists()
+    finally:
+        params_file.write_text(original)
