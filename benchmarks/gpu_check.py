@@ -5,7 +5,7 @@ Usage: benchmarks/gpu_check.sh [--workspace DIR] [--policies carp,next_token] [-
 CUDA has to be visible to torch; without it the check stops at once with one `error:` line and creates nothing. It
 copies the project's source files into a fresh workspace (DIR, or a new temporary directory, kept and named at the
 end), sets `device: cuda` and short settings (the lift task, 10 demos, 5 tokenizer and policy epochs, 8 evaluation
-episodes; models at their default sizes), runs `dvc repro evaluate@lift-<policy>` for each policy and prints:
+episodes; models at their default sizes), runs `dvc repro evaluate@lift-<policy>-0` for each policy and prints:
 
 - training on CUDA: precision, milliseconds per optimizer step (median over the epochs after the first, which pays
   for CUDA's start-up) and windows per second;
@@ -184,7 +184,7 @@ def main() -> None:
     # Stage commands call `python` and `dvc`: this interpreter's environment comes first on PATH.
     environment = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     for policy_name in policies:
-        stage = f"evaluate@{TASK}-{policy_name}"
+        stage = f"evaluate@{TASK}-{policy_name}-0"
         with (workspace / f"gpu_check_{policy_name}.log").open("w") as log:
             completed = subprocess.run(
                 [sys.executable, "-m", "dvc", "repro", stage],

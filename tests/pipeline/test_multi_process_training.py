@@ -20,7 +20,7 @@ PARAMS = {
     "inference": {"diffusion_transformer": {"sampler": "ddim", "num_inference_steps": 2}},
     "training": {"epochs": EPOCHS, "num_processes": 2},
 }
-STAGE = "train_policy@lift-diffusion_transformer"
+STAGE = "train_policy@lift-diffusion_transformer-0"
 
 
 @pytest.mark.slow
