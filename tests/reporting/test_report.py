@@ -247,7 +247,12 @@ def test_comparison_sections_give_per_seed_rows_verdicts_and_the_papers_claims(t
     markdown = write_report(report, tmp_path / "reports")[0].read_text()
     section = markdown.split("## Comparison on lift", 1)[1].split("\n## ", 1)[0]
     # Three seed rows per family, with the selected checkpoint, validation max and the gap to the test success.
-    assert len([line for line in section.splitlines() if line.startswith("| carp ") and "epoch 40 of 4" in line]) == 3
+    assert (
+        len(
+            [line for line in section.splitlines() if line.startswith("| carp ") and "epoch 40 of 4 candidates" in line]
+        )
+        == 3
+    )
     assert "| +6.0 points" in section
     assert "carp better" in section and "on par within" in section
     assert (tmp_path / "reports" / "figures" / "steps_to_success_lift.png").exists()
