@@ -20,6 +20,7 @@ import pandas as pd  # noqa: E402
 from scipy import stats  # noqa: E402
 
 from carp.evaluation import statistics  # noqa: E402
+from carp.reporting.figures import finish_figure  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -277,13 +278,7 @@ def plot_steps_to_success(task_runs: Mapping[str, Runs], max_steps: int, path: P
     axis.set_xlabel("control step")
     axis.set_ylabel("episodes succeeded (%)")
     axis.set_title(title)
-    axis.legend(fontsize=7)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return finish_figure(figure, axis, path)
 
 
 def latency_ratio(slower: Runs, faster: Runs, level: float = 0.95, resamples: int = 4000, seed: int = 0):

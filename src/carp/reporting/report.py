@@ -23,6 +23,7 @@ from carp.evaluation import statistics  # noqa: E402
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
 from carp.reporting import comparison  # noqa: E402
 from carp.reporting.comparison import Runs  # noqa: E402
+from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
 
 
@@ -242,7 +243,7 @@ def plot_success_against_latency(evaluation: Mapping[str, Mapping[str, Mapping]]
     axis.set_xlabel("latency per chunk at batch 1 (ms, log scale)")
     axis.set_ylabel("success rate (%)")
     axis.set_ylim(0, 105)
-    return _finish(figure, axis, path)
+    return finish_figure(figure, axis, path)
 
 
 def _pair(metrics: Mapping, prefix: str) -> str:
@@ -280,17 +281,6 @@ def tokenizer_table(metrics: Mapping[str, float]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _finish(figure, axis, path: Path) -> Path:
-    """Legend, grid, tight layout; save as PNG and release the figure."""
-    axis.legend(fontsize=7)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
-
-
 def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path: Path, log_scale: bool = True) -> Path:
     """Plot per-epoch columns of a history table to a PNG."""
     figure, axis = plt.subplots(figsize=(6, 3.2))
@@ -301,7 +291,7 @@ def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path:
     axis.set_title(title)
     if log_scale and (history[[c for c in columns if c in history]] > 0).all().all():
         axis.set_yscale("log")
-    return _finish(figure, axis, path)
+    return finish_figure(figure, axis, path)
 
 
 def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
@@ -313,7 +303,7 @@ def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
     axis.set_xlabel("number of scales K")
     axis.set_ylabel("success rate (%)")
     axis.set_ylim(0, 105)
-    return _finish(figure, axis, path)
+    return finish_figure(figure, axis, path)
 
 
 def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:

@@ -24,6 +24,7 @@ import pandas as pd  # noqa: E402
 
 from carp.evaluation import statistics  # noqa: E402
 from carp.reporting.comparison import RunResults, Runs, compare_families, outcomes_by_seed  # noqa: E402
+from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.report import Section, write_sections  # noqa: E402
 
 logger = logging.getLogger(__name__)
@@ -155,13 +156,7 @@ def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, pat
     axis.set_ylabel("success rate (%)")
     axis.set_ylim(0, 105)
     axis.set_title(f"data efficiency ({task})")
-    axis.legend(fontsize=7)
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return finish_figure(figure, axis, path)
 
 
 def study_sections(points: Mapping[int, Evaluations], margin: float, alpha: float, figures_dir: Path) -> list[Section]:
