@@ -62,24 +62,23 @@ SPEED_CLAIMS = (
 
 def outcomes_by_seed(runs: Runs, episode_seeds: Sequence[int] | None = None) -> dict[int, np.ndarray]:
     """Training seed -> (N,) bool test successes ordered by episode seed, restricted to `episode_seeds` if given."""
-    outcomes = {}
-    for seed, run in sorted(runs.items()):
-        episodes = run.episodes.sort_values("seed")
-        if episode_seeds is not None:
-            episodes = episodes[episodes["seed"].isin(episode_seeds)]
-        outcomes[seed] = episodes["success"].to_numpy(dtype=bool)
-    return outcomes
+    return _episode_column(runs, "success", bool, episode_seeds)
 
 
 def steps_by_seed(runs: Runs, episode_seeds: Sequence[int] | None = None) -> dict[int, np.ndarray]:
     """Training seed -> (N,) int steps of each test episode, in the order of `outcomes_by_seed`."""
-    steps = {}
+    return _episode_column(runs, "steps", np.int64, episode_seeds)
+
+
+def _episode_column(runs: Runs, column: str, dtype, episode_seeds: Sequence[int] | None) -> dict[int, np.ndarray]:
+    """Training seed -> one column of its test episodes, ordered by episode seed (optionally only `episode_seeds`)."""
+    values = {}
     for seed, run in sorted(runs.items()):
         episodes = run.episodes.sort_values("seed")
         if episode_seeds is not None:
             episodes = episodes[episodes["seed"].isin(episode_seeds)]
-        steps[seed] = episodes["steps"].to_numpy(dtype=np.int64)
-    return steps
+        values[seed] = episodes[column].to_numpy(dtype=dtype)
+    return values
 
 
 def pooled_metrics(runs: Runs) -> dict[str, Any]:
