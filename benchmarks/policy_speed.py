@@ -9,12 +9,15 @@ Measures, with randomly initialized weights (speed does not depend on the values
 - training throughput at batch 256 on two threads: forward, cross-entropy, backward and AdamW step on precomputed
   token targets, as the shared loop runs CARP's step (`carp.policies.carp.trainer`), in float32 and in the precision
   `training.precision: auto` picks here (bfloat16 autocast on CPUs with native bfloat16 matmuls); steps of the two
-  alternate.
+  alternate;
+- with --compare-attention, only training: float32 steps with each block-causal attention kernel (`carp.attention`),
+  interleaved, at several batch sizes, beside the kernel `auto` would choose from its own short measurement.
 
 Reference (issue text): the official implementation needs 21.8 ms per chunk (17.8 ms prediction + 4.0 ms decoding)
 and 2.6 s per training step at batch 256 on 2 threads.
 
 Usage: python benchmarks/policy_speed.py [--chunks 300] [--train-steps 8] [--skip-training] [--skip-onnx] [--top-k 3]
+       python benchmarks/policy_speed.py --compare-attention [--attention-batches 64 256] [--train-steps 8]
 """
 
 import argparse
@@ -22,16 +25,18 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.policies.carp.attention import ATTENTION_KERNELS, faster_kernel
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
-from carp.policies.carp.trainer import optimizer_recipe, teacher_forced_step
+from carp.policies.carp.trainer import measure_attention_kernels, optimizer_recipe, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
@@ -86,8 +91,19 @@ def percentile(values: list[float], fraction: float) -> float:
     return float(np.percentile(values, 100 * fraction))
 
 
-def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisions: list[torch.dtype]) -> dict:
-    """Median wall and CPU seconds per training step (all threads) per precision, steps alternating between them."""
+class TrainingVariant(NamedTuple):
+    """One way of running the training step: its autocast precision and its attention kernel."""
+
+    precision: torch.dtype
+    attention: str = "masked"
+
+    def label(self, auto_precision: torch.dtype) -> str:
+        name = precision_name(self.precision) + (" (auto)" if self.precision == auto_precision else "")
+        return f"{name}, {self.attention} attention"
+
+
+def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, variants: list[TrainingVariant]) -> dict:
+    """Median wall and CPU seconds per training step (all threads) per variant, steps alternating between them."""
     spec = policy.spec
     generator = torch.Generator().manual_seed(0)
     obs = torch.randn(batch_size, OBS_STEPS, OBS_DIM, generator=generator)
@@ -95,14 +111,15 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisi
     targets = torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator)
     batch = {"obs": obs, "teacher_inputs": teacher, "token_sequence": targets}
 
-    def make_step(precision: torch.dtype):
+    def make_step(variant: TrainingVariant):
         torch.manual_seed(0)
         transformer = CoarseToFineTransformer(spec).train()
+        transformer.attention_kernel = variant.attention
         recipe = optimizer_recipe(transformer, CarpConfig())
         optimizer = make_optimizer(recipe.parameter_groups(), recipe, torch.device("cpu"))
 
         def step() -> None:
-            with autocast_to(precision, torch.device("cpu")):
+            with autocast_to(variant.precision, torch.device("cpu")):
                 loss = teacher_forced_step(transformer, batch).loss
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -110,33 +127,49 @@ def train_steps_seconds(policy: CarpPolicy, batch_size: int, steps: int, precisi
 
         return step
 
-    runs = {precision: make_step(precision) for precision in precisions}
+    runs = {variant: make_step(variant) for variant in variants}
     for step in runs.values():
         for _ in range(2):
             step()
-    durations = {precision: ([], []) for precision in precisions}
+    durations = {variant: ([], []) for variant in variants}
     for _ in range(steps):
-        for precision, step in runs.items():
+        for variant, step in runs.items():
             started, cpu_started = time.perf_counter(), time.process_time()
             step()
-            durations[precision][0].append(time.perf_counter() - started)
-            durations[precision][1].append(time.process_time() - cpu_started)
-    return {
-        precision: (statistics.median(wall), statistics.median(cpu)) for precision, (wall, cpu) in durations.items()
-    }
+            durations[variant][0].append(time.perf_counter() - started)
+            durations[variant][1].append(time.process_time() - cpu_started)
+    return {variant: (statistics.median(wall), statistics.median(cpu)) for variant, (wall, cpu) in durations.items()}
 
 
 def print_training(timings: dict, batch_size: int, auto: torch.dtype) -> None:
-    """One line per precision: seconds per step, samples/s and the speed-up over the official step at batch 256."""
-    for precision, (seconds, cpu_seconds) in timings.items():
-        name = precision_name(precision) + (" (auto)" if precision == auto else "")
+    """One line per variant: seconds per step, samples/s and the speed-up over the official step at batch 256."""
+    for variant, (seconds, cpu_seconds) in timings.items():
         line = (
-            f"  {name:<16} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over both threads), "
+            f"  {variant.label(auto):<36} {seconds:.3f} s per step ({cpu_seconds:.3f} CPU s over all threads), "
             f"{batch_size / seconds:.0f} samples/s"
         )
         if batch_size == 256:
             line += f", speed-up x{OFFICIAL_TRAIN_STEP_SECONDS / seconds:.2f}"
         print(line)
+
+
+def compare_attention(policy: CarpPolicy, batch_sizes: list[int], steps: int, threads: int) -> None:
+    """Both attention kernels: whole float32 training steps, interleaved, and what `carp.attention: auto` measures."""
+    transformer = CoarseToFineTransformer(policy.spec)
+    variants = [TrainingVariant(torch.float32, kernel) for kernel in ATTENTION_KERNELS]
+    print(f"attention kernels, float32 training steps on {threads} threads, interleaved, median of {steps}:")
+    print(
+        f"| {'batch':>5} | {'masked s/step':>13} | {'blockwise s/step':>16} | {'blockwise/masked':>16} "
+        "| auto measures |"
+    )
+    print(f"|{'-' * 7}|{'-' * 15}|{'-' * 18}|{'-' * 18}|{'-' * 15}|")
+    for batch_size in batch_sizes:
+        timings = train_steps_seconds(policy, batch_size, steps, variants)
+        masked, blockwise = (timings[variant][0] for variant in variants)
+        chosen = faster_kernel(measure_attention_kernels(transformer, batch_size, torch.device("cpu"), torch.float32))
+        print(
+            f"| {batch_size:>5} | {masked:>13.3f} | {blockwise:>16.3f} | {blockwise / masked:>16.3f} | {chosen:<13} |"
+        )
 
 
 def main() -> None:
@@ -147,7 +180,19 @@ def main() -> None:
     parser.add_argument("--skip-training", action="store_true")
     parser.add_argument("--skip-onnx", action="store_true", help="skip the ONNX Runtime rows (export takes ~1-2 s)")
     parser.add_argument("--top-k", type=int, default=3, help="the sampling graph timed next to the greedy one")
+    parser.add_argument(
+        "--compare-attention",
+        action="store_true",
+        help="only time training steps with each attention kernel (carp.attention), at --attention-batches",
+    )
+    parser.add_argument("--attention-batches", type=int, nargs="+", default=[64, 256])
+    parser.add_argument("--threads", type=int, default=2, help="threads of the training measurements")
     args = parser.parse_args()
+
+    if args.compare_attention:
+        torch.set_num_threads(args.threads)
+        compare_attention(make_policy(), args.attention_batches, args.train_steps, args.threads)
+        return
 
     policy = make_policy()
     rows = []
@@ -185,10 +230,10 @@ def main() -> None:
     )
 
     if not args.skip_training:
-        torch.set_num_threads(2)
+        torch.set_num_threads(args.threads)
         auto = resolve_precision("auto", torch.device("cpu"))
-        precisions = list(dict.fromkeys([torch.float32, auto]))
-        timings = train_steps_seconds(policy, 256, args.train_steps, precisions)
+        variants = [TrainingVariant(precision) for precision in dict.fromkeys([torch.float32, auto])]
+        timings = train_steps_seconds(policy, 256, args.train_steps, variants)
         print(
             f"training at batch 256, 2 threads (official: {OFFICIAL_TRAIN_STEP_SECONDS} s per step = "
             f"{256 / OFFICIAL_TRAIN_STEP_SECONDS:.0f} samples/s):"

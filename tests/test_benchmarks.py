@@ -124,6 +124,30 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
 
 
+def test_policy_speed_compares_the_attention_kernels_per_batch_size_with_consistent_ratios():
+    completed = run_benchmark(
+        "policy_speed.py",
+        "--compare-attention",
+        "--attention-batches",
+        "2",
+        "4",
+        "--train-steps",
+        "1",
+        "--threads",
+        "1",
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    rows = re.findall(
+        rf"^\|\s+(\d+) \|\s+{NUMBER} \|\s+{NUMBER} \|\s+{NUMBER} \| (\w+)\s+\|$", completed.stdout, re.MULTILINE
+    )
+    assert [int(batch) for batch, *_ in rows] == [2, 4], completed.stdout
+    for _, masked, blockwise, ratio, chosen in rows:
+        masked, blockwise, ratio = float(masked), float(blockwise), float(ratio)
+        # Each figure is printed to 0.001 (half of it either way).
+        assert (blockwise - 5e-4) / (masked + 5e-4) - 5e-4 <= ratio <= (blockwise + 5e-4) / (masked - 5e-4) + 5e-4
+        assert chosen in {"masked", "blockwise"}
+
+
 @pytest.mark.slow
 def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_carp_at_both_batch_sizes():
     completed = run_benchmark("policy_families.py", "--tiny", "--rounds", "2", "--batched-rounds", "1")

@@ -100,7 +100,8 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
     loaded = load_policy(path)
     loaded.configure_inference(**TINY_INFERENCE.get(name, {}))
     assert type(loaded) is type(policy) and loaded.policy_type == name
-    assert loaded.metadata == {"task": "lift"}
+    # The context's metadata, plus what a family records of its training (CARP: its attention kernel).
+    assert loaded.metadata == policy.metadata and loaded.metadata["task"] == "lift"
     assert loaded.num_parameters == policy.num_parameters > 0
     assert loaded.description == policy.description
     obs = np.random.default_rng(1).normal(size=(4, OBS_STEPS, OBS_DIM)).astype(np.float32)

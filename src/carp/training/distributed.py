@@ -195,6 +195,16 @@ def require_same(value: int, what: str, processes: Processes) -> None:
         raise RuntimeError(f"the training processes disagree on the {what}: from {-int(extremes[1])} to {extremes[0]}")
 
 
+def value_of_main(value: int, processes: Processes) -> int:
+    """Rank 0's integer `value` on every process (a choice each process could make differently, made once)."""
+    if not processes.is_distributed:
+        return value
+    device = torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" else None
+    shared = torch.tensor([value], dtype=torch.long, device=device)
+    dist.broadcast(shared, src=0)
+    return int(shared[0])
+
+
 def seed_epoch(seed: int, epoch: int, processes: Processes) -> None:
     """With several processes, seed torch's generators from (seed, epoch, rank) (see the module docstring)."""
     if processes.is_distributed:

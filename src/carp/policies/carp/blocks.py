@@ -20,9 +20,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from carp.policies.carp.attention import BlockCausalPattern, pattern_attention
+
 NORM_EPS = 1e-6
 MODULATIONS_PER_BLOCK = 6
 """Shift, scale and gate for the attention branch, then the same for the feed-forward branch."""
+
+AttentionMask = torch.Tensor | BlockCausalPattern | None
+"""What a block attends under: a dense (N, N) bool mask, CARP's block-causal pattern, or None (everywhere)."""
 
 
 class KeyValueCache:
@@ -81,15 +86,16 @@ class SelfAttention(nn.Module):
     def forward(
         self,
         hidden: torch.Tensor,
-        mask: torch.Tensor | None = None,
+        mask: AttentionMask = None,
         cache: KeyValueCache | None = None,
     ) -> torch.Tensor:
         """Attend from every token to the allowed tokens.
 
         Args:
             hidden: (B, N, D) normalized and modulated tokens.
-            mask: (N, N) bool block-causal pattern of training over all N = L tokens, True where the query (row) may
-                attend the key (column); None attends everywhere.
+            mask: the pattern of training over all N = L tokens: an (N, N) bool tensor, True where the query (row)
+                may attend the key (column), or CARP's block-causal pattern with its kernel; None attends
+                everywhere.
             cache: kv-cache of the coarser scales (inference); its keys precede this call's keys.
 
         Returns:
@@ -119,18 +125,21 @@ def _attention(
     query: torch.Tensor,
     key: torch.Tensor,
     value: torch.Tensor,
-    mask: torch.Tensor | None,
+    mask: AttentionMask,
     dropout: float,
 ) -> torch.Tensor:
     """Scaled dot-product attention of (B, Nh, N, d) queries on (B, Nh, n, d) keys and values.
 
-    One `F.scaled_dot_product_attention` call with the (N, N) bool mask (or none), on every device. Under CPU
+    A block-causal pattern runs its own kernel (`carp.policies.carp.attention`); otherwise one
+    `F.scaled_dot_product_attention` call with the (N, N) bool mask (or none), on every device. Under CPU
     autocast (bfloat16 training) attention still runs in float32: PyTorch's CPU flash-attention backward is several
     times slower in bfloat16 than in float32 at this head width (8), more than the casts cost.
     """
     if query.device.type == "cpu" and torch.is_autocast_enabled("cpu"):
         with torch.autocast("cpu", enabled=False):
             return _attention(query.float(), key.float(), value.float(), mask, dropout)
+    if isinstance(mask, BlockCausalPattern):
+        return pattern_attention(query, key, value, mask, dropout)
     return F.scaled_dot_product_attention(query, key, value, attn_mask=mask, dropout_p=dropout)
 
 
@@ -181,7 +190,7 @@ class AdaptiveBlock(nn.Module):
         self,
         hidden: torch.Tensor,
         modulation: tuple[torch.Tensor, ...],
-        mask: torch.Tensor | None = None,
+        mask: AttentionMask = None,
         cache: KeyValueCache | None = None,
     ) -> torch.Tensor:
         """Apply attention and feed-forward branches.
@@ -190,7 +199,7 @@ class AdaptiveBlock(nn.Module):
             hidden: (B, N, D) tokens.
             modulation: `MODULATIONS_PER_BLOCK` tensors (B, 1, D): attention shift, scale, gate, then feed-forward
                 shift, scale, gate.
-            mask: (N, N) bool block-causal mask or None, see :class:`SelfAttention`.
+            mask: the training pattern or None, see :class:`SelfAttention`.
             cache: kv-cache for inference, or None.
 
         Returns:

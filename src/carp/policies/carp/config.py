@@ -11,11 +11,13 @@ from typing import Any, ClassVar
 from carp.config import TASK_NAMES, ConfigError, _require, require_optimizer_settings, require_positive_int
 
 SECTION = "carp"
+ATTENTION_SETTINGS = ("auto", "masked", "blockwise")
+"""Values of `carp.attention`: the kernels of `carp.policies.carp.attention`, or auto (timed when training starts)."""
 
 
 @dataclass(frozen=True)
-class CarpConfig:
-    """The coarse-to-fine transformer (DESIGN.md section 5) and its optimizer.
+class TransformerConfig:
+    """The AdaLN transformer of the token families and its optimizer: what the CARP and next-token sections share.
 
     Attributes:
         depth: Transformer blocks; an integer >= 1.
@@ -64,6 +66,32 @@ class CarpConfig:
     def hidden_width(self) -> int:
         """Hidden width of the feed-forward layers."""
         return round(self.width * self.mlp_ratio)
+
+
+@dataclass(frozen=True)
+class CarpConfig(TransformerConfig):
+    """The coarse-to-fine transformer (DESIGN.md section 5) and its optimizer.
+
+    Attributes:
+        attention: Kernel of the block-causal attention in training: ``masked`` (one fused kernel over the dense
+            mask), ``blockwise`` (one unmasked product per scale) or ``auto`` (training steps with each timed when a
+            fresh run starts, blockwise kept only when at least 10% faster; a resumed run keeps its kernel;
+            `carp.policies.carp.attention`). Both compute the same values to float rounding, so runs that time the
+            kernels differently differ in the last bits; a pinned kernel makes every run take the same one.
+            Inference uses neither.
+    """
+
+    attention: str = "auto"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        section = self.SECTION
+        _require(
+            self.attention in ATTENTION_SETTINGS,
+            f"{section}.attention",
+            self.attention,
+            f"must be one of {ATTENTION_SETTINGS}",
+        )
 
 
 @dataclass(frozen=True)

@@ -17,25 +17,42 @@ a margin for long runs over few demonstrations. The rate is a parameter, worth r
 from __future__ import annotations
 
 import dataclasses
+import logging
+from copy import deepcopy
+from functools import partial
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from carp.policies.carp.config import CarpConfig
+from carp.policies.carp.attention import (
+    ATTENTION_KERNELS,
+    MEASURE_REPEATS,
+    faster_kernel,
+    time_interleaved,
+)
+from carp.policies.carp.config import ATTENTION_SETTINGS, CarpConfig
 from carp.policies.carp.layout import TokenLayout
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
+from carp.training import distributed
+from carp.training.checkpoint import CheckpointError, read_training_state
 from carp.training.cross_entropy import blockwise_cross_entropy
-from carp.training.loop import OptimizerRecipe, PolicyTrainingData, TrainingStep, matrix_decay_groups
+from carp.training.loop import CHECKPOINT_NAME, OptimizerRecipe, PolicyTrainingData, TrainingStep, matrix_decay_groups
+from carp.training.runtime import autocast_to, resolve_device, resolve_precision
 
 if TYPE_CHECKING:
     from carp.policies.carp.policy import CarpPolicy
     from carp.policies.registry import TrainingRun
 
+logger = logging.getLogger(__name__)
+
 TOKENIZE_BATCH_SIZE = 4096
 ADAM_BETAS = (0.9, 0.95)
+ATTENTION_IDENTITY_KEY = "training_attention"
+"""The attention kernel a run trains with, in its identity (resumable state) and in the checkpoint's metadata."""
 
 
 @dataclasses.dataclass
@@ -143,6 +160,97 @@ def optimizer_recipe(transformer: CoarseToFineTransformer, config: CarpConfig) -
     )
 
 
+def measure_attention_kernels(
+    transformer: CoarseToFineTransformer,
+    batch_size: int,
+    device: torch.device,
+    precision: torch.dtype,
+    repeats: int = MEASURE_REPEATS,
+) -> dict[str, float]:
+    """Median seconds of a training step's forward and backward pass with each attention kernel, taken in turn.
+
+    The step runs on a copy of `transformer` on `device` under the training precision, with random inputs of the
+    training shapes (speed does not depend on the values); the optimizer step is left out, since it does not depend
+    on the kernel. Random draws inside (dropout) do not advance the run's generators.
+
+    Returns:
+        Kernel name -> median seconds.
+    """
+    spec = transformer.spec
+    generator = torch.Generator().manual_seed(0)
+    teacher_length = spec.sequence_length - spec.scales[0] * spec.action_dim
+    batch = {
+        "obs": torch.randn(batch_size, spec.obs_steps, spec.obs_dim, generator=generator),
+        "teacher_inputs": torch.randn(batch_size, teacher_length, spec.latent_channels, generator=generator),
+        "token_sequence": torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator),
+    }
+    if spec.num_tasks > 0:
+        batch["task_ids"] = torch.randint(spec.num_tasks, (batch_size,), generator=generator)
+    batch = {name: value.to(device) for name, value in batch.items()}
+    copies = {}
+    for kernel in ATTENTION_KERNELS:
+        copy = deepcopy(transformer).to(device).train()
+        copy.attention_kernel = kernel
+        copies[kernel] = copy
+
+    def step(copy: CoarseToFineTransformer) -> None:
+        with autocast_to(precision, device):
+            loss = teacher_forced_step(copy, batch).loss
+        loss.backward()
+        copy.zero_grad(set_to_none=True)
+
+    devices = [device] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        return time_interleaved(
+            {kernel: partial(step, copy) for kernel, copy in copies.items()}, device, repeats=repeats
+        )
+
+
+def set_training_attention(transformer: CoarseToFineTransformer, setting: str, run: TrainingRun) -> str:
+    """Fix the kernel of `transformer`'s training attention from `setting` (`CarpConfig.attention`) and return it.
+
+    "auto" keeps the kernel of the training state the run resumes, so that a resumed run repeats an uninterrupted
+    one exactly; a fresh run times training steps with both kernels (:func:`measure_attention_kernels`) and keeps
+    the faster. With several processes, rank 0's choice holds for all.
+    """
+    if setting not in ATTENTION_SETTINGS:
+        raise ValueError(f"attention must be one of {ATTENTION_SETTINGS}, got {setting!r}")
+    kernel = setting
+    if setting == "auto":
+        kernel = _resumed_kernel(Path(run.checkpoint_dir) / CHECKPOINT_NAME)
+        if kernel is not None:
+            logger.info("attention: auto keeps %s, the kernel of the training state it resumes", kernel)
+        else:
+            device = resolve_device(str(run.device))
+            batch_size = run.training.batch_size
+            seconds = measure_attention_kernels(
+                transformer, batch_size, device, resolve_precision(run.training.precision, device)
+            )
+            kernel = faster_kernel(seconds)
+            logger.info(
+                "attention: auto chose %s (forward + backward at batch %d on %s: masked %.3f s, blockwise %.3f s)",
+                kernel,
+                batch_size,
+                device,
+                seconds["masked"],
+                seconds["blockwise"],
+            )
+    index = distributed.value_of_main(ATTENTION_KERNELS.index(kernel), distributed.current_processes())
+    transformer.attention_kernel = ATTENTION_KERNELS[index]
+    return transformer.attention_kernel
+
+
+def _resumed_kernel(state_path: Path) -> str | None:
+    """The attention kernel recorded in the training state at `state_path`, or None (no state, or none recorded)."""
+    if not state_path.exists():
+        return None
+    try:
+        kernel = read_training_state(state_path)["metadata"]["identity"].get(ATTENTION_IDENTITY_KEY)
+    except (CheckpointError, KeyError, TypeError, AttributeError):
+        return None  # the loop discards or reports an unusable state itself
+    return kernel if kernel in ATTENTION_KERNELS else None
+
+
 def train_carp(policy: CarpPolicy, config: CarpConfig, run: TrainingRun) -> CarpPolicy:
     """Train `policy`'s transformer in the shared loop on its frozen tokenizer's tokens.
 
@@ -162,6 +270,10 @@ def train_carp(policy: CarpPolicy, config: CarpConfig, run: TrainingRun) -> Carp
         "spec": policy.spec.to_dict(),
         "tokenizer_sha256": policy.tokenizer_artifact.sha256,
     }
+    # The kernel is part of the identity: the two kernels round differently, so a state of the other one cannot
+    # continue a run exactly.
+    identity[ATTENTION_IDENTITY_KEY] = set_training_attention(policy.transformer, config.attention, run)
+    policy.metadata[ATTENTION_IDENTITY_KEY] = identity[ATTENTION_IDENTITY_KEY]
     return run.train_with_loss(
         policy,
         optimizer_recipe(policy.transformer, config),

@@ -20,9 +20,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from carp.policies.carp.attention import BlockCausalPattern
 from carp.policies.carp.blocks import (
     MODULATIONS_PER_BLOCK,
     AdaptiveBlock,
+    AttentionMask,
     KeyValueCache,
     PerDimensionHead,
     modulate,
@@ -172,7 +174,7 @@ class AdaptiveTransformer(nn.Module):
         self,
         hidden: torch.Tensor,
         modulations: tuple[torch.Tensor, ...],
-        mask: torch.Tensor | None,
+        mask: AttentionMask,
         cache: KeyValueCache | None = None,
     ) -> torch.Tensor:
         """The blocks, then the head's modulated LayerNorm: the head's input.
@@ -180,7 +182,8 @@ class AdaptiveTransformer(nn.Module):
         Args:
             hidden: (B, N, D) token inputs plus their position and level embeddings.
             modulations: from :meth:`modulations`.
-            mask: (N, N) bool, True where attending is allowed; None when every key may be attended.
+            mask: (N, N) bool, True where attending is allowed, or CARP's block-causal pattern; None when every key
+                may be attended.
             cache: keys and values of earlier tokens, extended by this call; None for a full forward pass.
 
         Returns:
@@ -209,7 +212,14 @@ class CoarseToFineTransformer(AdaptiveTransformer):
         self.token_projection = nn.Linear(spec.latent_channels, width)
         self._build_trunk(self.layout, spec.config, spec.codebook_size)
         self.register_buffer("attention_mask", self.layout.attention_mask(), persistent=False)
+        self.attention_kernel = "masked"
+        """Kernel of the block-causal training attention, "masked" or "blockwise" (`carp.policies.carp.attention`)."""
         self._initialize_weights()
+
+    def training_pattern(self) -> BlockCausalPattern:
+        """The block-causal pattern of teacher-forced training, computed by `attention_kernel`."""
+        block_ends = tuple(end for _, end in self.layout.scale_bounds)
+        return BlockCausalPattern(self.attention_mask, block_ends, self.attention_kernel)
 
     def _first_scale_tokens(self, condition: torch.Tensor) -> torch.Tensor:
         return condition.unsqueeze(1) + self.start_embedding  # (B, s_1 * A, D)
@@ -240,7 +250,7 @@ class CoarseToFineTransformer(AdaptiveTransformer):
         tokens = torch.cat(
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1
         )  # (B, L, D)
-        hidden = self.run_blocks(tokens + self.position_and_level(), modulations, self.attention_mask)  # (B, L, D)
+        hidden = self.run_blocks(tokens + self.position_and_level(), modulations, self.training_pattern())  # (B, L, D)
         if grouped_by_dimension:
             return self.head.grouped_logits(hidden)  # (A, B * L / A, V)
         return self.head(hidden)  # (B, L, V)

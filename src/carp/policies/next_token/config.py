@@ -2,7 +2,8 @@
 
 It is the family's params section (`next_token`) and what its checkpoint stores; the token choice at evaluation is
 the separate section `inference.next_token` (:class:`NextTokenInference`). The transformer's defaults are CARP's
-(`carp.policies.carp.config.CarpConfig`), so that the two families differ only in how many tokens a step predicts.
+(`carp.policies.carp.config.TransformerConfig`), so that the two families differ only in how many tokens a step
+predicts.
 Shapes that come from the data and the tokenizer (`Do`, `To`, `A`, scales, `V`) are passed to the model separately;
 loop settings shared by every family (epochs, batch size, checkpoints, seed) are the `training` section.
 """
@@ -10,17 +11,17 @@ loop settings shared by every family (epochs, batch size, checkpoints, seed) are
 from dataclasses import dataclass
 from typing import ClassVar
 
-from carp.policies.carp.config import CarpConfig, CarpInference
+from carp.policies.carp.config import CarpInference, TransformerConfig
 
 SECTION = "next_token"
 
 
 @dataclass(frozen=True)
-class NextTokenConfig(CarpConfig):
+class NextTokenConfig(TransformerConfig):
     """The next-token transformer (`carp.policies.next_token.transformer`) and its optimizer.
 
-    Its fields, defaults, constraints and descriptions are CARP's (:class:`~carp.policies.carp.config.CarpConfig`);
-    only the section name differs.
+    Its fields, defaults, constraints and descriptions are those CARP's section shares
+    (:class:`~carp.policies.carp.config.TransformerConfig`); only the section name differs.
     """
 
     SECTION: ClassVar[str] = SECTION
