@@ -7,6 +7,8 @@ seeds. Writes the summary `seed<seed>.json`, the test episodes `seed<seed>_episo
 """
 
 import os
+import tempfile
+from pathlib import Path
 
 import pandas as pd
 from stage_support import (
@@ -26,7 +28,7 @@ from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import buffer_latency, episodes_table, evaluate_policy, write_episode_videos
 from carp.evaluation.selection import evaluate_with_selection, find_candidates
 from carp.outputs import write_json
-from carp.policies.registry import load_policy
+from carp.policies.registry import average_policies, load_policy
 from carp.training.checkpoint import CheckpointError
 
 
@@ -46,6 +48,12 @@ def main() -> None:
         candidates = find_candidates(run_dir, pd.read_csv(history)["loss"].tolist())
     except (CheckpointError, FileNotFoundError, ValueError) as error:
         fail(str(error))
+    if config.selection == "average_last" and config.average_last > len(candidates):
+        fail(
+            f"{args.params}: eval.average_last={config.average_last}: the training in {run_dir} kept "
+            f"{len(candidates)} candidates (epochs {[candidate.epoch for candidate in candidates]}); keep more "
+            "snapshots (training.snapshot_every, training.snapshot_last) or average fewer"
+        )
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
     workers = config.workers or os.cpu_count() or 1
     inference = params.inference_settings(args.policy, args.task)
@@ -54,7 +62,18 @@ def main() -> None:
         "carp.policy_type": args.policy,
         "carp.training_seed": str(args.seed),
     }
-    with mlflow_stage(params, f"evaluate@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
+    with (
+        mlflow_stage(params, f"evaluate@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run,
+        tempfile.TemporaryDirectory(prefix="carp-averaged-") as scratch,
+    ):
+
+        def average(candidates):
+            # The averaged policy is evaluated, not kept: the snapshots it comes from are the stage's inputs.
+            averaged = average_policies([candidate.path for candidate in candidates])
+            averaged.metadata["averaged_epochs"] = [candidate.epoch for candidate in candidates]
+            path = Path(scratch) / "averaged.pt"
+            averaged.save(path)
+            return path
 
         def run_episodes(checkpoint, seeds):
             return evaluate_policy(
@@ -81,6 +100,8 @@ def main() -> None:
             lambda outcome: [result.success for result in outcome[1]],
             config.validation_seeds(),
             config.test_seeds(),
+            config.average_last,
+            average,
         )
         summary, results = evaluated.test
         summary.update(evaluated.selection.validation_summary(config.validation_top_k))
@@ -88,7 +109,7 @@ def main() -> None:
         summary["training_seed"] = args.seed
         if "validation_max_success_rate" in summary:
             summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
-        policy = load_policy(evaluated.selection.chosen.path)
+        policy = load_policy(evaluated.tested)
         policy.configure_inference(**inference)
         summary.update(
             buffer_latency(

@@ -102,6 +102,8 @@ def test_defaults_follow_the_design():
         ({"training": {"snapshot_every": -1}}, "training.snapshot_every=-1: must be >= 0"),
         ({"eval": {"selection": "best"}}, "eval.selection='best': must be one of ('final', 'best_validation',"),
         ({"eval": {"selection": "best_validation"}}, "eval.validation_episodes=0: must be >= 1 with selection"),
+        ({"eval": {"average_last": 0}}, "eval.average_last=0: must be an integer >= 1"),
+        ({"carp": {"attention": "flash"}}, "carp.attention='flash': must be one of ('auto', 'masked', 'blockwise')"),
         (
             {"eval": {"validation_seed": 100_040, "validation_episodes": 20}},
             "eval.validation_seed=100040: validation seeds [100040, 100060) overlap the test seeds [100000, 100050)",

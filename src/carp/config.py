@@ -23,7 +23,7 @@ ACTION_DIMS = {"absolute": 10, "delta": 7}
 EVAL_BACKENDS = ("onnxruntime", "torch")
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 OBSERVATION_KINDS = ("state", "image")
-SELECTION_RULES = ("final", "best_validation", "lowest_loss")
+SELECTION_RULES = ("final", "best_validation", "lowest_loss", "average_last")
 SET_BY_PIPELINE = "set_by_pipeline"
 """Field metadata of a setting that the pipeline derives for each run and that ``params.yaml`` must not hold."""
 REGISTRY_URI_PREFIX = "models:/"
@@ -498,14 +498,17 @@ class EvalConfig:
             the same tokens.
         selection: Which of a training run's candidate policies (its snapshots, ``training.snapshot_every`` and
             ``snapshot_last``, and the final policy) is evaluated on the test seeds: ``final``, ``best_validation``
-            (the highest success on the validation seeds; ties go to the later epoch) or ``lowest_loss`` (the lowest
-            training loss of its epoch). The choice is fixed before any test episode runs.
+            (the highest success on the validation seeds; ties go to the later epoch), ``lowest_loss`` (the lowest
+            training loss of its epoch) or ``average_last`` (one policy whose weights are the mean of the last
+            ``average_last`` candidates', by epoch). The choice is fixed before any test episode runs.
         validation_episodes: Episodes per candidate policy on the validation seeds; an integer >= 0, at least 1 with
             ``selection: best_validation``. With 0 no validation episode runs.
         validation_seed: First validation seed; an integer >= 0. Validation episode i uses ``validation_seed + i``;
             the range must not overlap the test seeds ``[seed, seed + episodes)`` nor the collection seeds.
         validation_top_k: The report's Diffusion-Policy-style figure: the mean validation success of the this many best
             candidates, next to their maximum and the confirmed test success; an integer >= 1.
+        average_last: With ``selection: average_last``, how many of the latest candidates are averaged; an integer
+            >= 1 (1 is the final policy), at most the candidates the training keeps (checked when evaluating).
     """
 
     episodes: int = 50
@@ -519,6 +522,7 @@ class EvalConfig:
     validation_episodes: int = 0
     validation_seed: int = 200_000
     validation_top_k: int = 3
+    average_last: int = 3
 
     def validation_seeds(self) -> list[int]:
         """The seeds of the validation episodes, which select a checkpoint."""
@@ -549,6 +553,7 @@ class EvalConfig:
         )
         _require(self.validation_seed >= 0, "eval.validation_seed", self.validation_seed, "must be >= 0")
         _require(self.validation_top_k >= 1, "eval.validation_top_k", self.validation_top_k, "must be >= 1")
+        require_positive_int("eval.average_last", self.average_last)
         validation_end = self.validation_seed + self.validation_episodes
         _require(
             self.validation_episodes == 0

@@ -116,3 +116,37 @@ def test_overlapping_validation_and_test_seeds_are_refused_before_anything_runs(
     with pytest.raises(ValueError, match=r"must be disjoint; both hold \[100001\]"):
         evaluate_with_selection(CANDIDATES, "final", evaluator, lambda o: o, [100_001, 200_000], TEST_SEEDS)
     assert evaluator.calls == []
+
+
+def test_average_last_takes_the_latest_candidates_and_refuses_more_than_were_kept():
+    selection = select_candidate(list(reversed(CANDIDATES)), "average_last", _scores([9, 6, 8]), average_last=2)
+    assert [candidate.epoch for candidate in selection.averaged] == [4, 5] and selection.chosen.epoch == 5
+    # No single candidate ran on the test seeds, so there is no selected candidate's validation figure.
+    assert selection.validation_summary(top_k=1) == {
+        "selected_epoch": 5,
+        "averaged_checkpoints": 2,
+        "validation_max_success_rate": 0.9,
+        "validation_top_k_mean_success_rate": 0.9,
+        "validation_top_k": 1,
+    }
+    with pytest.raises(ValueError, match=r"average_last=4: the training kept 3 candidates \(epochs \[2, 4, 5\]\)"):
+        select_candidate(CANDIDATES, "average_last", average_last=4)
+
+
+def test_the_averaged_policy_runs_on_the_test_seeds_after_validation_and_only_it():
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2, "b+c": 3})
+    averaged = []
+
+    def average(candidates):
+        averaged.append((len(evaluator.calls), [candidate.path for candidate in candidates]))
+        return "b+c"
+
+    evaluated = evaluate_with_selection(
+        CANDIDATES, "average_last", evaluator, lambda outcome: outcome, VALIDATION_SEEDS, TEST_SEEDS, 2, average
+    )
+    assert averaged == [(3, ["b", "c"])]  # once, after the three validation runs
+    assert evaluator.calls[-1] == ("b+c", TEST_SEEDS)
+    assert [seeds for _, seeds in evaluator.calls[:-1]] == [VALIDATION_SEEDS] * 3
+    assert str(evaluated.tested) == "b+c" and evaluated.test == [True, True, True]
+    with pytest.raises(ValueError, match="needs a way to average"):
+        evaluate_with_selection(CANDIDATES, "average_last", evaluator, lambda o: o, [], TEST_SEEDS, 2)

@@ -14,6 +14,7 @@ from carp.policies.context import PolicyContext
 from carp.policies.diffusion.config import DiffusionTransformerConfig, DiffusionUNetConfig
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.registry import (
+    average_policies,
     build_policy,
     family_names,
     get_family,
@@ -213,3 +214,29 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     assert summary["episodes"] == 1 and summary["policy_type"] == "stub" and summary["backend"] == "torch"
     assert summary["inference"] == "linear" and summary["model_calls_per_chunk"] == 1
     assert results[0].steps == 12 and not results[0].error and len(results[0].prediction_seconds) == 3
+
+
+def test_averaging_snapshots_gives_the_mean_weights_and_refuses_other_runs(tmp_path):
+    paths = [tmp_path / f"epoch{index}.pt" for index in range(3)]
+    for offset, path in enumerate(paths):
+        policy = tiny_policy()
+        with torch.no_grad():
+            for parameter in policy.transformer.parameters():
+                parameter.add_(float(offset))
+        policy.save(path)
+    reference = tiny_policy()
+    averaged = average_policies(paths)
+    for name, value in reference.transformer.state_dict().items():
+        expected = (
+            value + 1.0
+            if value.is_floating_point() and name in dict(reference.transformer.named_parameters())
+            else value
+        )
+        torch.testing.assert_close(averaged.transformer.state_dict()[name], expected, rtol=0, atol=1e-6, msg=name)
+    assert averaged.metadata == reference.metadata
+    # Snapshots of another architecture do not average.
+    tiny_policy(width=32).save(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="does not match"):
+        average_policies([paths[0], tmp_path / "other.pt"])
+    with pytest.raises(ValueError, match="no checkpoint to average"):
+        average_policies([])

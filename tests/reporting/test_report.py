@@ -13,7 +13,7 @@ import pytest
 from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EpisodeResult
 from carp.evaluation.runner import write_episode_videos
-from carp.reporting.comparison import RunResults, pooled_metrics
+from carp.reporting.comparison import RunResults, pooled_metrics, seed_table
 from carp.reporting.report import (
     ReportInputs,
     comparison_table,
@@ -295,3 +295,13 @@ def test_a_tasks_precision_measure_gets_its_table_and_claim(tmp_path, inputs):
     claims = markdown.split("## The paper's claims on this run", 1)[1]
     precision = next(line for line in claims.splitlines() if "insertion precision" in line)
     assert "| holds " in precision and "carp more precise" in precision
+
+
+def test_the_seed_table_names_an_averaged_checkpoint_by_its_span():
+    averaged = _runs({0: 0.9}, chunk_ms=3.0)
+    averaged[0] = RunResults(dict(averaged[0].metrics) | {"averaged_checkpoints": 3}, averaged[0].episodes)
+    table = seed_table({"carp": averaged, "diffusion_unet": _runs({0: 0.9}, chunk_ms=45.0)})
+    assert table["checkpoint"].tolist() == [
+        "mean of the last 3 of 4 candidates (to epoch 40)",
+        "epoch 40 of 4 candidates",
+    ]

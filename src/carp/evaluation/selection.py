@@ -53,31 +53,42 @@ class CandidateScore:
 
 @dataclass(frozen=True)
 class Selection:
-    """The chosen candidate, by which rule, and every candidate's validation score (empty without validation)."""
+    """The chosen candidate, by which rule, and every candidate's validation score (empty without validation).
+
+    With ``average_last`` the policy evaluated on the test seeds is the mean of `averaged`'s weights; `chosen` is the
+    latest of them.
+    """
 
     chosen: Candidate
     rule: str
     validation: tuple[CandidateScore, ...] = ()
+    averaged: tuple[Candidate, ...] = ()
 
     def validation_summary(self, top_k: int) -> dict[str, float]:
         """What the validation episodes say, next to which the report puts the confirmed test success.
 
-        Keys: ``candidates``, ``selected_epoch``, and with validation episodes ``validation_max_success_rate`` (the
-        best candidate, what test-set selection would report), ``validation_top_k_mean_success_rate`` (the mean of the
-        `top_k` best, Diffusion Policy's other figure), ``validation_top_k`` and ``selected_validation_success_rate``.
+        Keys: ``selected_epoch``, ``averaged_checkpoints`` (with ``average_last``: how many were averaged, up to
+        the selected epoch), and with validation episodes ``validation_max_success_rate`` (the best candidate, what
+        test-set selection would report), ``validation_top_k_mean_success_rate`` (the mean of the `top_k` best,
+        Diffusion Policy's other figure), ``validation_top_k`` and, when a single candidate was chosen,
+        ``selected_validation_success_rate``.
         """
         summary: dict[str, float] = {"selected_epoch": self.chosen.epoch}
+        if self.averaged:
+            summary["averaged_checkpoints"] = len(self.averaged)
         if not self.validation:
             return summary
         rates = sorted((score.success_rate for score in self.validation), reverse=True)
         kept = rates[: min(top_k, len(rates))]
-        chosen = next(score for score in self.validation if score.candidate == self.chosen)
-        return summary | {
+        summary |= {
             "validation_max_success_rate": rates[0],
             "validation_top_k_mean_success_rate": sum(kept) / len(kept),
             "validation_top_k": len(kept),
-            "selected_validation_success_rate": chosen.success_rate,
         }
+        if not self.averaged:
+            chosen = next(score for score in self.validation if score.candidate == self.chosen)
+            summary["selected_validation_success_rate"] = chosen.success_rate
+        return summary
 
 
 def find_candidates(policy_dir: Path, epoch_losses: Sequence[float]) -> list[Candidate]:
@@ -111,23 +122,35 @@ def find_candidates(policy_dir: Path, epoch_losses: Sequence[float]) -> list[Can
 
 
 def select_candidate(
-    candidates: Sequence[Candidate], rule: str, validation: Sequence[CandidateScore] = ()
+    candidates: Sequence[Candidate], rule: str, validation: Sequence[CandidateScore] = (), average_last: int = 1
 ) -> Selection:
     """Apply `rule` (one of `carp.config.SELECTION_RULES`); ties go to the later epoch.
 
     Args:
         candidates: at least one.
-        rule: ``final`` (the last epoch), ``lowest_loss`` (the lowest training loss) or ``best_validation`` (the
-            most validation successes, which needs a score per candidate).
+        rule: ``final`` (the last epoch), ``lowest_loss`` (the lowest training loss), ``best_validation`` (the
+            most validation successes, which needs a score per candidate) or ``average_last`` (the latest
+            `average_last` candidates, to be averaged).
         validation: the candidates' validation scores, if any ran.
+        average_last: with ``average_last``, how many candidates; at most as many as there are.
 
     Raises:
-        ValueError: no candidate, an unknown rule, or best_validation without a score for every candidate.
+        ValueError: no candidate, an unknown rule, best_validation without a score for every candidate, or fewer
+            candidates than `average_last`.
     """
     if not candidates:
         raise ValueError("there is no candidate policy to select from")
     if rule not in SELECTION_RULES:
         raise ValueError(f"selection rule {rule!r} must be one of {SELECTION_RULES}")
+    if rule == "average_last":
+        if not 1 <= average_last <= len(candidates):
+            epochs = [candidate.epoch for candidate in candidates]
+            raise ValueError(
+                f"average_last={average_last}: the training kept {len(candidates)} candidates (epochs {epochs}); keep "
+                "more snapshots (training.snapshot_every, snapshot_last) or average fewer"
+            )
+        latest = tuple(sorted(candidates, key=lambda candidate: candidate.epoch)[-average_last:])
+        return Selection(latest[-1], rule, tuple(validation), latest)
     if rule == "final":
         chosen = max(candidates, key=lambda candidate: candidate.epoch)
     elif rule == "lowest_loss":
@@ -149,11 +172,13 @@ class SelectedEvaluation(Generic[Outcome]):
         selection: the chosen candidate and the validation scores.
         validation: epoch -> that candidate's validation outcome (as `run_episodes` returned it).
         test: the chosen candidate's outcome on the test seeds.
+        tested: the checkpoint that ran on the test seeds (the chosen candidate's, or the averaged policy's).
     """
 
     selection: Selection
     validation: dict[int, Outcome]
     test: Outcome
+    tested: Path
 
 
 def evaluate_with_selection(
@@ -163,6 +188,8 @@ def evaluate_with_selection(
     successes_of: Callable[[Outcome], list[bool]],
     validation_seeds: Sequence[int],
     test_seeds: Sequence[int],
+    average_last: int = 1,
+    average: Callable[[Sequence[Candidate]], Path] | None = None,
 ) -> SelectedEvaluation[Outcome]:
     """Score every candidate on the validation seeds, fix the choice, then run the chosen one on the test seeds.
 
@@ -176,6 +203,9 @@ def evaluate_with_selection(
         successes_of: the per-episode successes of an outcome, in seed order.
         validation_seeds: episodes per candidate; may be empty (then no validation runs).
         test_seeds: episodes of the chosen candidate; at least one.
+        average_last: see `select_candidate`.
+        average: with ``average_last``, writes the policy whose weights are the mean of the given candidates' and
+            returns its checkpoint, which then runs on the test seeds.
 
     Raises:
         ValueError: the two seed lists share a seed, there is no test seed, or the rule cannot be applied.
@@ -193,6 +223,11 @@ def evaluate_with_selection(
             successes = successes_of(outcome)
             validation[candidate.epoch] = outcome
             scores.append(CandidateScore(candidate, int(sum(bool(s) for s in successes)), len(successes)))
-    selection = select_candidate(candidates, rule, scores)
-    test = run_episodes(selection.chosen.path, list(test_seeds))
-    return SelectedEvaluation(selection, validation, test)
+    selection = select_candidate(candidates, rule, scores, average_last)
+    tested = selection.chosen.path
+    if selection.averaged:
+        if average is None:
+            raise ValueError("average_last needs a way to average the candidates' weights")
+        tested = average(selection.averaged)
+    test = run_episodes(tested, list(test_seeds))
+    return SelectedEvaluation(selection, validation, test, Path(tested))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -247,3 +247,39 @@ def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
         raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
     except (AttributeError, RuntimeError, TypeError, ValueError) as error:
         raise CheckpointError(f"{path}: {one_line(error)}") from error
+
+
+def average_policies(paths: Sequence[Path]) -> Policy:
+    """One policy whose weights are the mean of the checkpoints' at `paths` (checkpoint averaging).
+
+    The checkpoints must be snapshots of one training run: the same family and shapes. Floating-point weights and
+    buffers are averaged (in float64, then cast back); other entries (index tables, counters) must be equal. The
+    policy's metadata is the first checkpoint's.
+
+    Raises:
+        ValueError: no path, or checkpoints whose entries do not match.
+        CheckpointError: a checkpoint cannot be read (see `load_policy`).
+    """
+    import torch
+
+    if not paths:
+        raise ValueError("there is no checkpoint to average")
+    policies = [load_policy(path) for path in paths]
+    first = policies[0]
+    states = [policy.state_dict() for policy in policies]
+    averaged = {}
+    for name, value in states[0].items():
+        values = []
+        for path, state in zip(paths, states, strict=True):
+            other = state.get(name)
+            if other is None or other.shape != value.shape or other.dtype != value.dtype:
+                raise ValueError(f"{path}: entry {name!r} does not match {paths[0]}'s; average snapshots of one run")
+            values.append(other)
+        if value.is_floating_point():
+            averaged[name] = torch.stack([other.double() for other in values]).mean(dim=0).to(value.dtype)
+        elif any(not torch.equal(other, value) for other in values[1:]):
+            raise ValueError(f"entry {name!r} differs between the checkpoints; only floating-point weights average")
+        else:
+            averaged[name] = value
+    first.load_state_dict(averaged)
+    return first

@@ -121,11 +121,17 @@ def seed_table(task_runs: Mapping[str, Runs]) -> pd.DataFrame:
             low, high = statistics.wilson_interval(successes, episodes)
             validation = "validation_max_success_rate" in metrics
             candidates = metrics.get("candidates", 1)
+            checkpoint = f"epoch {metrics.get('selected_epoch', '-')} of {candidates} candidates"
+            if "averaged_checkpoints" in metrics:
+                checkpoint = (
+                    f"mean of the last {int(metrics['averaged_checkpoints'])} of {candidates} candidates "
+                    f"(to epoch {metrics['selected_epoch']})"
+                )
             rows.append(
                 {
                     "policy": family,
                     "seed": seed,
-                    "checkpoint": f"epoch {metrics.get('selected_epoch', '-')} of {candidates} candidates",
+                    "checkpoint": checkpoint,
                     "test success": f"{successes}/{episodes}",
                     "test rate": f"{100 * successes / episodes:.1f}% ({100 * low:.1f}-{100 * high:.1f}%)",
                     "validation max": _percent(metrics.get("validation_max_success_rate")) if validation else "-",
