@@ -199,7 +199,7 @@ def measure_attention_kernels(
         loss.backward()
         copy.zero_grad(set_to_none=True)
 
-    devices = [device] if device.type == "cuda" else []
+    devices = [torch.cuda.current_device() if device.index is None else device.index] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
         return time_interleaved(
             {kernel: partial(step, copy) for kernel, copy in copies.items()}, device, repeats=repeats
