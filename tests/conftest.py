@@ -13,33 +13,6 @@ OBS_WIDTHS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_g
 IMAGE_KEYS = ("agentview_image", "robot0_eye_in_hand_image")
 
 
-HEAVIEST_MODULES_FIRST = (
-    "tests/pipeline/test_sweeps.py",
-    "tests/pipeline/test_policy_families.py",
-    "tests/pipeline/test_shared_services.py",
-    "tests/pipeline/test_experiments.py",
-    "tests/reliability/test_kill_and_resume.py",
-    "tests/pipeline/test_tokenizer_reuse.py",
-    "tests/pipeline/test_ingest_images_stage.py",
-    "tests/training/test_tokenizer_trainer.py",
-    "tests/pipeline/test_dvc_repro.py",
-    "tests/pipeline/test_multi_process_training.py",
-)
-"""The modules of the longest end-to-end tests, longest first (minutes each on a 2-core machine)."""
-
-
-def pytest_collection_modifyitems(config, items):
-    """Run the longest modules first: `make test` hands whole modules to its two processes in collection order, and
-    a long module handed out last would run on alone while the other process idles."""
-    root = Path(config.rootpath)
-    rank = {path: index for index, path in enumerate(HEAVIEST_MODULES_FIRST)}
-
-    def module_rank(item) -> int:
-        return rank.get(Path(item.fspath).relative_to(root).as_posix(), len(rank))
-
-    items.sort(key=module_rank)  # stable: every other test keeps its place
-
-
 @pytest.fixture(autouse=True)
 def _one_torch_thread():
     """Tests share two cores with other work; one thread keeps timings stable and avoids oversubscription."""

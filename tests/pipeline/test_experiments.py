@@ -1,12 +1,93 @@
-"""End to end on tiny params: `dvc exp run -S` in the workspace, queued and with --temp.
+"""End to end on tiny params: `dvc exp run -S` (workspace and --temp) and the Optuna sweep, killed and resumed.
 
-Every test works in its own copy of the module's template workspace (`template`, tests/pipeline/conftest.py).
+The workspace template (repository copy with collected and ingested demos) is built once per module; every test
+works in its own copy, so experiments, MLflow and Optuna stores never mix between tests.
 """
 
-import pytest
+import fcntl
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
-from tests.pipeline.experiment_workspaces import TRIAL_TIMEOUT_SECONDS, copy_workspace, experiments, head, mlflow_runs
-from tests.pipeline.workspace import dvc, run
+import optuna
+import pandas as pd
+import pytest
+import yaml
+from mlflow import MlflowClient
+from optuna.trial import TrialState
+
+from tests.pipeline.workspace import dvc, make_workspace, run, tool_env
+from tests.services import service_directory, tool, tracking_server
+
+SWEEP = {
+    "study_name": "tiny",
+    "num_trials": 2,
+    "scale_schedules": [[1, 4], [1, 2, 4]],
+    "codebook_sizes": [8, 16],
+    "heartbeat_seconds": 1,
+}
+# Generous bounds for a loaded two-core machine; the waits end as soon as their condition holds.
+TRIAL_TIMEOUT_SECONDS = 900
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory) -> Path:
+    workspace = make_workspace(tmp_path_factory.mktemp("template") / "carp")
+    for command in (dvc("repro", "ingest"), ["git", "add", "-A"], ["git", "commit", "-qm", "tiny demos"]):
+        completed = run(command, workspace)
+        assert completed.returncode == 0, completed.stderr[-3000:]
+    return workspace
+
+
+def copy_workspace(template: Path, directory: Path, sweep: dict | None = None, tracking: dict | None = None) -> Path:
+    workspace = directory / "carp"
+    # The template's MLflow store records absolute artifact locations inside the template: start a fresh one.
+    shutil.copytree(template, workspace, symlinks=True, ignore=shutil.ignore_patterns("mlflow.db", "mlartifacts"))
+    if sweep is not None:
+        params = yaml.safe_load((workspace / "params.yaml").read_text())
+        params["sweep"].update(sweep)
+        params["tracking"].update(tracking or {})
+        (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        for command in (["git", "add", "params.yaml"], ["git", "commit", "-qm", "sweep settings"]):
+            assert run(command, workspace).returncode == 0
+    return workspace
+
+
+def head(workspace: Path) -> str:
+    return run(["git", "rev-parse", "HEAD"], workspace).stdout.strip()
+
+
+def experiments(workspace: Path) -> dict[str, dict]:
+    """`dvc exp show --json` as experiment name -> {params, metrics} of params.yaml and the metrics files."""
+    shown = run(dvc("exp", "show", "--json"), workspace)
+    assert shown.returncode == 0, shown.stderr
+    found = {}
+    for baseline in json.loads(shown.stdout):
+        for experiment in baseline.get("experiments") or []:
+            data = experiment["revs"][0]["data"]
+            metrics = {}
+            for values in data["metrics"].values():
+                metrics.update(values["data"])
+            found[experiment["name"]] = {"params": data["params"]["params.yaml"]["data"], "metrics": metrics}
+    return found
+
+
+def mlflow_runs(workspace: Path) -> list:
+    client = MlflowClient(tracking_uri=f"sqlite:///{workspace / 'mlflow.db'}")
+    return client.search_runs([experiment.experiment_id for experiment in client.search_experiments()])
+
+
+def study_trials(workspace: Path) -> list:
+    return optuna.load_study(study_name="tiny", storage=f"sqlite:///{workspace / 'optuna.db'}").get_trials()
+
+
+def sweep_command() -> list[str]:
+    return [sys.executable, "pipeline/sweep.py"]
 
 
 @pytest.mark.slow
@@ -69,3 +150,215 @@ def test_temp_experiment_lands_in_the_workspace_store_with_its_name(template, tm
     assert shown["params"]["scales"] == [2, 4] and shown["params"]["codebook_size"] == 8
     for metric in ("success_rate", "rmse_percent_range/mean", "latency_predict_ms_median", "latency_decode_ms_median"):
         assert isinstance(shown["metrics"][metric], float), metric
+
+
+@pytest.mark.slow
+def test_two_trial_sweep_end_to_end(template, tmp_path):
+    # A factor just above 1 prunes the second trial exactly when its tokenizer is worse than the first one's.
+    workspace = copy_workspace(template, tmp_path, {**SWEEP, "prune_factor": 1.000001})
+    completed = run(sweep_command(), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+
+    trials = study_trials(workspace)
+    assert len(trials) == 2 and trials[0].state == TrialState.COMPLETE
+    first, second = trials
+    assert first.params != second.params
+    pruned = second.user_attrs["tokenizer_rmse_percent"] > 1.000001 * first.user_attrs["tokenizer_rmse_percent"]
+    assert second.state == (TrialState.PRUNED if pruned else TrialState.COMPLETE)
+
+    table = pd.read_csv(workspace / "reports/sweep/trials.csv")
+    assert table["trial"].tolist() == [0, 1] and table["state"].tolist() == [t.state.name for t in trials]
+    shown = experiments(workspace)
+    for trial, row in zip(trials, table.itertuples()):
+        assert row.scales == trial.params["scales"] and row.codebook_size == trial.params["codebook_size"]
+        assert row.num_scales == len(json.loads(trial.params["scales"]))
+        assert row.tokenizer_rmse_percent == pytest.approx(trial.user_attrs["tokenizer_rmse_percent"])
+        name = f"sweep-tiny-t{trial.number}"
+        if trial.state == TrialState.COMPLETE:
+            experiment = shown[name]
+            assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
+            assert experiment["params"]["codebook_size"] == trial.params["codebook_size"]
+            assert experiment["metrics"]["success_rate"] == pytest.approx(row.success_rate)
+            metrics = experiment["metrics"]
+            latency = metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
+            assert row.latency_ms == pytest.approx(latency)
+        else:
+            assert name not in shown and pd.isna(row.success_rate)
+
+    best = table[table["state"] == "COMPLETE"].sort_values(["success_rate", "latency_ms"], ascending=[False, True])
+    best_row = best.iloc[0]
+    expected = f"-S 'scales={best_row.scales}' -S codebook_size={best_row.codebook_size}\n"
+    assert (workspace / "reports/sweep/best_params.txt").read_text() == expected
+
+    runs = mlflow_runs(workspace)
+    study_runs = [r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny"]
+    parents = [r for r in study_runs if "mlflow.parentRunId" not in r.data.tags]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+    assert sorted(r.data.tags["carp.trial_state"] for r in children) == sorted(t.state.name for t in trials)
+    assert {r.data.tags["carp.git_commit"] for r in children} == {head(workspace)}
+    # Every stage run of the first trial, the tokenizer stage (run by `dvc repro`) included, carries its name.
+    first = [
+        r for r in runs if r.data.tags.get("carp.dvc_experiment") == "sweep-tiny-t0" and "carp.dvc_stage" in r.data.tags
+    ]
+    assert {r.data.tags["carp.dvc_stage"] for r in first} == {
+        "train_tokenizer",
+        "register_tokenizer",
+        "train_policy@lift-carp-0",
+        "evaluate@lift-carp-0",
+    }
+
+
+@pytest.mark.slow
+def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_one(template, tmp_path):
+    workspace = copy_workspace(template, tmp_path, {**SWEEP, "prune_factor": 1000.0})
+    log_path = tmp_path / "sweep.log"
+    with log_path.open("w") as log:
+        sweep = subprocess.Popen(
+            sweep_command(), cwd=workspace, env=tool_env(), stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+        )
+    group = os.getpgid(sweep.pid)
+    try:
+        # Kill while the second trial's `dvc exp run` is running a stage: the worst moment for the workspace.
+        deadline = time.monotonic() + 2 * TRIAL_TIMEOUT_SECONDS
+        while not _second_trial_is_training(log_path.read_text()):
+            assert sweep.poll() is None, log_path.read_text()[-3000:]
+            assert time.monotonic() < deadline, "the second trial never started"
+            time.sleep(1.0)
+        completed_before = [t for t in study_trials(workspace) if t.state == TrialState.COMPLETE]
+        assert [t.number for t in completed_before] == [0]
+    finally:
+        os.killpg(group, signal.SIGKILL)
+        sweep.wait(timeout=60)
+    _wait_until_group_is_gone(group)
+    assert [t.state for t in study_trials(workspace)] == [TrialState.COMPLETE, TrialState.RUNNING]
+
+    resumed = run(sweep_command(), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    trials = study_trials(workspace)
+    assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.COMPLETE]
+    kept, interrupted, retry = trials
+    assert kept.user_attrs == completed_before[0].user_attrs and kept.values == completed_before[0].values
+    assert retry.params == interrupted.params and retry.system_attrs["failed_trial"] == 1
+    assert "2/2 trials finished" in resumed.stdout
+
+    table = pd.read_csv(workspace / "reports/sweep/trials.csv")
+    assert table["state"].tolist() == ["COMPLETE", "FAIL", "COMPLETE"]
+    assert set(experiments(workspace)) >= {"sweep-tiny-t0", "sweep-tiny-t2"}
+    runs = mlflow_runs(workspace)
+    children = {r.data.tags["carp.trial_number"]: r for r in runs if "carp.trial_number" in r.data.tags}
+    assert {number: r.info.status for number, r in children.items()} == {
+        "0": "FINISHED",
+        "1": "FAILED",
+        "2": "FINISHED",
+    }
+    assert len({r.data.tags["mlflow.parentRunId"] for r in children.values()}) == 1  # the resume reused the parent
+
+    # The budget is spent: a third start runs nothing.
+    again = run(sweep_command(), workspace, timeout=300)
+    assert again.returncode == 0 and len(study_trials(workspace)) == 3, again.stderr[-2000:]
+
+
+def _second_trial_is_training(log: str) -> bool:
+    marker = "dvc exp run --name sweep-tiny-t1"
+    return marker in log and "Running stage 'train_policy@lift-carp-0'" in log.split(marker, 1)[1]
+
+
+def _wait_until_group_is_gone(group: int) -> None:
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            os.killpg(group, 0)
+        except ProcessLookupError:
+            return
+        assert time.monotonic() < deadline, f"process group {group} survived SIGKILL"
+        time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_two_sweep_workers_share_a_postgresql_study_and_push_their_experiments(template, tmp_path, monkeypatch):
+    # Two workspaces (clones of one commit) run `pipeline/sweep.py` at once on a two-point grid, sharing the study in
+    # the tracking server's PostgreSQL, logging to its MLflow server and pushing their experiments to one git remote.
+    with service_directory("carp-sweep-workers-") as services, tracking_server(services / "tracking") as url:
+        printed = tool("tracking_server.py", "sweep-storage", "--dir", str(services / "tracking"), timeout=60)
+        assert printed.returncode == 0, printed.stdout + printed.stderr
+        storage = printed.stdout.strip()
+        environment = {**tool_env(), "PGPASSFILE": str(services / "tracking" / "pgpass")}
+        sweep = {**SWEEP, "codebook_sizes": [8], "prune_factor": 1000.0, "storage": storage, "git_remote": "origin"}
+        first = copy_workspace(template, tmp_path / "first", sweep, tracking={"uri": url})
+        remote = tmp_path / "remote.git"
+        for command, directory in (
+            (["git", "init", "-q", "--bare", str(remote)], tmp_path),
+            (["git", "remote", "add", "origin", str(remote)], first),
+            (["git", "push", "-q", "origin", "HEAD"], first),
+        ):
+            assert run(command, directory).returncode == 0
+        second = tmp_path / "second" / "carp"
+        shutil.copytree(first, second, symlinks=True)
+
+        workers = []
+        for workspace in (first, second):
+            log = (workspace.parent / "sweep.log").open("w")
+            workers.append(
+                subprocess.Popen(sweep_command(), cwd=workspace, env=environment, stdout=log, stderr=subprocess.STDOUT)
+            )
+        for worker, workspace in zip(workers, (first, second)):
+            assert worker.wait(timeout=2 * TRIAL_TIMEOUT_SECONDS) == 0, (workspace.parent / "sweep.log").read_text()[
+                -3000:
+            ]
+
+        monkeypatch.setenv("PGPASSFILE", environment["PGPASSFILE"])
+        trials = optuna.load_study(study_name="tiny", storage=storage).get_trials()
+        assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
+        assert sorted(t.params["scales"] for t in trials) == ["[1,2,4]", "[1,4]"]  # each point once
+        for workspace in (first, second):
+            table = pd.read_csv(workspace / "reports/sweep/trials.csv")
+            assert table["state"].tolist() == ["COMPLETE", "COMPLETE"]
+        # Each experiment exists in the workspace that ran it; both reach any other clone through the git remote.
+        ran_here = [set(experiments(workspace)) for workspace in (first, second)]
+        names = {f"sweep-tiny-t{t.number}" for t in trials}
+        assert ran_here[0] | ran_here[1] == names and not ran_here[0] & ran_here[1]
+        clone = tmp_path / "clone"
+        assert run(["git", "clone", "-q", str(remote), str(clone)], tmp_path).returncode == 0
+        pulled = run(dvc("exp", "pull", "origin", *sorted(names)), clone)
+        assert pulled.returncode == 0, pulled.stderr
+        shown = experiments(clone)
+        for trial in trials:
+            experiment = shown[f"sweep-tiny-t{trial.number}"]
+            assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
+            assert experiment["metrics"]["success_rate"] == pytest.approx(trial.user_attrs["success_rate"])
+
+        client = MlflowClient(tracking_uri=url)
+        runs = client.search_runs([experiment.experiment_id for experiment in client.search_experiments()])
+        study_runs = [r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny"]
+        parents = [r for r in study_runs if "mlflow.parentRunId" not in r.data.tags]
+        assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+        children = [r for r in study_runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+        assert sorted(r.data.tags["carp.dvc_experiment"] for r in children) == sorted(names)
+        for name in names:
+            stages = {
+                r.data.tags["carp.dvc_stage"]
+                for r in runs
+                if r.data.tags.get("carp.dvc_experiment") == name and "carp.dvc_stage" in r.data.tags
+            }
+            assert stages == {
+                "train_tokenizer",
+                "register_tokenizer",
+                "train_policy@lift-carp-0",
+                "evaluate@lift-carp-0",
+            }
+
+
+@pytest.mark.slow
+def test_a_second_sweep_in_the_same_workspace_is_refused(tmp_path):
+    workspace = make_workspace(tmp_path / "carp")
+    lock_path = workspace / ".dvc" / "tmp" / "sweep.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with lock_path.open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running sweep holds it
+        refused = run(sweep_command(), workspace, timeout=300)
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.strip() == (
+        f"error: {lock_path}: another sweep is running in this workspace; start each sweep worker in its own clone"
+    )
+    assert not (workspace / "optuna.db").exists() and not (workspace / "reports" / "sweep").exists()
