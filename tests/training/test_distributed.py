@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from carp.training.distributed import Processes, batch_share, cpu_threads_per_process, seed_epoch
+from carp.training.distributed import Processes, batch_share, cpu_threads_per_process, describe_failures, seed_epoch
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
 REPO = Path(__file__).resolve().parents[2]
@@ -87,6 +87,19 @@ def test_each_process_draws_its_own_reproducible_noise_per_epoch():
     before = torch.get_rng_state()
     seed_epoch(5, 3, Processes())
     assert torch.equal(torch.get_rng_state(), before)
+
+
+@pytest.mark.parametrize(
+    ("exit_codes", "described"),
+    [
+        ({1: 3, 0: -signal.SIGTERM}, "rank 1 exit code 3"),
+        ({1: 3}, "rank 1 exit code 3"),
+        ({2: 1, 0: -signal.SIGKILL, 1: -signal.SIGTERM}, "rank 0 exit code -9, rank 2 exit code 1"),
+        ({1: -signal.SIGTERM, 0: -signal.SIGTERM}, "rank 0 exit code -15, rank 1 exit code -15"),
+    ],
+)
+def test_failures_name_the_ranks_that_failed_not_those_the_launcher_stopped(exit_codes, described):
+    assert describe_failures(exit_codes) == described
 
 
 def test_processes_share_the_cores():

@@ -163,10 +163,22 @@ def run_processes(script: Path, arguments: Sequence[str], num_processes: int) ->
     try:
         run(launch)
     except ChildFailedError as error:
-        failures = ", ".join(
-            f"rank {rank} exit code {failure.exitcode}" for rank, failure in sorted(error.failures.items())
-        )
-        raise ProcessesFailed(f"{script.name} on {num_processes} processes failed ({failures})") from None
+        exit_codes = {rank: failure.exitcode for rank, failure in error.failures.items()}
+        raise ProcessesFailed(
+            f"{script.name} on {num_processes} processes failed ({describe_failures(exit_codes)})"
+        ) from None
+
+
+def describe_failures(exit_codes: dict[int, int]) -> str:
+    """The ranks that failed of their own accord, with exit codes, e.g. `rank 1 exit code 3`.
+
+    When one process fails torchrun stops the others with SIGTERM, and whether a survivor had already finished by then
+    is a race; those stopped ranks are not the cause and are left out, unless every rank was stopped (the launcher
+    itself was told to stop).
+    """
+    stopped_by_launcher = -signal.SIGTERM
+    causes = {rank: code for rank, code in exit_codes.items() if code != stopped_by_launcher} or exit_codes
+    return ", ".join(f"rank {rank} exit code {code}" for rank, code in sorted(causes.items()))
 
 
 def main_process_first(action: Callable[[], T], processes: Processes) -> T:
