@@ -108,105 +108,40 @@ def test_invalid_set_values_are_refused_with_one_line(template, tmp_path):
 @pytest.mark.slow
 def test_two_queued_experiments_run_at_once_on_a_fresh_store_keep_every_run(template, tmp_path):
     # No mlflow.db yet: both workers' first stages open a store that does not exist (the schema-creation race).
+    # Queued experiments run in temporary copies under .dvc/tmp, as `--temp` ones do: their runs must still land in
+    # the workspace's store, under their experiment's name, and leave the workspace's params alone.
     workspace = copy_workspace(template, tmp_path)
     assert not (workspace / "mlflow.db").exists()
-    sizes = {"tiny-a": 8, "tiny-b": 16}
-    for name, size in sizes.items():
-        queued = run(dvc("exp", "run", "--queue", "-n", name, "-S", f"codebook_size={size}"), workspace)
+    params_before = (workspace / "params.yaml").read_text()
+    settings = {"tiny-a": ("[2,4]", 8), "tiny-b": ("[1,2,4]", 16)}
+    for name, (scales, size) in settings.items():
+        command = dvc("exp", "run", "--queue", "-n", name, "-S", f"scales={scales}", "-S", f"codebook_size={size}")
+        queued = run(command, workspace)
         assert queued.returncode == 0, queued.stderr[-3000:]
     completed = run(dvc("exp", "run", "--run-all", "--jobs", "2"), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
     assert completed.returncode == 0, completed.stderr[-3000:]
+    assert (workspace / "params.yaml").read_text() == params_before
 
     shown = experiments(workspace)
-    assert set(shown) == set(sizes), run(dvc("queue", "status"), workspace).stdout
+    assert set(shown) == set(settings), run(dvc("queue", "status"), workspace).stdout
     stages = {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp-0", "evaluate@lift-carp-0"}
-    for name, size in sizes.items():
-        assert isinstance(shown[name]["metrics"]["success_rate"], float), name
+    for name, (scales, size) in settings.items():
+        assert shown[name]["params"]["scales"] == json.loads(scales) and shown[name]["params"]["codebook_size"] == size
+        for metric in (
+            "success_rate",
+            "rmse_percent_range/mean",
+            "latency_predict_ms_median",
+            "latency_decode_ms_median",
+        ):
+            assert isinstance(shown[name]["metrics"][metric], float), (name, metric)
         tagged = [r for r in mlflow_runs(workspace) if r.data.tags.get("carp.dvc_experiment") == name]
         assert sorted(r.data.tags["carp.dvc_stage"] for r in tagged) == sorted(stages), name
         assert {r.info.status for r in tagged} == {"FINISHED"}, name
         assert {r.data.params["codebook_size"] for r in tagged} == {str(size)}, name
-
-
-@pytest.mark.slow
-def test_temp_experiment_lands_in_the_workspace_store_with_its_name(template, tmp_path):
-    workspace = copy_workspace(template, tmp_path)
-    params_before = (workspace / "params.yaml").read_text()
-    command = dvc("exp", "run", "--temp", "-n", "tiny-temp", "-S", "scales=[2,4]", "-S", "codebook_size=8")
-    completed = run(command, workspace)
-    assert completed.returncode == 0, completed.stderr[-3000:]
-    assert (workspace / "params.yaml").read_text() == params_before  # --temp leaves the workspace alone
-
-    tagged = [r for r in mlflow_runs(workspace) if r.data.tags.get("carp.dvc_experiment") == "tiny-temp"]
-    stages = {r.data.tags["carp.dvc_stage"] for r in tagged}
-    assert stages == {"train_tokenizer", "register_tokenizer", "train_policy@lift-carp-0", "evaluate@lift-carp-0"}
-    assert {r.data.tags["carp.git_commit"] for r in tagged} == {head(workspace)}
-    assert {r.data.params["codebook_size"] for r in tagged} == {"8"}
-    for r in tagged:
-        assert r.info.artifact_uri.startswith((workspace / "mlartifacts").as_uri())
+        assert {r.data.tags["carp.git_commit"] for r in tagged} == {head(workspace)}, name
+        for r in tagged:
+            assert r.info.artifact_uri.startswith((workspace / "mlartifacts").as_uri()), name
     assert not list((workspace / ".dvc" / "tmp").rglob("mlflow.db"))
-
-    shown = experiments(workspace)["tiny-temp"]
-    assert shown["params"]["scales"] == [2, 4] and shown["params"]["codebook_size"] == 8
-    for metric in ("success_rate", "rmse_percent_range/mean", "latency_predict_ms_median", "latency_decode_ms_median"):
-        assert isinstance(shown["metrics"][metric], float), metric
-
-
-@pytest.mark.slow
-def test_two_trial_sweep_end_to_end(template, tmp_path):
-    # A factor just above 1 prunes the second trial exactly when its tokenizer is worse than the first one's.
-    workspace = copy_workspace(template, tmp_path, {**SWEEP, "prune_factor": 1.000001})
-    completed = run(sweep_command(), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
-    assert completed.returncode == 0, completed.stderr[-3000:]
-
-    trials = study_trials(workspace)
-    assert len(trials) == 2 and trials[0].state == TrialState.COMPLETE
-    first, second = trials
-    assert first.params != second.params
-    pruned = second.user_attrs["tokenizer_rmse_percent"] > 1.000001 * first.user_attrs["tokenizer_rmse_percent"]
-    assert second.state == (TrialState.PRUNED if pruned else TrialState.COMPLETE)
-
-    table = pd.read_csv(workspace / "reports/sweep/trials.csv")
-    assert table["trial"].tolist() == [0, 1] and table["state"].tolist() == [t.state.name for t in trials]
-    shown = experiments(workspace)
-    for trial, row in zip(trials, table.itertuples()):
-        assert row.scales == trial.params["scales"] and row.codebook_size == trial.params["codebook_size"]
-        assert row.num_scales == len(json.loads(trial.params["scales"]))
-        assert row.tokenizer_rmse_percent == pytest.approx(trial.user_attrs["tokenizer_rmse_percent"])
-        name = f"sweep-tiny-t{trial.number}"
-        if trial.state == TrialState.COMPLETE:
-            experiment = shown[name]
-            assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
-            assert experiment["params"]["codebook_size"] == trial.params["codebook_size"]
-            assert experiment["metrics"]["success_rate"] == pytest.approx(row.success_rate)
-            metrics = experiment["metrics"]
-            latency = metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
-            assert row.latency_ms == pytest.approx(latency)
-        else:
-            assert name not in shown and pd.isna(row.success_rate)
-
-    best = table[table["state"] == "COMPLETE"].sort_values(["success_rate", "latency_ms"], ascending=[False, True])
-    best_row = best.iloc[0]
-    expected = f"-S 'scales={best_row.scales}' -S codebook_size={best_row.codebook_size}\n"
-    assert (workspace / "reports/sweep/best_params.txt").read_text() == expected
-
-    runs = mlflow_runs(workspace)
-    study_runs = [r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny"]
-    parents = [r for r in study_runs if "mlflow.parentRunId" not in r.data.tags]
-    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
-    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
-    assert sorted(r.data.tags["carp.trial_state"] for r in children) == sorted(t.state.name for t in trials)
-    assert {r.data.tags["carp.git_commit"] for r in children} == {head(workspace)}
-    # Every stage run of the first trial, the tokenizer stage (run by `dvc repro`) included, carries its name.
-    first = [
-        r for r in runs if r.data.tags.get("carp.dvc_experiment") == "sweep-tiny-t0" and "carp.dvc_stage" in r.data.tags
-    ]
-    assert {r.data.tags["carp.dvc_stage"] for r in first} == {
-        "train_tokenizer",
-        "register_tokenizer",
-        "train_policy@lift-carp-0",
-        "evaluate@lift-carp-0",
-    }
 
 
 @pytest.mark.slow
@@ -242,17 +177,53 @@ def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_
     assert retry.params == interrupted.params and retry.system_attrs["failed_trial"] == 1
     assert "2/2 trials finished" in resumed.stdout
 
+    # The sweep's outputs describe every trial, the interrupted one included, and point at the best finished one.
     table = pd.read_csv(workspace / "reports/sweep/trials.csv")
-    assert table["state"].tolist() == ["COMPLETE", "FAIL", "COMPLETE"]
-    assert set(experiments(workspace)) >= {"sweep-tiny-t0", "sweep-tiny-t2"}
+    assert table["trial"].tolist() == [0, 1, 2] and table["state"].tolist() == ["COMPLETE", "FAIL", "COMPLETE"]
+    shown = experiments(workspace)
+    for trial, row in zip(trials, table.itertuples()):
+        assert row.scales == trial.params["scales"] and row.codebook_size == trial.params["codebook_size"]
+        assert row.num_scales == len(json.loads(trial.params["scales"]))
+        if trial.state == TrialState.COMPLETE:
+            assert row.tokenizer_rmse_percent == pytest.approx(trial.user_attrs["tokenizer_rmse_percent"])
+            experiment = shown[f"sweep-tiny-t{trial.number}"]
+            assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
+            assert experiment["params"]["codebook_size"] == trial.params["codebook_size"]
+            metrics = experiment["metrics"]
+            assert metrics["success_rate"] == pytest.approx(row.success_rate)
+            assert row.latency_ms == pytest.approx(
+                metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
+            )
+        else:
+            assert pd.isna(row.success_rate)
+    best = table[table["state"] == "COMPLETE"].sort_values(["success_rate", "latency_ms"], ascending=[False, True])
+    best_row = best.iloc[0]
+    expected = f"-S 'scales={best_row.scales}' -S codebook_size={best_row.codebook_size}\n"
+    assert (workspace / "reports/sweep/best_params.txt").read_text() == expected
+
     runs = mlflow_runs(workspace)
+    parents = [
+        r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny" and "mlflow.parentRunId" not in r.data.tags
+    ]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"  # the resume reused the parent
     children = {r.data.tags["carp.trial_number"]: r for r in runs if "carp.trial_number" in r.data.tags}
     assert {number: r.info.status for number, r in children.items()} == {
         "0": "FINISHED",
         "1": "FAILED",
         "2": "FINISHED",
     }
-    assert len({r.data.tags["mlflow.parentRunId"] for r in children.values()}) == 1  # the resume reused the parent
+    assert {r.data.tags["mlflow.parentRunId"] for r in children.values()} == {parents[0].info.run_id}
+    assert {r.data.tags["carp.git_commit"] for r in children.values()} == {head(workspace)}
+    # Every stage run of the first trial, the tokenizer stage (run by `dvc repro`) included, carries its name.
+    first = [
+        r for r in runs if r.data.tags.get("carp.dvc_experiment") == "sweep-tiny-t0" and "carp.dvc_stage" in r.data.tags
+    ]
+    assert {r.data.tags["carp.dvc_stage"] for r in first} == {
+        "train_tokenizer",
+        "register_tokenizer",
+        "train_policy@lift-carp-0",
+        "evaluate@lift-carp-0",
+    }
 
     # The budget is spent: a third start runs nothing.
     again = run(sweep_command(), workspace, timeout=300)
