@@ -48,6 +48,8 @@ MAX_STEPS = 300
 """DP's step limit of a Push-T episode, in control steps of 0.1 s."""
 CONTROL_FREQUENCY_HZ = 10
 ACTION_DIM = 2
+MIN_RENDER_SIZE = 96
+"""Smallest frame side: gym-pusht draws the action's cross 1/96 of the frame thick, which rounds to 0 below."""
 
 OBSERVATION_DIMS = {"block_keypoints": 18, "agent_pos": 2}
 """Observation keys in DP's order and their widths; concatenated, they are DP's 20-D observation."""
@@ -245,11 +247,13 @@ class PushTEnv:
         """Build the simulation; an episode starts with a reset.
 
         Args:
-            render_size: height and width of :meth:`render` frames, in pixels.
+            render_size: height and width of :meth:`render` frames, in pixels, at least 96.
             max_steps: step limit of an episode.
         """
         if max_steps < 1:
             raise ValueError(f"max_steps must be at least 1, got {max_steps}")
+        if render_size < MIN_RENDER_SIZE:
+            raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} pixels, got {render_size}")
         self.max_steps = max_steps
         self._simulation = _gym_pusht().PushTEnv(
             obs_type="state",  # the cheapest of gym-pusht's observations; the keypoints are computed here
@@ -282,6 +286,9 @@ class PushTEnv:
         if state.shape != (5,):
             raise ValueError(f"a Push-T state has shape (5,) (agent x, y, block x, y, angle), got {state.shape}")
         self._simulation.reset(options={"reset_to_state": state})
+        # gym-pusht keeps the previous episode's last action through a reset and would draw its cross on this
+        # episode's first frames.
+        self._simulation._last_action = None
         self.steps = 0
         self._started = True
         return self.observation()
