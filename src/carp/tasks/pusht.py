@@ -19,8 +19,10 @@ module adds what DP's protocol defines around them:
   gym-pusht's step limit lives in the ``TimeLimit`` wrapper of ``gym.make``, which is not used here.
 
 Deviations from DP: its observation also carries a keypoint visibility mask (20 more values, all ones at the visible
-rate 1.0 of its Push-T config), which its policies drop, so it is left out. Everything else follows DP's test
-runner, including its legacy reset order (block position set before its angle, see :func:`reset_state`).
+rate 1.0 of its Push-T config), which its policies drop, so it is left out. The physics runs on pymunk 6.11 where
+DP's environment had 6.2.1: the same Chipmunk model and step sizes, not checked to be bit-identical. Everything else
+follows DP's test runner, including its legacy reset order (block position set before its angle, see
+:func:`reset_state`).
 
 Coordinates are pixels of the 512 x 512 workspace with y pointing down, as drawn; angles are in radians.
 """
@@ -55,9 +57,9 @@ OBSERVATION_DIMS = {"block_keypoints": 18, "agent_pos": 2}
 """Observation keys in DP's order and their widths; concatenated, they are DP's 20-D observation."""
 OBSERVATION_DIM = sum(OBSERVATION_DIMS.values())
 
-# Where the block's frame sits in the workspace: the origin is the middle of the crossbar's top edge, y runs down the
-# stem. Its centre of gravity is the mean of the two rectangles' centroids, (0, 15) and (0, 75), as gym-pusht's
-# `add_tee` sets it; setting the block's angle turns it about this point (pymunk keeps the centre of gravity fixed).
+# The block's frame has its origin in the middle of the crossbar's top edge and its y axis down the stem. Its centre
+# of gravity is the mean of the two rectangles' centroids, (0, 15) and (0, 75), as gym-pusht's `add_tee` sets it;
+# setting the block's angle turns it about this point (pymunk keeps the centre of gravity fixed).
 BLOCK_CENTER_OF_GRAVITY = (0.0, 45.0)
 
 # DP's 9 block keypoints in the block's frame, (9, 2). Computed once by `farthest_point_block_keypoints()` as DP's
