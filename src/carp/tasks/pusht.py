@@ -66,9 +66,8 @@ BLOCK_CENTER_OF_GRAVITY = (0.0, 45.0)
 # keypoint manager defines them: the T drawn at (256, 300) with angle 0 on a white 512 x 512 pygame surface by
 # gym-pusht's `DrawOptions` (DP's drawing code: a light fill and 2 px outlines), every painted pixel moved into the
 # block's frame, farthest-point sampling from a first pixel drawn by `numpy.random.default_rng(0).choice`, then a
-# shift by `uniform(0, 1)` per coordinate from the same generator. The values agree to the printed 6 decimals with
-# the keypoints generated in DP's own environment (pygame 2.1) that a third party published, so the pixels drawn by
-# pygame 2.6.1 are DP's; a test recomputes them.
+# shift by `uniform(0, 1)` per coordinate from the same generator. Stored rather than recomputed at import because
+# they depend on pygame's rasterisation; a test recomputes them, so a pygame that draws the T differently shows up.
 BLOCK_KEYPOINTS = np.array(
     [
         [9.269786713763871, 90.04097352393619],
