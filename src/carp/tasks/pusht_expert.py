@@ -359,7 +359,6 @@ class PushTExpert:
     ) -> list[np.ndarray]:
         """Actions of the candidate push whose scratch rollout ends best (first improving one when not fine)."""
         current_error = float(pose_error(env.state()[2:]))
-        current_coverage = env.coverage()
         best_actions, best_score = None, -np.inf
         for index in candidates:
             outcome = self._rollout(env, self.library[int(index)], steps_left)
@@ -371,8 +370,8 @@ class PushTExpert:
                 best_actions, best_score = actions, score
             if not by_coverage and error < current_error - 1.0:
                 return actions
-        if best_actions is None or (by_coverage and best_score <= current_coverage and not best_actions):
-            return [env.state()[:2]]  # nothing works from here: stay still, the next step replans
+        if best_actions is None:
+            return [env.state()[:2]]  # no push can start from here: stay still, the next step replans
         return best_actions
 
 
