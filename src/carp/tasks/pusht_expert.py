@@ -15,9 +15,10 @@ block by the same rigid displacement wherever the block is, as long as no wall i
   state; the first that improves the block's pose (or, near the goal, its true coverage) is executed. Near the goal
   every candidate is scored by the coverage it reaches on the scratch simulation.
 
-Diversity without noise: the library order is shuffled by the expert's seed before a stable sort, so equal scores
-(mirror-image pushes on the two sides of the T) are broken differently by different seeds, and identically for the
-same seed.
+Controlled diversity: first pushes whose beam scores lie within :data:`TIE_TOLERANCE` of each other are ordered by
+draws from the expert's seeded generator (and the library order is shuffled by it before stable sorts), so different
+expert seeds pick different, equally good pushes (often on the other side of the T) and the same seed repeats its
+episode exactly. Nothing is added to the executed actions.
 """
 
 import functools
@@ -73,6 +74,8 @@ CANONICAL_POSE = (256.0, 200.0, 0.0)
 BEAM_WIDTH = 8
 BEAM_DEPTH = 2
 CHECKED_CANDIDATES = 12
+TIE_TOLERANCE = 3.0
+"""Beam scores (pixels of pose error) closer than this are ties, broken by the expert's seed."""
 FINE_ERROR = 12.0
 """Pose error (pixels) below which pushes are chosen by the coverage they reach on the scratch simulation."""
 FINE_CANDIDATES = 40
@@ -288,6 +291,7 @@ class PushTExpert:
         order = np.random.default_rng(seed).permutation(len(self.library))
         self.library = tuple(self.library[index] for index in order)
         self.displacements = np.array([push.displacement for push in self.library])  # (pushes, 3)
+        self.tie_breaks = np.random.default_rng(seed)
         self.scratch = ScratchSimulation()
         self.queue: list[np.ndarray] = []
 
@@ -323,8 +327,11 @@ class PushTExpert:
             keep = np.argsort(errors.reshape(-1), kind="stable")[: BEAM_WIDTH * 4]
             poses = reached.reshape(-1, 3)[keep]
             first = firsts.reshape(-1)[keep]
-        ranked = sorted(best_by_first, key=lambda index: best_by_first[index])
-        return np.array(ranked[:CHECKED_CANDIDATES])
+        # Pushes within TIE_TOLERANCE of each other count as equals, ordered by the expert's seeded draws.
+        firsts = np.array(list(best_by_first))
+        errors = np.array([best_by_first[index] for index in firsts])
+        keys = errors + self.tie_breaks.uniform(0.0, TIE_TOLERANCE, size=len(errors))
+        return firsts[np.argsort(keys, kind="stable")[:CHECKED_CANDIDATES]]
 
     def _rollout(self, env: PushTEnv, push: Push, steps_left: int) -> tuple[list[np.ndarray], float, float] | None:
         """Transit and push on the scratch simulation: (actions, pose error, coverage), or None if they fail."""
