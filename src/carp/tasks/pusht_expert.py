@@ -1,4 +1,4 @@
-"""A scripted Push-T expert: a planner over a library of short pushes, checked on a copy of the simulation.
+"""A scripted Push-T expert: a planner over a library of short pushes, checked on a scratch simulation.
 
 The block of Push-T moves only while the agent pushes it (the space has no damping carry-over: its velocity is
 lost every physics step), so a push started with the agent at rest at a given point of the block's frame moves the
@@ -17,7 +17,7 @@ block by the same rigid displacement wherever the block is, as long as no wall i
 
 Controlled diversity: first pushes whose beam scores lie within :data:`TIE_TOLERANCE` of each other are ordered by
 draws from the expert's seeded generator (and the library order is shuffled by it before stable sorts), so different
-expert seeds pick different, equally good pushes (often on the other side of the T) and the same seed repeats its
+expert seeds pick different, equally good pushes and the same seed repeats its
 episode exactly. Nothing is added to the executed actions.
 """
 
@@ -242,9 +242,9 @@ def transit_waypoints(agent_position: np.ndarray, block_pose: np.ndarray, goal_p
     Returns:
         (waypoints, 2) workspace points, spaced at most :data:`TRANSIT_SPEED` apart, ending at ``goal_point``.
     """
-    inverse = _rotation(-block_pose[2])
-    to_block_frame = lambda points: (points - block_pose[:2]) @ inverse.T  # noqa: E731
-    if _path_is_clear(to_block_frame(_resample(np.array([agent_position, goal_point]), 5.0))):
+    straight = _resample(np.array([agent_position, goal_point]), 5.0)  # (points, 2)
+    straight_in_block_frame = (straight - block_pose[:2]) @ _rotation(-block_pose[2]).T
+    if _path_is_clear(straight_in_block_frame):
         corners = [goal_point]
     else:
         center = to_workspace(block_pose, T_CENTER)
