@@ -309,8 +309,15 @@ class PushTExpert:
         steps_left = MAX_STEPS - env.steps
         if error < FINE_ERROR:
             candidates = np.argsort(pose_error(compose(block_pose[None], self.displacements)[0]), kind="stable")
-            return self._best_by_rollout(env, candidates[:FINE_CANDIDATES], steps_left, by_coverage=True)
-        return self._best_by_rollout(env, self._beam_first_pushes(block_pose), steps_left, by_coverage=False)
+            actions = self._best_by_rollout(env, candidates[:FINE_CANDIDATES], steps_left, by_coverage=True)
+            return actions if actions is not None else [state[:2]]
+        actions = self._best_by_rollout(env, self._beam_first_pushes(block_pose), steps_left, by_coverage=False)
+        if actions is None:
+            # Near a wall the beam's favourites may all be unreachable (their start or their transit leaves the
+            # workspace); any reachable push, the best predicted first, gets the block back into open space.
+            ranked = np.argsort(pose_error(compose(block_pose[None], self.displacements)[0]), kind="stable")
+            actions = self._best_by_rollout(env, ranked, steps_left, by_coverage=False)
+        return actions if actions is not None else [state[:2]]  # nothing reachable: stay, the next step replans
 
     def _beam_first_pushes(self, block_pose: np.ndarray) -> np.ndarray:
         """Library indices of first pushes, best first, ranked by the best pose a beam search reaches after them."""
@@ -363,8 +370,8 @@ class PushTExpert:
 
     def _best_by_rollout(
         self, env: PushTEnv, candidates: np.ndarray, steps_left: int, by_coverage: bool
-    ) -> list[np.ndarray]:
-        """Actions of the candidate push whose scratch rollout ends best (first improving one when not fine)."""
+    ) -> list[np.ndarray] | None:
+        """Actions of the candidate push whose rollout ends best (the first improving one when not fine), or None."""
         current_error = float(pose_error(env.state()[2:]))
         best_actions, best_score = None, -np.inf
         for index in candidates:
@@ -377,8 +384,6 @@ class PushTExpert:
                 best_actions, best_score = actions, score
             if not by_coverage and error < current_error - 1.0:
                 return actions
-        if best_actions is None:
-            return [env.state()[:2]]  # no push can start from here: stay still, the next step replans
         return best_actions
 
 
