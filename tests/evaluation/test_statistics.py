@@ -395,7 +395,26 @@ def test_disagreeing_seeds_block_a_verdict_the_pooled_episodes_would_give():
     assert comparison.mcnemar.p_value < 1e-6 and comparison.difference.low > 0
     assert comparison.seed_difference.low < 0
     assert comparison.verdict == "not decided"
-    assert "more training seeds" in comparison.explanation
+    assert "the interval across 3 training seeds is wide, so more training seeds" in comparison.explanation
+
+
+def test_seeds_pointing_both_ways_are_named_as_disagreeing():
+    first = {0: np.ones(200, bool), 1: np.array([True] * 150 + [False] * 50)}
+    second = {0: np.array([True] * 100 + [False] * 100), 1: np.array([True] * 160 + [False] * 40)}
+    comparison = compare_pair("a", first, "b", second)
+    assert comparison.verdict == "not decided"
+    assert "the training seeds disagree, so more training seeds" in comparison.explanation
+
+
+def test_two_seeds_in_the_same_direction_still_need_more_seeds():
+    # Both seeds favour b, the episodes decide, but a t interval on one degree of freedom spans both signs.
+    first = {0: np.array([True] * 185 + [False] * 15), 1: np.array([True] * 197 + [False] * 3)}
+    second = {0: np.ones(200, bool), 1: np.ones(200, bool)}
+    comparison = compare_pair("a", first, "b", second)
+    assert comparison.mcnemar.p_value < 1e-4 and comparison.difference.high < 0
+    assert comparison.seed_difference.low < 0 < comparison.seed_difference.high
+    assert comparison.verdict == "not decided"
+    assert "the interval across 2 training seeds is wide, so more training seeds" in comparison.explanation
 
 
 def test_holm_over_many_pairs_turns_a_marginal_win_into_not_decided():

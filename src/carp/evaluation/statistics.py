@@ -708,6 +708,14 @@ def compare_pair(
     return _with_verdict(comparison, mcnemar.p_value, margin, comparisons=1)
 
 
+def _seed_spread_text(comparison: PairComparison) -> str:
+    """Why the across-seed interval blocks a verdict: seeds pointing both ways, or a spread too wide for so few."""
+    differences = [first - second for first, second in zip(comparison.first_seed_rates, comparison.second_seed_rates)]
+    if any(difference > 0 for difference in differences) and any(difference < 0 for difference in differences):
+        return "the training seeds disagree"
+    return f"the interval across {len(differences)} training seeds is wide"
+
+
 def decide_pairs(comparisons: Sequence[PairComparison], margin: float, alpha: float = 0.05) -> list[PairComparison]:
     """Holm-adjust the McNemar p-values over every pair of a run, then give each pair its verdict.
 
@@ -809,7 +817,7 @@ def _with_verdict(comparison: PairComparison, adjusted_p: float, margin: float, 
         episodes_decide = significant and (comparison.difference.low > 0 or comparison.difference.high < 0)
         episodes_decide = episodes_decide or comparison.equivalence_difference.inside(margin)
         if episodes_decide and comparison.seeds > 1:
-            outlook = "the training seeds disagree, so more training seeds rather than episodes would decide"
+            outlook = f"{_seed_spread_text(comparison)}, so more training seeds rather than episodes would decide"
         else:
             needed = episodes_to_decide(
                 comparison.first_rate,
