@@ -97,7 +97,7 @@ def _gym_pusht():
     return pusht
 
 
-def _rotation(angle: float) -> np.ndarray:
+def rotation_matrix(angle: float) -> np.ndarray:
     """(2, 2) matrix turning a block-frame vector by ``angle`` into the workspace, as pymunk's ``Vec2d.rotated``."""
     cos, sin = math.cos(angle), math.sin(angle)
     return np.array([[cos, -sin], [sin, cos]])
@@ -113,7 +113,7 @@ def keypoints_in_workspace(block_pose: np.ndarray) -> np.ndarray:
         (9, 2) float64 keypoint positions, in the order of :data:`BLOCK_KEYPOINTS`.
     """
     x, y, angle = (float(value) for value in block_pose)
-    return BLOCK_KEYPOINTS @ _rotation(angle).T + np.array([x, y])
+    return BLOCK_KEYPOINTS @ rotation_matrix(angle).T + np.array([x, y])
 
 
 def farthest_point_block_keypoints(count: int = 9, seed: int = _KEYPOINT_SEED) -> np.ndarray:
@@ -181,7 +181,7 @@ def reset_state_for_pose(agent_position: np.ndarray, block_pose: np.ndarray) -> 
     """
     x, y, angle = (float(value) for value in block_pose)
     center_of_gravity = np.array(BLOCK_CENTER_OF_GRAVITY)
-    position_before_turn = np.array([x, y]) - center_of_gravity + _rotation(angle) @ center_of_gravity
+    position_before_turn = np.array([x, y]) - center_of_gravity + rotation_matrix(angle) @ center_of_gravity
     return np.array([*np.asarray(agent_position, dtype=np.float64), *position_before_turn, angle])
 
 

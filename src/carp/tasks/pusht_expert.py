@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from carp.tasks.pusht import GOAL_POSE, MAX_STEPS, WORKSPACE_SIZE, PushTEnv
+from carp.tasks.pusht import GOAL_POSE, MAX_STEPS, WORKSPACE_SIZE, PushTEnv, rotation_matrix
 
 AGENT_RADIUS = 15.0
 PHYSICS_STEPS_PER_CONTROL = 10
@@ -82,14 +82,9 @@ FINE_CANDIDATES = 40
 WALL_MARGIN = 20.0
 
 
-def _rotation(angle: float) -> np.ndarray:
-    cos, sin = math.cos(angle), math.sin(angle)
-    return np.array([[cos, -sin], [sin, cos]])
-
-
 def to_workspace(block_pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points (..., 2) in the block's frame -> (..., 2) workspace points for ``block_pose`` (x, y, angle)."""
-    return points @ _rotation(block_pose[2]).T + block_pose[:2]
+    return points @ rotation_matrix(block_pose[2]).T + block_pose[:2]
 
 
 def compose(block_poses: np.ndarray, displacements: np.ndarray) -> np.ndarray:
@@ -109,12 +104,18 @@ def compose(block_poses: np.ndarray, displacements: np.ndarray) -> np.ndarray:
     return np.stack([x, y, angle], axis=-1)
 
 
-def pose_error(block_poses: np.ndarray) -> np.ndarray:
-    """(...,) mean distance in pixels of the T's corners to their goal positions, for (..., 3) poses."""
-    goal = np.asarray(GOAL_POSE)
+def _corners_in_workspace(block_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The T's corners for (..., 3) poses: their x and y, each (..., 8)."""
     cos, sin = np.cos(block_poses[..., 2:3]), np.sin(block_poses[..., 2:3])
     corners_x = block_poses[..., 0:1] + cos * T_CORNERS[:, 0] - sin * T_CORNERS[:, 1]
     corners_y = block_poses[..., 1:2] + sin * T_CORNERS[:, 0] + cos * T_CORNERS[:, 1]
+    return corners_x, corners_y
+
+
+def pose_error(block_poses: np.ndarray) -> np.ndarray:
+    """(...,) mean distance in pixels of the T's corners to their goal positions, for (..., 3) poses."""
+    goal = np.asarray(GOAL_POSE)
+    corners_x, corners_y = _corners_in_workspace(block_poses)
     goal_corners = to_workspace(goal, T_CORNERS)
     return np.hypot(corners_x - goal_corners[:, 0], corners_y - goal_corners[:, 1]).mean(axis=-1)
 
@@ -196,7 +197,7 @@ def _push_targets(contact: np.ndarray, normal: np.ndarray, angle: float, length:
     start = contact + normal * (AGENT_RADIUS + START_GAP)
     if distance_to_t(start[None])[0] < AGENT_RADIUS + START_GAP - 0.5:
         return None  # too close to a concave corner for the disc
-    direction = _rotation(angle) @ -normal
+    direction = rotation_matrix(angle) @ -normal
     travel = START_GAP + length
     steps = max(1, math.ceil(travel / PUSH_SPEED))
     ramp = [start + direction * travel * (step + 1) / steps for step in range(steps)]
@@ -225,7 +226,7 @@ def push_library() -> tuple[Push, ...]:
                     for target in world_targets[1:]:
                         scratch.drive(target)
                     moved = scratch.block_pose()
-                    offset = _rotation(-canonical[2]) @ (moved[:2] - canonical[:2])
+                    offset = rotation_matrix(-canonical[2]) @ (moved[:2] - canonical[:2])
                     displacement = np.array([*offset, moved[2] - canonical[2]])
                     if np.abs(displacement).max() < 1e-3:
                         continue  # the push never reached the block
@@ -243,7 +244,7 @@ def transit_waypoints(agent_position: np.ndarray, block_pose: np.ndarray, goal_p
         (waypoints, 2) workspace points, spaced at most :data:`TRANSIT_SPEED` apart, ending at ``goal_point``.
     """
     straight = _resample(np.array([agent_position, goal_point]), 5.0)  # (points, 2)
-    straight_in_block_frame = (straight - block_pose[:2]) @ _rotation(-block_pose[2]).T
+    straight_in_block_frame = (straight - block_pose[:2]) @ rotation_matrix(-block_pose[2]).T
     if _path_is_clear(straight_in_block_frame):
         corners = [goal_point]
     else:
@@ -389,9 +390,7 @@ class PushTExpert:
 
 def _wall_penalty(block_poses: np.ndarray) -> np.ndarray:
     """(...,) large for (..., 3) poses whose T comes within :data:`WALL_MARGIN` of the workspace's edge."""
-    cos, sin = np.cos(block_poses[..., 2:3]), np.sin(block_poses[..., 2:3])
-    corners_x = block_poses[..., 0:1] + cos * T_CORNERS[:, 0] - sin * T_CORNERS[:, 1]
-    corners_y = block_poses[..., 1:2] + sin * T_CORNERS[:, 0] + cos * T_CORNERS[:, 1]
+    corners_x, corners_y = _corners_in_workspace(block_poses)
     low = np.minimum(corners_x.min(axis=-1), corners_y.min(axis=-1))
     high = np.maximum(corners_x.max(axis=-1), corners_y.max(axis=-1))
     outside = np.maximum(WALL_MARGIN - low, 0) + np.maximum(high - (WORKSPACE_SIZE - WALL_MARGIN), 0)
