@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from carp import simulation
 from carp.data.dataset import load_task_windows
 from carp.evaluation.rollout import evaluate_episodes, flatten_observation
 from carp.evaluation.sources import PolicySource, executed_actions
 from carp.policies.registry import load_policy
+from carp.tasks import task_for_env_args
+from carp.tasks.base import ActionFormat
 
 OBS_KEYS = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]
 OBS_STEPS, ACTION_HORIZON, ACTION_STEPS = 2, 16, 8
@@ -37,7 +38,8 @@ OBS_STEPS, ACTION_HORIZON, ACTION_STEPS = 2, 16, 8
 def env_worker(connection, env_args: dict, max_steps: int) -> None:
     """Serve one env: `("reset", seed)` -> history; `("step", actions)` -> (history, steps, finished, success)."""
     torch.set_num_threads(1)
-    env = simulation.make_env(env_args)
+    task = task_for_env_args(env_args)
+    env = task.make_env(env_args)
     history: deque = deque(maxlen=OBS_STEPS)
     steps = 0
     while True:
@@ -45,23 +47,25 @@ def env_worker(connection, env_args: dict, max_steps: int) -> None:
         if command == "close":
             return
         if command == "reset":
-            observation = flatten_observation(simulation.reset_env(env, argument), OBS_KEYS)
+            observation = flatten_observation(task, task.reset(env, argument), OBS_KEYS)
             history.extend([observation] * OBS_STEPS)
             steps = 0
             connection.send(np.stack(history))
             continue
         success = False
         for action in argument:
-            observation, _, _, _ = env.step(action)
-            history.append(flatten_observation(observation, OBS_KEYS))
+            observation, _ = task.step(env, action)
+            history.append(flatten_observation(task, observation, OBS_KEYS))
             steps += 1
-            success = simulation.is_success(env)
+            success = task.is_success(env)
             if success or steps >= max_steps:
                 break
         connection.send((np.stack(history), steps, success or steps >= max_steps, success))
 
 
-def run_batched(checkpoint: Path, env_args: dict, controller: str, seeds: list[int], workers: int, max_steps: int):
+def run_batched(
+    checkpoint: Path, env_args: dict, action_format: ActionFormat, seeds: list[int], workers: int, max_steps: int
+):
     """Episodes per seed with one batched policy in this process; returns (total steps, successes)."""
     torch.set_num_threads(1)
     policy = load_policy(checkpoint)
@@ -84,7 +88,7 @@ def run_batched(checkpoint: Path, env_args: dict, controller: str, seeds: list[i
         active = sorted(histories)
         chunks = policy.predict_action(np.stack([histories[index] for index in active]))  # (W, H, A)
         for index, chunk in zip(active, chunks, strict=True):
-            connections[index].send(("step", executed_actions(chunk, OBS_STEPS, ACTION_STEPS, controller)))
+            connections[index].send(("step", executed_actions(chunk, OBS_STEPS, ACTION_STEPS, action_format)))
         for index in active:
             history, steps, finished, success = connections[index].recv()
             histories[index] = history
@@ -101,9 +105,11 @@ def run_batched(checkpoint: Path, env_args: dict, controller: str, seeds: list[i
     return total_steps, successes
 
 
-def run_per_worker(checkpoint: Path, env_args: dict, controller: str, seeds: list[int], workers: int, max_steps: int):
+def run_per_worker(
+    checkpoint: Path, env_args: dict, action_format: ActionFormat, seeds: list[int], workers: int, max_steps: int
+):
     """The evaluate stage's own path: a policy in every worker; returns (total steps, successes)."""
-    factory = PolicySourceFactory(checkpoint, controller)
+    factory = PolicySourceFactory(checkpoint, action_format)
     results = evaluate_episodes(env_args, factory, seeds, OBS_KEYS, OBS_STEPS, max_steps, workers=workers)
     return sum(result.steps for result in results), sum(result.success for result in results)
 
@@ -111,12 +117,14 @@ def run_per_worker(checkpoint: Path, env_args: dict, controller: str, seeds: lis
 class PolicySourceFactory:
     """Picklable zero-argument factory for the worker processes."""
 
-    def __init__(self, checkpoint: Path, controller: str) -> None:
+    def __init__(self, checkpoint: Path, action_format: ActionFormat) -> None:
         self.checkpoint = checkpoint
-        self.controller = controller
+        self.action_format = action_format
 
     def __call__(self) -> PolicySource:
-        return PolicySource(functools.partial(load_policy, self.checkpoint), self.controller, OBS_STEPS, ACTION_STEPS)
+        return PolicySource(
+            functools.partial(load_policy, self.checkpoint), self.action_format, OBS_STEPS, ACTION_STEPS
+        )
 
 
 def main() -> None:
@@ -133,13 +141,14 @@ def main() -> None:
 
     windows = load_task_windows(args.processed, ACTION_HORIZON, OBS_STEPS, ACTION_STEPS)
     env_args = windows.buffer.attrs["env_args"]
+    action_format = task_for_env_args(env_args).action_format(args.controller)
     seeds = [args.seed + index for index in range(args.episodes)]
     modes = {"policy per worker": run_per_worker, "policy batched across workers": run_batched}
     rows = []
     for repeat in range(args.repeats):
         for name, run in modes.items():
             started = time.perf_counter()
-            steps, successes = run(args.checkpoint, env_args, args.controller, seeds, args.workers, args.max_steps)
+            steps, successes = run(args.checkpoint, env_args, action_format, seeds, args.workers, args.max_steps)
             seconds = time.perf_counter() - started
             rows.append((name, repeat + 1, steps, successes, steps / seconds, 60 * len(seeds) / seconds))
 

@@ -6,7 +6,7 @@ from stage_support import PROJECT_DIR, STAGING_DIR, fail, load, mlflow_stage, pa
 
 from carp.config import TASK_NAMES
 from carp.data.robomimic_io import DatasetError, import_demonstrations
-from carp.data.rotation import ABSOLUTE_ACTION_DIM
+from carp.tasks import get_task
 
 
 def main() -> None:
@@ -23,13 +23,15 @@ def main() -> None:
             # The same checks as ingest (low-dim obs keys, action width, filter mask), so a file ingest would refuse
             # is refused here, before anything is written at the output. An image run reads the proprioception
             # only: a camera file need not hold the object's pose.
+            task = get_task(args.task)
             demos = import_demonstrations(
                 source,
                 output,
-                params.data.low_dim_keys,
-                action_dim=ABSOLUTE_ACTION_DIM,
+                params.obs_keys_for(args.task),
+                action_dim=params.action_format.stored_dim,
                 filter_key=params.data.filter_key,
                 staging_dir=STAGING_DIR,
+                env_name=task.env_name,
             )
         except DatasetError as error:
             fail(str(error))

@@ -79,12 +79,12 @@ def main() -> None:
             return evaluate_policy(
                 checkpoint,
                 env_args=windows.buffer.attrs["env_args"],
-                controller=data.controller,
-                obs_keys=data.low_dim_keys,
+                action_format=params.action_format,
+                obs_keys=params.obs_keys_for(args.task),
                 obs_steps=data.obs_steps,
                 action_steps=data.action_steps,
                 seeds=seeds,
-                max_steps=config.max_steps[args.task],
+                max_steps=params.max_steps_for(args.task),
                 workers=min(workers, len(seeds)),
                 inference=inference,
                 # Only the test episodes are recorded: they are the ones the report shows.

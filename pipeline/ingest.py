@@ -20,6 +20,7 @@ from carp.data.ingest import ingest_demonstrations
 from carp.data.rendering import RenderingError
 from carp.data.robomimic_io import DatasetError
 from carp.data.staging import remove_stale_entries
+from carp.tasks import get_task
 
 
 def main() -> None:
@@ -37,8 +38,9 @@ def main() -> None:
         summary = ingest_demonstrations(
             raw,
             output,
-            obs_keys=params.data.low_dim_keys,
+            obs_keys=params.obs_keys_for(args.task),
             controller=params.data.controller,
+            env_name=get_task(args.task).env_name,
             filter_key=params.data.filter_key,
             valid_fraction=params.data.valid_fraction,
             staging_dir=STAGING_DIR,

@@ -44,7 +44,7 @@ def main() -> None:
             for task, task_runs in runs.items()
         },
         runs=runs,
-        max_steps={task: params.eval.max_steps[task] for task in params.tasks},
+        max_steps={task: params.max_steps_for(task) for task in params.tasks},
         margin=params.comparison.margin,
         alpha=params.comparison.alpha,
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),

@@ -56,7 +56,7 @@ def main() -> None:
             spec = copy_fields(
                 TokenizerSpec,
                 config,
-                action_dim=data.action_dim,
+                action_dim=params.action_format.policy_dim,
                 action_horizon=data.action_horizon,
                 scales=params.scales,
                 codebook_size=params.codebook_size,

@@ -15,7 +15,7 @@ def test_repository_params_load_and_match_defaults_shape():
     assert params.scales[-1] == params.latent_length == 4
     assert params.codebook_size >= 2
     assert params.action_space == "panda-abs10"
-    assert params.data.action_dim == 10
+    assert params.action_format.policy_dim == 10
 
 
 def test_defaults_follow_the_design():
@@ -65,7 +65,19 @@ def test_defaults_follow_the_design():
             "inference.carp.top_k_per_task.can=9: must be <= codebook_size = 8",
         ),
         ({"inference": {"carp": {"top_k": 600}}}, "inference.carp.top_k=600: must be <= codebook_size = 512"),
-        ({"eval": {"max_steps": {"lift": 400}}, "tasks": ["can"]}, "eval.max_steps="),
+        (
+            {"tasks": ["pusht"], "data": {"controller": "delta"}},
+            "data.controller='delta': pusht: controller 'delta': the agent takes absolute targets only",
+        ),
+        (
+            {"tasks": ["lift", "pusht"]},
+            "tasks=['lift', 'pusht']: tasks must share one action space (one tokenizer serves them all), "
+            "got {'lift': 'panda-abs10', 'pusht': 'pusht-abs2'}",
+        ),
+        (
+            {"tasks": ["pusht"], "data": {"observations": "image"}},
+            "data.observations='image': pusht has no camera observations; use state",
+        ),
         ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
         ({"sweep": {"git_remote": "--force"}}, "sweep.git_remote='--force': must be a git remote name or URL"),
         ({"sweep": {"git_remote": " origin"}}, "sweep.git_remote=' origin': must be a git remote name or URL"),
@@ -274,14 +286,30 @@ def test_values_dvc_reads_as_strings_or_refuses_are_refused(tmp_path):
 
 def test_loading_params_imports_no_model_code():
     """Every stage, the always-run input check included, loads params first: the families' sections come from their
-    light config modules, not from torch and the networks."""
+    light config modules, not from torch and the networks, and the tasks' facts from their modules, not from the
+    simulators."""
     code = (
         "import sys; from carp.config import load_params; params = load_params('params.yaml'); "
         "assert set(params.families) >= {'carp', 'diffusion_unet', 'diffusion_transformer', 'next_token'}; "
-        "print(sorted(name for name in ('torch', 'diffusers', 'numpy') if name in sys.modules))"
+        "heavy = ('torch', 'diffusers', 'scipy', 'robosuite', 'mujoco', 'gym_pusht', 'pymunk'); "
+        "print(sorted(name for name in heavy if name in sys.modules))"
     )
     completed = subprocess.run(
         [sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True
     )
     assert completed.returncode == 0, completed.stderr[-2000:]
     assert completed.stdout.strip() == "[]"
+
+
+def test_each_task_gets_its_action_format_observation_keys_and_step_limit():
+    arms = params_from_dict({"tasks": ["lift", "can"], "eval": {"max_steps": {"lift": 250}}})
+    assert arms.action_space == "panda-abs10" and arms.action_format.stored_dim == 7
+    assert arms.max_steps_for("lift") == 250 and arms.max_steps_for("can") == 400  # no entry: the task's default
+    assert arms.obs_keys_for("can") == arms.data.obs_keys
+    delta = params_from_dict({"data": {"controller": "delta"}})
+    assert delta.action_space == "panda-delta7" and delta.action_format.policy_dim == 7
+    pusht = params_from_dict({"tasks": ["pusht"], "data": {"obs_keys": ["object"]}})
+    assert pusht.action_space == "pusht-abs2"
+    assert pusht.action_format.stored_dim == pusht.action_format.policy_dim == 2
+    assert pusht.obs_keys_for("pusht") == ("block_keypoints", "agent_pos")  # Push-T's observation is fixed
+    assert pusht.max_steps_for("pusht") == 300

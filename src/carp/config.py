@@ -17,9 +17,10 @@ from typing import Any, ClassVar
 
 from ruamel.yaml import YAML, YAMLError
 
-TASK_NAMES = ("lift", "can", "square")
+from carp.tasks import TASK_NAMES, get_task
+from carp.tasks.base import ActionFormat
+
 CONTROLLERS = ("absolute", "delta")
-ACTION_DIMS = {"absolute": 10, "delta": 7}
 EVAL_BACKENDS = ("onnxruntime", "torch")
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 OBSERVATION_KINDS = ("state", "image")
@@ -196,11 +197,6 @@ class DataConfig:
     def low_dim_keys(self) -> tuple[str, ...]:
         """Low-dim obs keys stored in the replay buffer: ``obs_keys`` for state, ``proprioception_keys`` for image."""
         return self.proprioception_keys if self.observations == "image" else self.obs_keys
-
-    @property
-    def action_dim(self) -> int:
-        """``A``: 10 for absolute actions (pos, rot6d, gripper), 7 for delta actions."""
-        return ACTION_DIMS[self.controller]
 
 
 @dataclass(frozen=True)
@@ -487,8 +483,9 @@ class EvalConfig:
             demos)``, with demos the largest per-task demo count.
         workers: Simulator worker processes, each with its own copy of the policy; an integer >= 0, where 0 means
             one per CPU core.
-        max_steps: Task -> step limit of one episode, in control steps (20 Hz); each an integer >= 1. Every task in
-            ``tasks`` needs an entry; an episode that has not succeeded by then counts as a failure.
+        max_steps: Task -> step limit of one episode, in the task's control steps (20 Hz for the arms, 10 Hz for
+            Push-T); each an integer >= 1. A task without an entry gets its protocol's limit (arms 400, Push-T 300);
+            an episode that has not succeeded by then counts as a failure.
         video: Record GIF videos of the first ``video_episodes`` episodes of each task and policy, from the agent-view
             camera, into ``reports/eval/videos/``, which the report shows (needs offscreen rendering through EGL);
             true or false.
@@ -812,14 +809,49 @@ class Params:
                 list(self.tokenizer.tasks),
                 f"every tokenizer task must also be in tasks={list(self.tasks)} (its demos are ingested there)",
             )
+        self._check_tasks_share_actions_and_observations()
         for task in self.tasks:
-            _require(task in self.eval.max_steps, "eval.max_steps", self.eval.max_steps, f"has no entry for '{task}'")
             _require(
                 self.data.subset_size <= self.data.demos_for(task) or task in self.data.raw_files,
                 "data.subset_size",
                 self.data.subset_size,
                 f"must be <= the {self.data.demos_for(task)} demos collected for {task}",
             )
+
+    def _check_tasks_share_actions_and_observations(self) -> None:
+        """Every task must take ``data.controller`` and the observation kind, and all must share one action space."""
+        spaces = {}
+        for task in self.tasks:
+            try:
+                spaces[task] = get_task(task).action_format(self.data.controller).space
+            except ValueError as error:
+                raise ConfigError(f"data.controller={self.data.controller!r}: {error}") from None
+            _require(
+                self.data.observations != "image" or get_task(task).supports_cameras,
+                "data.observations",
+                self.data.observations,
+                f"{task} has no camera observations; use state",
+            )
+        _require(
+            len(set(spaces.values())) == 1,
+            "tasks",
+            list(self.tasks),
+            f"tasks must share one action space (one tokenizer serves them all), got {spaces}",
+        )
+
+    @property
+    def action_format(self) -> ActionFormat:
+        """How the tasks' stored actions map to the policy's (the same for every task in ``tasks``)."""
+        return get_task(self.tasks[0]).action_format(self.data.controller)
+
+    def obs_keys_for(self, task: str) -> tuple[str, ...]:
+        """Low-dim obs keys of `task` in the replay buffer: ``data.low_dim_keys``, or the task's fixed observation."""
+        task_spec = get_task(task)
+        return self.data.low_dim_keys if task_spec.configurable_obs_keys else task_spec.default_obs_keys
+
+    def max_steps_for(self, task: str) -> int:
+        """Step limit of one evaluation episode of `task`: its ``eval.max_steps`` entry, else the task's default."""
+        return self.eval.max_steps.get(task, get_task(task).default_max_steps)
 
     def training_for_seed(self, seed: int) -> TrainingConfig:
         """The training settings of the run with training seed `seed` (one entry of `seeds`)."""
@@ -874,8 +906,7 @@ class Params:
     @property
     def action_space(self) -> str:
         """Name of the action space, e.g. ``panda-abs10``; part of the registered tokenizer's name."""
-        prefix = "abs" if self.data.controller == "absolute" else "delta"
-        return f"panda-{prefix}{self.data.action_dim}"
+        return self.action_format.space
 
 
 def params_from_dict(raw: dict[str, Any]) -> Params:

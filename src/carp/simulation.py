@@ -89,15 +89,6 @@ def make_env_args(task: str, controller: str = "absolute") -> dict:
     }
 
 
-def task_of(env) -> str | None:
-    """The task (a key of :data:`TASK_ENV_NAMES`) that an env built by :func:`make_env` runs; None for another env.
-
-    ``robosuite.make`` builds the env class registered under ``env_args["env_name"]``, so the class name is that name.
-    """
-    names = {env_name: task for task, env_name in TASK_ENV_NAMES.items()}
-    return names.get(type(env).__name__)
-
-
 def controller_kind(env_args: Mapping) -> str:
     """Return ``"absolute"`` or ``"delta"`` for the arm controller described by env_args."""
     configs = env_args["env_kwargs"]["controller_configs"]

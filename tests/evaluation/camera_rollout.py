@@ -13,8 +13,10 @@ import numpy as np
 
 from carp import simulation
 from carp.data.rendering import RenderSettings, render_states
-from carp.evaluation.rollout import run_episode, video_settings
+from carp.evaluation.rollout import run_episode
 from carp.evaluation.sources import ExpertSource
+from carp.tasks import get_task
+from carp.tasks.robosuite_arms import video_settings
 
 SETTINGS = RenderSettings(image_size=40)
 OBS_STEPS = 2
@@ -40,7 +42,15 @@ def main() -> None:
     env = simulation.make_env(env_args)
     source = RecordingExpert()
     result = run_episode(
-        env, source, seed, ("robot0_eef_pos",), OBS_STEPS, steps, render_camera="agentview", cameras=SETTINGS
+        get_task("lift"),
+        env,
+        source,
+        seed,
+        ("robot0_eef_pos",),
+        OBS_STEPS,
+        steps,
+        render_camera="agentview",
+        cameras=SETTINGS,
     )
     states = np.stack(source.states)
     ingested = render_states(simulation.make_env(env_args), {"seed": seed}, states, SETTINGS)

@@ -7,6 +7,7 @@ from carp.data.collect import collect_demonstrations
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.robomimic_io import DatasetError
 from carp.evaluation.replay import TokenizedReplaySource, replay_demonstrations
+from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from carp.tokenizer.artifact import save_tokenizer_artifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -21,7 +22,7 @@ def delta_actions(steps: int) -> np.ndarray:
 
 def test_chunks_are_the_rows_a_policy_would_predict_and_execute():
     actions = delta_actions(20)
-    source = TokenizedReplaySource({5: actions}, MinMaxNormalizer.fit(actions), None, "delta", TO, TA, H)
+    source = TokenizedReplaySource({5: actions}, MinMaxNormalizer.fit(actions), None, DELTA_ACTIONS, TO, TA, H)
     source.reset(env=None, seed=5)
     # Decision at step 0: the chunk starts one step before (clamped to the first row), rows 1..8 are executed.
     np.testing.assert_array_equal(source.chunk()[:, 0], [0, 0, *range(1, 15)])
@@ -37,7 +38,7 @@ def test_each_chunk_goes_through_the_tokenizer_round_trip(tmp_path):
     actions = np.random.default_rng(0).uniform(-2.0, 3.0, size=(30, 7))
     normalizer = MinMaxNormalizer.fit(actions)
     save_tokenizer_artifact(tmp_path, tokenizer, {"lift": normalizer}, "panda-delta7")
-    source = TokenizedReplaySource({1: actions}, normalizer, tmp_path, "delta", TO, TA, H)
+    source = TokenizedReplaySource({1: actions}, normalizer, tmp_path, DELTA_ACTIONS, TO, TA, H)
     source.reset(env=None, seed=1)
     source.act(None, None)
     recorded = actions[7:23]  # the decision at step 8

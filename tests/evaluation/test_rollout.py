@@ -7,7 +7,9 @@ from scipy.spatial.transform import Rotation
 from carp import simulation
 from carp.evaluation.rollout import evaluate_episodes, run_episode
 from carp.evaluation.sources import ExpertSource
+from carp.tasks import get_task
 
+LIFT = get_task("lift")
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 
@@ -41,7 +43,7 @@ def lift_env():
 @pytest.mark.slow
 def test_scripted_expert_through_the_runner_reaches_its_known_success(lift_env):
     seeds = [1000, 1001, 1002]
-    results = [run_episode(lift_env, ExpertSource("lift"), seed, OBS_KEYS, 2, 400) for seed in seeds]
+    results = [run_episode(LIFT, lift_env, ExpertSource("lift"), seed, OBS_KEYS, 2, 400) for seed in seeds]
     assert [r.success for r in results] == [True, True, True]
     assert all(0 < r.steps < 400 and r.error == "" for r in results)
 
@@ -50,9 +52,9 @@ def test_scripted_expert_through_the_runner_reaches_its_known_success(lift_env):
 def test_crash_inside_an_episode_is_a_recorded_failure(lift_env):
     source = CrashingSource(crash_seed=7)
     lift_env._carp_test_seed = 7
-    crashed = run_episode(lift_env, source, 7, OBS_KEYS, 2, 100)
+    crashed = run_episode(LIFT, lift_env, source, 7, OBS_KEYS, 2, 100)
     lift_env._carp_test_seed = 8
-    survived = run_episode(lift_env, source, 8, OBS_KEYS, 2, 40)
+    survived = run_episode(LIFT, lift_env, source, 8, OBS_KEYS, 2, 40)
     assert not crashed.success and crashed.error == "RuntimeError: policy blew up" and crashed.steps == 16
     assert not survived.success and survived.error == "" and survived.steps == 40
 

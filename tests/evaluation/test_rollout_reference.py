@@ -24,6 +24,8 @@ from carp.evaluation.sources import PolicySource
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
+from carp.tasks import get_task
+from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -107,9 +109,9 @@ def record_rollout(env, backend: str, directory: Path) -> dict[str, np.ndarray]:
     checkpoint = directory / "policy.pt"
     policy.save(checkpoint)
     deployment = policy.deployment(checkpoint, backend, directory)
-    source = PolicySource(deployment.load, "absolute", OBS_STEPS, ACTION_STEPS, inference={"top_k": 1})
+    source = PolicySource(deployment.load, ABSOLUTE_ACTIONS, OBS_STEPS, ACTION_STEPS, inference={"top_k": 1})
     recorder = RecordingSource(source)
-    result = run_episode(env, recorder, EPISODE_SEED, OBS_KEYS, OBS_STEPS, CHUNKS * ACTION_STEPS)
+    result = run_episode(get_task("lift"), env, recorder, EPISODE_SEED, OBS_KEYS, OBS_STEPS, CHUNKS * ACTION_STEPS)
     assert result.error == "" and result.steps == CHUNKS * ACTION_STEPS
     return {
         "observations": np.stack(recorder.observations),

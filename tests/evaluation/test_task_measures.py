@@ -12,7 +12,8 @@ from carp.evaluation.insertion_offset import InsertionOffset
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
-from carp.evaluation.task_measures import NoMeasure, measure_for
+from carp.tasks import get_task
+from carp.tasks.base import NoMeasure
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 EPISODE_COLUMNS = ["seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]
@@ -69,12 +70,12 @@ def square_env():
     env.close()
 
 
-def test_the_registry_gives_square_its_insertion_offset_and_other_tasks_nothing():
-    assert isinstance(measure_for("square"), InsertionOffset)
-    assert measure_for("square") is not measure_for("square")  # one per episode
-    for task in ("lift", "can", None):
-        assert isinstance(measure_for(task), NoMeasure) and measure_for(task).values() == {}
-    assert simulation.task_of(object()) is None
+def test_square_measures_its_insertion_offset_and_the_other_arm_tasks_nothing():
+    square = get_task("square")
+    assert isinstance(square.measure(), InsertionOffset)
+    assert square.measure() is not square.measure()  # one per episode
+    for task in ("lift", "can"):
+        assert isinstance(get_task(task).measure(), NoMeasure) and get_task(task).measure().values() == {}
 
 
 @pytest.mark.slow
@@ -87,8 +88,7 @@ def test_the_registry_gives_square_its_insertion_offset_and_other_tasks_nothing(
     ids=["one wall on the peg", "two walls on the peg"],
 )
 def test_a_nut_dropped_onto_the_peg_is_measured_at_the_offset_it_falls_with(square_env, offset_m, expected_mm):
-    assert simulation.task_of(square_env) == "square"
-    result = run_episode(square_env, DropNut(offset_m), 0, OBS_KEYS, 2, 10)
+    result = run_episode(get_task("square"), square_env, DropNut(offset_m), 0, OBS_KEYS, 2, 10)
     # Nothing pushes the nut sideways while it falls, so it touches the peg at the offset it was dropped with. The
     # 1 cm fall takes 45 ms, just inside the first 50 ms control step, so when the measure looks the nut has tipped
     # on the peg's edge for at most a few physics steps (2 ms each); 0.2 mm is room for that tipping and no more.
@@ -104,7 +104,7 @@ def test_a_nut_dropped_onto_the_peg_is_measured_at_the_offset_it_falls_with(squa
 def test_a_nut_that_clears_the_peg_never_touches_it_and_has_no_measure(square_env):
     # The hole is 45.5 mm across and the peg 32 mm: turned to match the peg, a nut 5 mm off its centre slides down
     # around it to the table. robosuite then counts it as on the peg, but there was no contact to measure.
-    result = run_episode(square_env, DropNut((0.005, 0.0)), 0, OBS_KEYS, 2, 10)
+    result = run_episode(get_task("square"), square_env, DropNut((0.005, 0.0)), 0, OBS_KEYS, 2, 10)
     nut_position = square_env.sim.data.body_xpos[square_env.obj_body_id[square_env.nuts[square_env.nut_id].name]]
     assert square_env.on_peg(nut_position, 0)
     assert math.isnan(result.task_measures["insertion_offset_mm"])
@@ -114,7 +114,7 @@ def test_a_nut_that_clears_the_peg_never_touches_it_and_has_no_measure(square_en
 
 @pytest.mark.slow
 def test_the_scripted_expert_touches_the_peg_within_robosuites_on_peg_tolerance(square_env):
-    result = run_episode(square_env, ExpertSource("square"), 1000, OBS_KEYS, 2, 400)
+    result = run_episode(get_task("square"), square_env, ExpertSource("square"), 1000, OBS_KEYS, 2, 400)
     assert result.success
     assert 0 <= result.task_measures["insertion_offset_mm"] < 30.0  # robosuite's on-peg check: 3 cm in x and y
     assert 0 < result.task_measures["insertion_contact_step"] <= result.steps
@@ -124,8 +124,7 @@ def test_the_scripted_expert_touches_the_peg_within_robosuites_on_peg_tolerance(
 def test_a_lift_episode_records_no_measure_and_keeps_its_columns():
     env = simulation.make_env(simulation.make_env_args("lift"))
     try:
-        assert simulation.task_of(env) == "lift"
-        result = run_episode(env, HoldStill(), 0, OBS_KEYS, 2, 3)
+        result = run_episode(get_task("lift"), env, HoldStill(), 0, OBS_KEYS, 2, 3)
     finally:
         env.close()
     assert result.error == "" and result.steps == 3 and result.task_measures == {}

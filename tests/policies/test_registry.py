@@ -23,6 +23,7 @@ from carp.policies.registry import (
     train_policy,
     unregister_family,
 )
+from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
@@ -141,7 +142,7 @@ def test_the_stub_family_acts_through_the_evaluation_source(tmp_path):
     policy.save(path)
     deployment = policy.deployment(path, "onnxruntime", tmp_path / "graphs")
     assert deployment.backend == "torch"
-    source = PolicySource(deployment.load, controller="delta", obs_steps=OBS_STEPS, action_steps=4)
+    source = PolicySource(deployment.load, action_format=DELTA_ACTIONS, obs_steps=OBS_STEPS, action_steps=4)
     source.reset(env=None, seed=0)
     actions, timing = source.act(np.zeros((OBS_STEPS, OBS_DIM)), env=None)
     assert actions.shape == (4, 2) and timing.prediction >= 0
@@ -203,7 +204,7 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     summary, results = evaluate_policy(
         path,
         env_args=simulation.make_env_args("lift", controller="delta"),
-        controller="delta",
+        action_format=DELTA_ACTIONS,
         obs_keys=obs_keys,
         obs_steps=2,
         action_steps=4,

@@ -49,7 +49,7 @@ def test_a_tokenizer_with_a_non_finite_metric_is_not_registered(workspace):
     params = load_params(workspace / "params.yaml")
     tokenizer = params.tokenizer
     spec = TokenizerSpec(
-        action_dim=params.data.action_dim,
+        action_dim=params.action_format.policy_dim,
         action_horizon=params.data.action_horizon,
         scales=params.scales,
         codebook_size=params.codebook_size,

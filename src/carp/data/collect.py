@@ -1,8 +1,9 @@
-"""Collect scripted-expert demonstrations into a robomimic-schema HDF5 file.
+"""Collect scripted-expert demonstrations of any task (`carp.tasks`) into a robomimic-schema HDF5 file.
 
-Episodes run over consecutive seeds ``seed, seed + 1, ...``; each episode ends at the step where the env's success
-check first fires (as in robomimic's human demonstrations) or after ``max_steps``. Only successful episodes are
-kept. Every step stores the observation *before* the action, so a demo of T actions has T observations.
+Episodes run over consecutive seeds ``seed, seed + 1, ...``; each episode ends at the step where the task's success
+check first fires (as in robomimic's human demonstrations) or after ``max_steps`` (at most the task's step limit).
+Only successful episodes are kept. Every step stores the observation *before* the action, so a demo of T actions has
+T observations.
 """
 
 import logging
@@ -13,9 +14,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from carp.data.experts import make_expert
 from carp.data.robomimic_io import Episode, write_demonstrations
-from carp.simulation import is_success, low_dim_observations, make_env, make_env_args, reset_env
+from carp.tasks import get_task
+from carp.tasks.base import Task
 
 logger = logging.getLogger(__name__)
 
@@ -45,27 +46,27 @@ class CollectionSummary:
     seconds: float
 
 
-def run_expert_episode(env, expert, seed: int, max_steps: int) -> tuple[Episode, bool]:
-    """Run one seeded expert episode, stopping at the first success.
+def run_expert_episode(task: Task, env, seed: int, max_steps: int) -> tuple[Episode, bool]:
+    """Run one seeded episode of the task's expert, stopping at the first success.
 
     Returns:
-        The episode (obs key -> (T, Do_key), actions (T, 7), states (T, S), rewards (T,), dones (T,);
-        attrs hold the seed) and whether it succeeded.
+        The episode (obs key -> (T, Do_key), actions (T, stored action width), states (T, S), rewards (T,),
+        dones (T,); attrs hold the seed) and whether it succeeded.
     """
-    obs = reset_env(env, seed)
-    expert.reset()
+    obs = task.reset(env, seed)
+    expert = task.make_expert(env, seed)
     observations: dict[str, list[np.ndarray]] = {}
     actions, states, rewards = [], [], []
     success = False
     for _ in range(max_steps):
-        for key, value in low_dim_observations(obs).items():
+        for key, value in task.observations(obs).items():
             observations.setdefault(key, []).append(value)
-        states.append(np.array(env.sim.get_state().flatten()))
+        states.append(task.simulator_state(env))
         action = expert.act()
         actions.append(action)
-        obs, reward, _, _ = env.step(action)
-        rewards.append(float(reward))
-        if is_success(env):
+        obs, reward = task.step(env, action)
+        rewards.append(reward)
+        if task.is_success(env):
             success = True
             break
     dones = np.zeros(len(actions), dtype=np.int64)
@@ -94,12 +95,12 @@ def collect_demonstrations(
     """Run the task's scripted expert until ``num_demos`` episodes succeed and write them to ``output_path``.
 
     Args:
-        task: short task name (``lift``, ``can``, ``square``).
+        task: a registered task name (`carp.tasks.TASK_NAMES`).
         num_demos: successful episodes to keep.
         output_path: destination ``.hdf5`` (written atomically, only once collection is complete).
         seed: first reset seed; episodes use ``seed, seed + 1, ...``. Keep these disjoint from evaluation seeds.
-        controller: ``"absolute"`` or ``"delta"`` arm input.
-        max_steps: step limit per episode.
+        controller: ``"absolute"`` or ``"delta"`` arm input (Push-T: ``"absolute"`` only).
+        max_steps: step limit per episode; a task's own step limit (Push-T: 300) caps it.
         max_attempts: episode budget; defaults to ``3 * num_demos``.
         staging_dir: where the file is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
             ``output_path``'s folder.
@@ -113,42 +114,41 @@ def collect_demonstrations(
     max_attempts = 3 * num_demos if max_attempts is None else max_attempts
     if max_attempts < num_demos:
         raise ValueError(f"max_attempts ({max_attempts}) must be at least num_demos ({num_demos})")
-    import mujoco
-    import robosuite
-
-    env_args = make_env_args(task, controller)
-    env = make_env(env_args)
-    expert = make_expert(task, env)
+    task_name, task = task, get_task(task)
+    if task.step_limit is not None:
+        max_steps = min(max_steps, task.step_limit)
+    env_args = task.make_env_args(controller)
+    env = task.make_env(env_args)
     started = time.perf_counter()
     episodes: list[Episode] = []
     failed_seeds: list[int] = []
     attempted = 0
     try:
-        with tqdm(total=num_demos, desc=f"collect {task}", unit="demo") as progress:
+        with tqdm(total=num_demos, desc=f"collect {task_name}", unit="demo") as progress:
             while len(episodes) < num_demos:
                 if len(episodes) + (max_attempts - attempted) < num_demos:
                     raise CollectionError(
-                        f"{task}: expert succeeded on {len(episodes)} of {attempted} episodes "
+                        f"{task_name}: expert succeeded on {len(episodes)} of {attempted} episodes "
                         f"({len(episodes) / attempted:.0%}); {num_demos} demos cannot be reached within "
                         f"max_attempts={max_attempts} (failed seeds: {failed_seeds})"
                     )
                 episode_seed = seed + attempted
-                episode, success = run_expert_episode(env, expert, episode_seed, max_steps)
+                episode, success = run_expert_episode(task, env, episode_seed, max_steps)
                 attempted += 1
                 if success:
                     episodes.append(episode)
                     progress.update(1)
                 else:
                     failed_seeds.append(episode_seed)
-                    logger.warning("%s: expert failed on seed %d within %d steps", task, episode_seed, max_steps)
+                    logger.warning("%s: expert failed on seed %d within %d steps", task_name, episode_seed, max_steps)
                 progress.set_postfix(attempted=attempted)
     finally:
         env.close()
     kept_seeds = [int(episode.attrs["seed"]) for episode in episodes]
     success_rate = len(episodes) / attempted
     file_attrs = {
-        "task": task,
-        "expert": expert.name,
+        "task": task_name,
+        "expert": task.expert_name,
         "controller": controller,
         "success_rate": success_rate,
         "attempted": attempted,
@@ -157,14 +157,13 @@ def collect_demonstrations(
         "failed_seeds": failed_seeds,
         "first_seed": seed,
         "max_steps": max_steps,
-        "robosuite_version": robosuite.__version__,
-        "mujoco_version": mujoco.__version__,
+        **task.versions(),
     }
     write_demonstrations(output_path, episodes, env_args, file_attrs, staging_dir=staging_dir)
     seconds = time.perf_counter() - started
     logger.info(
         "%s: kept %d of %d episodes (%.0f%%), mean %.1f steps, %.1f s -> %s",
-        task,
+        task_name,
         len(episodes),
         attempted,
         100 * success_rate,
@@ -173,7 +172,7 @@ def collect_demonstrations(
         output_path,
     )
     return CollectionSummary(
-        task=task,
+        task=task_name,
         kept=len(episodes),
         attempted=attempted,
         success_rate=success_rate,

@@ -1,7 +1,9 @@
 """Ingestion: a robomimic-schema HDF5 file -> replay buffer + normalization statistics.
 
-Absolute 7-D actions (pos, axis-angle, gripper) are stored as 10-D (pos, 6-D rotation, gripper) and converted back
-exactly when executed; delta actions are kept as they are. The output directory is built under a temporary name and
+The file's task (named by its ``env_args``, `carp.tasks.task_for_env_args`) and the controller decide how actions are
+stored (the task's `ActionFormat`): absolute 7-D arm actions (pos, axis-angle, gripper) become 10-D (pos, 6-D
+rotation, gripper) and are converted back exactly when executed; delta arm actions and Push-T's 2-D targets are kept
+as they are. The output directory is built under a temporary name and
 renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path. Every
 check of the input file lives in :mod:`carp.data.robomimic_schema`, shared with the collect stage's import of a user's
 file.
@@ -32,11 +34,12 @@ from carp.data.normalizer import MinMaxNormalizer, save_normalizers
 from carp.data.render_cache import RenderCache, render_key
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
-from carp.data.robomimic_io import DatasetError, Demonstrations, read_demonstrations
+from carp.data.robomimic_io import DatasetError, Demonstrations, check_env_name, read_demonstrations, read_env_args
 from carp.data.robomimic_schema import is_image_key
-from carp.data.rotation import ABSOLUTE_ACTION_DIM, absolute_to_rot6d_actions
 from carp.data.staging import staged
 from carp.data.subsets import nested_subset
+from carp.tasks import task_for_env_args
+from carp.tasks.base import ActionFormat
 
 BUFFER_DIRNAME = "replay.zarr"
 NORMALIZATION_FILENAME = "normalization.json"
@@ -68,14 +71,16 @@ def ingest_demonstrations(
     render_workers: int = 1,
     subset_size: int = 0,
     subset_seed: int = 0,
+    env_name: str | None = None,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
     Args:
-        raw_path: robomimic-schema HDF5 with 7-D actions.
+        raw_path: robomimic-schema HDF5 of a registered task (its ``env_args``), actions as the env takes them.
         output_dir: replaced atomically on success; untouched on failure.
         obs_keys: low-dim obs keys, concatenated in this order into ``obs`` (N, Do).
-        controller: ``absolute`` converts actions to 10-D; ``delta`` keeps 7-D.
+        controller: with the file's task, the action format (arm tasks: ``absolute`` converts actions to 10-D,
+            ``delta`` keeps 7-D).
         filter_key: optional ``mask/<filter_key>`` restricting the demos.
         valid_fraction: share of episodes held out when the file has no ``mask/valid``.
         staging_dir: where the output is built before its rename (see :mod:`carp.data.staging`): outside every
@@ -87,13 +92,15 @@ def ingest_demonstrations(
             :func:`carp.data.camera_images.rendered_episodes`).
         subset_size: keep this many of the file's demos (`carp.data.subsets.nested_subset`); 0 keeps every demo.
         subset_seed: seed of the subset's shuffle.
+        env_name: the env the file must come from (the pipeline task's ``env_name``); ``None`` accepts any task's.
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
         RenderingError: images must be rendered and rendering is unavailable, or a demo's model is unknown.
     """
     raw_path, output_dir = Path(raw_path), Path(output_dir)
-    demos = read_demonstrations(raw_path, obs_keys, action_dim=ABSOLUTE_ACTION_DIM, filter_key=filter_key)
+    action_format = _action_format(raw_path, controller, env_name)
+    demos = read_demonstrations(raw_path, obs_keys, action_dim=action_format.stored_dim, filter_key=filter_key)
     if subset_size:
         if subset_size > len(demos.names):
             raise DatasetError(f"{raw_path}: holds {len(demos.names)} demos, fewer than a subset of {subset_size}")
@@ -117,8 +124,7 @@ def ingest_demonstrations(
     total = 0
     for episode in demos.episodes:
         obs_parts.append(np.concatenate([episode.obs[key] for key in obs_keys], axis=1))
-        actions = absolute_to_rot6d_actions(episode.actions) if controller == "absolute" else episode.actions
-        action_parts.append(actions)
+        action_parts.append(action_format.to_policy(episode.actions))
         total += episode.length
         ends.append(total)
     # Statistics are fitted on the float32 values the buffer stores, so normalized data lies exactly in [-1, 1].
@@ -176,6 +182,17 @@ def ingest_demonstrations(
     if cache is not None:
         cache.remove()
     return summary
+
+
+def _action_format(raw_path: Path, controller: str, env_name: str | None) -> ActionFormat:
+    """The action format of the file's task under ``controller``; DatasetError naming the file when there is none."""
+    env_args = read_env_args(raw_path)
+    check_env_name(raw_path, env_args, env_name)
+    try:
+        task = task_for_env_args(env_args)
+        return task.action_format(controller)
+    except ValueError as error:
+        raise DatasetError(f"{raw_path}: {error}") from None
 
 
 def _plan_images(demos: Demonstrations, settings: RenderSettings) -> ImagePlan:

@@ -148,6 +148,7 @@ def read_demonstrations(
     obs_keys: Sequence[str],
     action_dim: int | None = None,
     filter_key: str | None = None,
+    env_name: str | None = None,
 ) -> Demonstrations:
     """Read and validate the demos of a robomimic-schema file (checks in :mod:`carp.data.robomimic_schema`).
 
@@ -156,6 +157,7 @@ def read_demonstrations(
         obs_keys: observation keys to load from every demo's ``obs`` group.
         action_dim: expected action width; ``None`` accepts any.
         filter_key: name under ``mask/`` selecting a subset of demos; ``None`` reads all.
+        env_name: the ``env_name`` its ``env_args`` must name (the task's environment); ``None`` accepts any.
 
     Raises:
         DatasetError: one line naming the file, demo and key for every schema or value problem.
@@ -164,6 +166,7 @@ def read_demonstrations(
     with open_hdf5(path) as handle, hdf5_errors(str(path)):
         data = require_group(handle, "data", f"{path}: group 'data'")
         env_args = _read_env_args(path, data)
+        check_env_name(path, env_args, env_name)
         all_names = sorted((name for name in data.keys() if name.startswith("demo")), key=_demo_sort_key)
         masks = read_masks(handle, path, all_names)
         names = _select_demos(path, all_names, masks, filter_key)
@@ -189,6 +192,7 @@ def import_demonstrations(
     action_dim: int | None = None,
     filter_key: str | None = None,
     staging_dir: Path | None = None,
+    env_name: str | None = None,
 ) -> Demonstrations:
     """Validate a user's file as :func:`read_demonstrations` does, then copy it to ``destination`` atomically.
 
@@ -200,18 +204,39 @@ def import_demonstrations(
         filter_key: ``mask/<filter_key>`` the file must hold; ``None`` checks all demos.
         staging_dir: where the copy is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
             ``destination``'s folder.
+        env_name: the ``env_name`` its ``env_args`` must name; ``None`` accepts any.
 
     Raises:
         DatasetError: ``source`` breaks the schema; ``destination`` is left as it was.
         OSError: the copy failed (e.g. a full disk); ``destination`` is left as it was.
     """
-    demos = read_demonstrations(source, obs_keys, action_dim=action_dim, filter_key=filter_key)
+    demos = read_demonstrations(source, obs_keys, action_dim=action_dim, filter_key=filter_key, env_name=env_name)
     destination = Path(destination)
     with staged(staging_dir or destination.parent, destination.name) as temporary:
         shutil.copyfile(source, temporary)
         destination.parent.mkdir(parents=True, exist_ok=True)
         os.replace(temporary, destination)
     return demos
+
+
+def check_env_name(path: Path, env_args: dict, env_name: str | None) -> None:
+    """Refuse a file whose ``env_args`` name another env than ``env_name`` (None accepts any), naming both."""
+    if env_name is not None and env_args.get("env_name") != env_name:
+        raise DatasetError(
+            f"{path}: data.attrs['env_args'] env_name={env_args.get('env_name')!r}: this task's demos come from "
+            f"{env_name!r}"
+        )
+
+
+def read_env_args(path: Path) -> dict:
+    """The ``env_args`` a robomimic-schema file records, without reading its demos.
+
+    Raises:
+        DatasetError: an unreadable file or a missing or malformed ``env_args``, naming the file.
+    """
+    path = Path(path)
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        return _read_env_args(path, require_group(handle, "data", f"{path}: group 'data'"))
 
 
 def _read_env_args(path: Path, data: h5py.Group) -> dict:

@@ -7,7 +7,6 @@ re-orthonormalizes the two columns (Gram-Schmidt), so any network output maps to
 """
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 ABSOLUTE_ACTION_DIM = 7
 ROT6D_ACTION_DIM = 10
@@ -15,6 +14,8 @@ ROT6D_ACTION_DIM = 10
 
 def axis_angle_to_rot6d(axis_angle: np.ndarray) -> np.ndarray:
     """Convert axis-angle vectors (..., 3) to 6-D rotations (..., 6): column 0 then column 1 of the matrix."""
+    from scipy.spatial.transform import Rotation  # imported here: the task registry reads this module's constants
+
     batch_shape = axis_angle.shape[:-1]
     matrices = Rotation.from_rotvec(axis_angle.reshape(-1, 3)).as_matrix()  # (N, 3, 3)
     rot6d = np.concatenate([matrices[:, :, 0], matrices[:, :, 1]], axis=-1)  # (N, 6)
@@ -33,6 +34,8 @@ def rot6d_to_matrix(rot6d: np.ndarray) -> np.ndarray:
 
 def rot6d_to_axis_angle(rot6d: np.ndarray) -> np.ndarray:
     """Convert 6-D rotations (..., 6) back to axis-angle vectors (..., 3)."""
+    from scipy.spatial.transform import Rotation
+
     batch_shape = rot6d.shape[:-1]
     matrices = rot6d_to_matrix(rot6d.reshape(-1, 6).astype(np.float64))
     return Rotation.from_matrix(matrices).as_rotvec().reshape(*batch_shape, 3)

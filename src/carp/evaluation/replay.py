@@ -17,14 +17,11 @@ import torch
 
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.robomimic_io import DatasetError, read_demonstrations
-from carp.data.rotation import absolute_to_rot6d_actions
 from carp.evaluation.rollout import ChunkTiming, EpisodeResult, evaluate_episodes
 from carp.evaluation.sources import executed_actions
-from carp.simulation import controller_kind
+from carp.tasks import task_for_env_args
+from carp.tasks.base import ActionFormat
 from carp.tokenizer.artifact import load_tokenizer_artifact
-
-# The rollout loop keeps an observation history the replay does not read; one small key keeps that cheap.
-_HISTORY_KEYS = ("robot0_eef_pos",)
 
 
 class TokenizedReplaySource:
@@ -34,7 +31,7 @@ class TokenizedReplaySource:
         demo_actions: collection seed -> (T, A) recorded actions in the policy's action format (10-D for absolute).
         action_normalizer: the task's action statistics.
         tokenizer_directory: a tokenizer artifact, or None to replay the recorded actions unchanged.
-        controller: ``absolute`` or ``delta``.
+        action_format: the task's action format under the file's controller.
         obs_steps: ``To``.
         action_steps: ``Ta``.
         horizon: ``H``.
@@ -45,7 +42,7 @@ class TokenizedReplaySource:
         demo_actions: dict[int, np.ndarray],
         action_normalizer: MinMaxNormalizer,
         tokenizer_directory: Path | None,
-        controller: str,
+        action_format: ActionFormat,
         obs_steps: int,
         action_steps: int,
         horizon: int,
@@ -53,7 +50,7 @@ class TokenizedReplaySource:
         self.demo_actions = demo_actions
         self.action_normalizer = action_normalizer
         self.tokenizer = None if tokenizer_directory is None else load_tokenizer_artifact(tokenizer_directory).tokenizer
-        self.controller = controller
+        self.action_format = action_format
         self.obs_steps, self.action_steps, self.horizon = obs_steps, action_steps, horizon
         self._actions = np.empty((0, 0))
         self._step = 0
@@ -75,8 +72,8 @@ class TokenizedReplaySource:
         return self.action_normalizer.unnormalize(decoded[0].double().numpy())
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming | None]:
-        """(Ta, 7) the next executed actions."""
-        executed = executed_actions(self.chunk(), self.obs_steps, self.action_steps, self.controller)
+        """(Ta, stored_dim) the next executed actions."""
+        executed = executed_actions(self.chunk(), self.obs_steps, self.action_steps, self.action_format)
         self._step += self.action_steps
         return executed, None
 
@@ -106,26 +103,22 @@ def replay_demonstrations(
     Raises:
         DatasetError: a demo without a ``seed`` attribute (not collected by carp), naming the file and demo.
     """
-    demos = read_demonstrations(Path(raw_path), _HISTORY_KEYS)
+    demos = read_demonstrations(Path(raw_path), ())
     selected = list(zip(demos.names, demos.episodes, strict=True))[:num_demos]
     missing = [name for name, episode in selected if "seed" not in episode.attrs]
     if missing:
         raise DatasetError(
             f"{raw_path}: demo '{missing[0]}' has no 'seed' attribute; replay needs demos collected by carp"
         )
-    controller = controller_kind(demos.env_args)
-    demo_actions = {}
-    for _, episode in selected:
-        actions = episode.actions
-        demo_actions[int(episode.attrs["seed"])] = (
-            absolute_to_rot6d_actions(actions) if controller == "absolute" else actions
-        )
+    task = task_for_env_args(demos.env_args)
+    action_format = task.action_format(task.controller_of(demos.env_args))
+    demo_actions = {int(episode.attrs["seed"]): action_format.to_policy(episode.actions) for _, episode in selected}
     source_factory = functools.partial(
         TokenizedReplaySource,
         demo_actions,
         action_normalizer,
         tokenizer_directory,
-        controller,
+        action_format,
         obs_steps,
         action_steps,
         horizon,
@@ -135,7 +128,8 @@ def replay_demonstrations(
         demos.env_args,
         source_factory,
         list(demo_actions),
-        _HISTORY_KEYS,
+        # The rollout keeps an observation history the replay does not read; one key keeps that cheap.
+        task.default_obs_keys[-1:],
         obs_steps,
         max_steps=longest + horizon,
         workers=workers,

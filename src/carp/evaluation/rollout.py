@@ -9,7 +9,7 @@ fresh worker and, if that worker dies too, recorded as crashed with the way it d
 
 A policy trained on camera images sees them the way ingest stored them: after every step the cameras are rendered
 from the simulator's current state with the same renderer and settings that render a demo's stored states
-(:func:`camera_observation`), and the rendering time of each step is recorded apart from the policy's.
+(the task's ``cameras``), and the rendering time of each step is recorded apart from the policy's.
 """
 
 import logging
@@ -18,20 +18,19 @@ import signal
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from einops import rearrange
 from tqdm import tqdm
 
-from carp import simulation
-from carp.evaluation.task_measures import measure_for
+from carp.tasks import task_for_env_args
+from carp.tasks.base import Task
 
 if TYPE_CHECKING:
-    from carp.data.rendering import CameraRenderer, RenderSettings
+    from carp.data.rendering import RenderSettings
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +60,7 @@ class ActionSource(Protocol):
                 with cameras (only sources of image policies are run there).
 
         Returns:
-            actions (n, 7) to execute in order, and the chunk's timing (None when not measured).
+            actions (n, stored action width) to execute in order, and the chunk's timing (None when not measured).
         """
 
 
@@ -82,42 +81,14 @@ class EpisodeResult:
     task_measures: dict[str, float] = field(default_factory=dict)
 
 
-def flatten_observation(obs: dict, obs_keys: Sequence[str]) -> np.ndarray:
-    """Concatenate the low-dim keys (robomimic names) of a robosuite observation into (Do,)."""
-    features = simulation.low_dim_observations(obs)
+def flatten_observation(task: Task, obs: Mapping[str, np.ndarray], obs_keys: Sequence[str]) -> np.ndarray:
+    """Concatenate the low-dim keys (names as in demo files) of a task's env observation into (Do,)."""
+    features = task.observations(obs)
     return np.concatenate([features[key] for key in obs_keys])
 
 
-def camera_observation(renderer: "CameraRenderer", env) -> np.ndarray:
-    """The cameras as an image policy sees them now: (cameras, 3, h, w) uint8, in the renderer's camera order.
-
-    Rendered from the simulator's flattened state, as ingest renders a demo's stored states
-    (`carp.data.rendering.render_states`), so a rollout shows the policy the pixels it was trained on.
-    """
-    images = renderer.render(env.sim.get_state().flatten())
-    return np.stack([rearrange(images[key], "h w rgb -> rgb h w") for key in renderer.settings.image_keys])
-
-
-VIDEO_SIZE = 256
-"""Height and width of rollout video frames, in pixels."""
-
-
-def video_settings(camera: str) -> "RenderSettings":
-    """How rollout videos are drawn: `camera` at `VIDEO_SIZE` pixels, with shadows, reflections, skybox, anti-aliasing.
-
-    Videos are for people, so they get the full look; an image policy's cameras keep their own lean settings. They go
-    through `carp.data.rendering.CameraRenderer` like the policy's cameras because robosuite's offscreen renderer
-    draws without making its OpenGL context current: beside another context in the process (the policy's cameras)
-    it would draw into that one and read back garbage.
-    """
-    from carp.data.rendering import RenderSettings
-
-    return RenderSettings(
-        cameras=(camera,), image_size=VIDEO_SIZE, shadows=True, reflections=True, skybox=True, anti_aliasing=True
-    )
-
-
 def run_episode(
+    task: Task,
     env,
     source: ActionSource,
     seed: int,
@@ -130,43 +101,39 @@ def run_episode(
     """Roll out one seeded episode until success or ``max_steps``; exceptions become a failed result.
 
     Args:
-        env: robosuite env built by :func:`carp.simulation.make_env`.
+        task: the task `env` runs (`carp.tasks`): it resets, steps, observes, scores and draws the env.
+        env: an env built by ``task.make_env``.
         source: decides actions from the observation history.
-        seed: reset seed (see :func:`carp.simulation.reset_env`).
+        seed: reset seed (``task.reset``: the initial state is a function of the seed only).
         obs_keys: low-dim keys concatenated into the observation features, in training order.
         obs_steps: ``To``.
         max_steps: step limit.
-        render_camera: when set, a video frame of this camera (`video_settings`) is kept after every step.
+        render_camera: when set, a video frame of this camera (``task.video``) is kept after every step.
         cameras: the cameras (and render settings) an image policy sees, rendered after every step into the
             ``images`` history its source receives; None for state policies.
     """
     started = time.perf_counter()
     result = EpisodeResult(seed=seed, success=False, steps=0, seconds=0.0)
     renderer = video = None
-    measure = measure_for(simulation.task_of(env))
+    measure = task.measure()
 
     def observe_cameras() -> np.ndarray:
         rendering_started = time.perf_counter()
-        images = camera_observation(renderer, env)
+        images = renderer.frame()
         result.render_seconds.append(time.perf_counter() - rendering_started)
         return images
 
     try:
-        obs = simulation.reset_env(env, seed)
+        obs = task.reset(env, seed)
         source.reset(env, seed)
         measure.reset(env)
-        history = deque([flatten_observation(obs, obs_keys)] * obs_steps, maxlen=obs_steps)
+        history = deque([flatten_observation(task, obs, obs_keys)] * obs_steps, maxlen=obs_steps)
         image_history = None
         if cameras is not None:
-            from carp.data.rendering import CameraRenderer
-
-            # Every reset builds a new model (object sizes and placements), so each episode has its own renderer.
-            renderer = CameraRenderer(env.sim.model._model, cameras)
+            renderer = task.cameras(env, cameras)
             image_history = deque([observe_cameras()] * obs_steps, maxlen=obs_steps)
         if render_camera is not None:
-            from carp.data.rendering import CameraRenderer
-
-            video = CameraRenderer(env.sim.model._model, video_settings(render_camera))
+            video = task.video(env, render_camera)
         while result.steps < max_steps and not result.success:
             seen = {} if image_history is None else {"images": np.stack(image_history)}
             actions, timing = source.act(np.stack(history), env, **seen)
@@ -175,15 +142,15 @@ def run_episode(
                 result.decoding_seconds.append(timing.decoding)
                 result.encoding_seconds.append(timing.encoding)
             for action in actions:
-                obs, _, _, _ = env.step(action)
-                history.append(flatten_observation(obs, obs_keys))
+                obs, _ = task.step(env, action)
+                history.append(flatten_observation(task, obs, obs_keys))
                 if image_history is not None:
                     image_history.append(observe_cameras())
                 result.steps += 1
                 measure.observe(env, result.steps)
                 if video is not None:
-                    result.frames.append(video.render(env.sim.get_state().flatten())[f"{render_camera}_image"])
-                if simulation.is_success(env):
+                    result.frames.append(video.frame())
+                if task.is_success(env):
                     result.success = True
                     break
                 if result.steps >= max_steps:
@@ -222,7 +189,9 @@ def _init_worker(env_args: dict, source_factory: Callable[[], ActionSource], set
     import torch
 
     torch.set_num_threads(1)
-    _worker_state["env"] = simulation.make_env(env_args)
+    task = task_for_env_args(env_args)
+    _worker_state["task"] = task
+    _worker_state["env"] = task.make_env(env_args)
     _worker_state["source"] = source_factory()
     _worker_state["settings"] = settings
 
@@ -230,6 +199,7 @@ def _init_worker(env_args: dict, source_factory: Callable[[], ActionSource], set
 def _run_job(job: EpisodeJob) -> EpisodeResult:
     settings = _worker_state["settings"]
     return run_episode(
+        _worker_state["task"],
         _worker_state["env"],
         _worker_state["source"],
         job.seed,

@@ -18,6 +18,7 @@ from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
 from carp.policies.base import Policy
 from carp.policies.registry import load_policy
+from carp.tasks.base import ActionFormat
 
 if TYPE_CHECKING:
     from carp.data.dataset import TaskWindows
@@ -29,7 +30,7 @@ logger = logging.getLogger(__name__)
 def evaluate_policy(
     checkpoint_path: Path,
     env_args: dict,
-    controller: str,
+    action_format: ActionFormat,
     obs_keys: Sequence[str],
     obs_steps: int,
     action_steps: int,
@@ -74,7 +75,7 @@ def evaluate_policy(
         factory = functools.partial(
             PolicySource,
             deployment.load,
-            controller=controller,
+            action_format=action_format,
             obs_steps=obs_steps,
             action_steps=action_steps,
             inference=inference,

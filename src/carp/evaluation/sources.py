@@ -7,45 +7,42 @@ from typing import Any
 import numpy as np
 import torch
 
-from carp.data.rotation import rot6d_to_absolute_actions
 from carp.evaluation.rollout import ChunkTiming
 from carp.policies.base import Policy
+from carp.tasks import get_task
+from carp.tasks.base import ActionFormat
 
 
-def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, controller: str) -> np.ndarray:
-    """The part of a predicted chunk the env executes, in the controller's action format.
+def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, action_format: ActionFormat) -> np.ndarray:
+    """The part of a predicted chunk the env executes, in the env's action format.
 
     Args:
         chunk: (H, A) raw actions predicted from observations at steps ``t - To + 1 .. t``; row ``To - 1`` is step t.
         obs_steps: ``To``.
         action_steps: ``Ta``.
-        controller: ``absolute`` converts 10-D (position, 6-D rotation, gripper) rows to the controller's 7-D form.
+        action_format: the task's action format; its ``to_env`` maps the policy's rows to the env's (absolute arm
+            actions: 10-D position, 6-D rotation, gripper to the controller's 7-D form).
 
     Returns:
-        (Ta, 7 or A) float64.
+        (Ta, stored_dim) float64.
     """
     executed = np.asarray(chunk[obs_steps - 1 : obs_steps - 1 + action_steps], dtype=np.float64)
-    if controller == "absolute":
-        executed = rot6d_to_absolute_actions(executed)
-    return executed
+    return action_format.to_env(executed)
 
 
 class ExpertSource:
-    """A scripted expert (privileged state) behind the same interface as the policy; one action per decision."""
+    """A task's scripted expert (privileged state) behind the same interface as the policy; one action per decision."""
 
     def __init__(self, task: str) -> None:
-        self.task = task
+        self.task = get_task(task)
         self._expert = None
 
     def reset(self, env, seed: int) -> None:
         """Bind a fresh expert to the just-reset env."""
-        from carp.data.experts import make_expert
-
-        self._expert = make_expert(self.task, env)
-        self._expert.reset()
+        self._expert = self.task.make_expert(env, seed)
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, None]:
-        """(1, 7) the expert's next action."""
+        """(1, stored_dim) the expert's next action."""
         return self._expert.act()[None, :], None
 
 
@@ -55,7 +52,7 @@ class PolicySource:
     Args:
         load: zero-argument callable returning the policy (a `carp.policies.base.Deployment`'s `load`); called once,
             in the worker process that runs the episodes.
-        controller: ``absolute`` converts the 10-D actions back to the controller's 7-D form.
+        action_format: maps the predicted actions to the env's (`executed_actions`).
         obs_steps: ``To``.
         action_steps: ``Ta``.
         inference: the family's inference settings (e.g. ``{"top_k": 3}``), applied through
@@ -66,7 +63,7 @@ class PolicySource:
     def __init__(
         self,
         load: Callable[[], Policy],
-        controller: str,
+        action_format: ActionFormat,
         obs_steps: int,
         action_steps: int,
         inference: Mapping[str, Any] | None = None,
@@ -74,7 +71,7 @@ class PolicySource:
     ) -> None:
         self.policy = load()
         self.policy.configure_inference(**dict(inference or {}))
-        self.controller = controller
+        self.action_format = action_format
         self.obs_steps = obs_steps
         self.action_steps = action_steps
         self.task_index = task_index
@@ -91,7 +88,7 @@ class PolicySource:
     def act(
         self, observation_history: np.ndarray, env, images: np.ndarray | None = None
     ) -> tuple[np.ndarray, ChunkTiming]:
-        """(Ta, 7 or A) actions for the env and the chunk's prediction/decoding time.
+        """(Ta, stored_dim) actions for the env and the chunk's prediction/decoding time.
 
         Args:
             observation_history: (To, Do) raw low-dim observations, oldest first.
@@ -103,7 +100,7 @@ class PolicySource:
             observation_history[None], task_index=self.task_index, generator=self._generator, **seen
         )
         started = time.perf_counter()
-        executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.controller)
+        executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.action_format)
         decoding_seconds = timed.decoding_seconds + time.perf_counter() - started
         return executed, ChunkTiming(
             prediction=timed.prediction_seconds, decoding=decoding_seconds, encoding=timed.encoding_seconds

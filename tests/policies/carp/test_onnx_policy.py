@@ -11,6 +11,7 @@ from carp.policies.carp import onnx_policy as onnx_module
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policies.carp.sampling import generate_chunk
 from carp.policies.registry import load_policy
+from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
 
 SCALES = (1, 2, 4)
@@ -98,7 +99,7 @@ def test_policy_source_acts_the_same_on_both_backends(exported, tmp_path):
     checkpoint = tmp_path / "policy.pt"
     policy.save(checkpoint)
     directory = export_policy_graphs(policy, tmp_path / "onnx")
-    settings = dict(controller="delta", obs_steps=OBS_STEPS, action_steps=4)
+    settings = dict(action_format=DELTA_ACTIONS, obs_steps=OBS_STEPS, action_steps=4)
     on_torch = PolicySource(functools.partial(load_policy, checkpoint), **settings)
     on_onnx = PolicySource(functools.partial(OnnxPolicy, directory), **settings)
     history = np.random.default_rng(3).normal(size=(OBS_STEPS, OBS_DIM))
