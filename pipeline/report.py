@@ -23,6 +23,7 @@ from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
 from carp.reporting.comparison import RunResults, pooled_metrics
 from carp.reporting.report import ReportInputs, write_report
+from carp.tasks import get_task
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
 
@@ -45,6 +46,7 @@ def main() -> None:
         },
         runs=runs,
         max_steps={task: params.max_steps_for(task) for task in params.tasks},
+        demo_notes={task: scripted_demo_note(task) for task in params.tasks if task not in params.data.raw_files},
         margin=params.comparison.margin,
         alpha=params.comparison.alpha,
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
@@ -71,13 +73,24 @@ def main() -> None:
             for task in params.tasks
         },
         sweep_trials=pd.read_csv(SWEEP_TRIALS) if SWEEP_TRIALS.exists() else None,
-        versions={name: version(name) for name in ("robosuite", "mujoco", "torch", "dvc", "mlflow")},
+        versions={
+            name: version(name) for name in ("robosuite", "mujoco", "gym-pusht", "pymunk", "torch", "dvc", "mlflow")
+        },
         git_commit=git_commit(),
         params_yaml=args.params.read_text(),
     )
     title = f"carp report: {', '.join(params.tasks)} ({', '.join(params.policies)})"
     markdown, html = write_report(inputs, REPORTS_DIR, title=title)
     print(f"wrote {markdown.relative_to(PROJECT_DIR)} and {html.relative_to(PROJECT_DIR)}")
+
+
+def scripted_demo_note(task: str) -> str:
+    """The caveat of a task trained on carp's scripted demos instead of the paper's."""
+    spec = get_task(task)
+    return (
+        f"The {task} demos are scripted by carp's expert ({spec.expert_name}), not {spec.paper_demos}: success rates "
+        "and scores are not directly comparable with the paper's."
+    )
 
 
 def _run_results(task: str, policy: str, seed: int) -> RunResults:

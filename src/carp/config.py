@@ -76,13 +76,16 @@ class DataConfig:
             the evaluation seeds (see ``eval.seed``).
         collection_seed: First seed of scripted collection; an integer >= 0. Attempt i uses ``collection_seed + i``,
             failed attempts included.
-        collection_max_steps: Step limit of one scripted episode, in control steps (20 Hz); an integer >= 1. An
-            attempt that has not succeeded by then is discarded.
-        controller: ``absolute`` or ``delta``. With ``absolute`` the operational-space controller takes absolute
-            poses and actions are stored 10-D (position, 6-D rotation, gripper), so A = 10; with ``delta`` it takes
-            pose deltas and actions stay 7-D (A = 7). Part of the registered tokenizer's name (``panda-abs10``).
-        obs_keys: Low-dim observation keys of the robomimic file (``obs/<key>``), concatenated in this order into the
-            policy's input; at least one, and each must exist in the file (checked when the data is ingested).
+        collection_max_steps: Step limit of one scripted episode, in the task's control steps (20 Hz for the arms,
+            10 Hz for Push-T); an integer >= 1, capped at a task's own limit (Push-T: 300). An attempt that has not
+            succeeded by then is discarded.
+        controller: ``absolute`` or ``delta``. For the arm tasks, with ``absolute`` the operational-space controller
+            takes absolute poses and actions are stored 10-D (position, 6-D rotation, gripper), so A = 10; with
+            ``delta`` it takes pose deltas and actions stay 7-D (A = 7). Push-T takes ``absolute`` only (the agent's
+            2-D target, A = 2). Part of the registered tokenizer's name (``panda-abs10``, ``pusht-abs2``).
+        obs_keys: The arm tasks' low-dim observation keys of the robomimic file (``obs/<key>``), concatenated in this
+            order into the policy's input; at least one, and each must exist in the file (checked when the data is
+            ingested). Push-T has one fixed observation (``block_keypoints``, ``agent_pos``) and ignores them.
         obs_steps: ``To``, observation steps the policy sees per decision; an integer >= 1.
         action_horizon: ``H``, actions predicted per decision, in control steps; an integer >= 1. Must be divisible by
             ``2**len(tokenizer.channel_mult)`` (each encoder level halves the length), and the latent length
@@ -94,9 +97,10 @@ class DataConfig:
         valid_fraction: Share of each task's demos held out for validation metrics when the file has no
             ``mask/valid`` (that mask wins when present); a number in [0, 1).
         raw_files: Task -> path of your own robomimic-schema HDF5 file (relative to the project root), validated and
-            used instead of scripted collection; tasks among lift, can and square.
+            used instead of scripted collection; tasks among lift, can, square and pusht. Its ``env_args`` must name
+            the task's env and its actions the task's width (7 for the arms, 2 for Push-T).
         num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
-            among lift, can and square. DVC tracks the whole mapping: changing one entry reruns every ``collect``
+            among lift, can, square and pusht. DVC tracks the whole mapping: changing one entry reruns every ``collect``
             stage, but collection is deterministic, so only that task's data and what depends on it change.
         observations: What the policy observes: ``state`` (the low-dim ``obs_keys``, object pose included) or
             ``image`` (camera images of ``cameras`` plus the proprioception of ``proprioception_keys``, no object
@@ -393,7 +397,7 @@ class TrainingConfig:
             elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
             and inference stay float32 (see ``carp.training.runtime.resolve_precision``).
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
-            among lift, can and square. DVC tracks the mapping as one parameter, so a change reruns every
+            among lift, can, square and pusht. DVC tracks the mapping as one parameter, so a change reruns every
             ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
         epochs_per_policy: Policy family -> its epochs on every task, overriding ``epochs`` and ``epochs_per_task``
             (families converge at different rates: Diffusion Policy's denoisers need several times CARP's epochs);
@@ -693,8 +697,10 @@ class Params:
             the latent length ``l = data.action_horizon / 2**len(tokenizer.channel_mult)`` (4 by default).
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
-        tasks: Tasks the pipeline runs, among lift, can and square, each at most once; the per-task stages
-            (``collect``, ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
+        tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can and
+            square, and pusht), each at most once, all in one action space (one tokenizer serves them: the arms and
+            Push-T do not mix); the per-task stages (``collect``, ``ingest``, ``train_policy``, ``evaluate``) fan out
+            over this list.
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.

@@ -58,6 +58,8 @@ class ReportInputs:
             comparisons with their verdicts, the steps-to-success curves and the paper's claims. `evaluation` then
             holds each family's figures pooled over its seeds (`carp.reporting.comparison.pooled_metrics`).
         max_steps: task -> episode step limit (the curves' horizon).
+        demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
+            demos where the paper trained on human ones); shown under the task's policies.
         margin: equivalence margin of the verdicts, in success rate.
         alpha: significance level of the verdicts after Holm's correction.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
@@ -75,6 +77,7 @@ class ReportInputs:
     videos: Mapping[str, Sequence[Path]] = field(default_factory=dict)
     runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
     max_steps: Mapping[str, int] = field(default_factory=dict)
+    demo_notes: Mapping[str, str] = field(default_factory=dict)
     margin: float = 0.05
     alpha: float = 0.05
     sweep_trials: pd.DataFrame | None = None
@@ -315,7 +318,8 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
                 "Episodes with fixed seeds disjoint from the collection seeds, the same for every policy; success is "
                 "the env's own check, with its 95% Wilson interval. Latency per chunk at batch 1 in the rollouts, "
                 "split into prediction and decoding; model calls are the sequential network calls per chunk "
-                "(K scales, L tokens or N denoising steps); the backend ran the rollouts."
+                "(K scales, L tokens or N denoising steps); the backend ran the rollouts.",
+                *([inputs.demo_notes[task]] if task in inputs.demo_notes else []),
             ],
             tables=[comparison_table(policies, inputs.policy_histories.get(task))],
         )
@@ -466,7 +470,8 @@ def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section
             section.paragraphs.append(
                 "The task's own per-episode measures over every test episode that took them (Square: the horizontal "
                 "distance in mm between the nut's and the peg's centres at their first contact, as in CARP's Tables "
-                "4-5; lower is more precise): the mean with its 95% t interval and the variance."
+                "4-5, lower is more precise; Push-T: max_reward, the episode's highest reward, whose mean is "
+                "Diffusion Policy's score): the mean with its 95% t interval and the variance."
             )
             section.tables.append(measures)
         max_steps = inputs.max_steps.get(task)

@@ -105,6 +105,8 @@ class Task(Protocol):
         supports_cameras: whether image observations can be rendered for it.
         score_measure: the per-episode measure the report gives as the task's score beside success (Push-T: the
             maximum reward), or None.
+        paper_demos: the demonstrations the paper's figures for this task were trained on, which carp's scripted
+            demos stand in for.
     """
 
     name: str
@@ -116,6 +118,7 @@ class Task(Protocol):
     configurable_obs_keys: bool
     supports_cameras: bool
     score_measure: str | None
+    paper_demos: str
 
     def action_format(self, controller: str) -> ActionFormat:
         """The action format under ``controller`` (``data.controller``); ValueError naming it when unsupported."""

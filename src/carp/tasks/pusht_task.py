@@ -85,6 +85,7 @@ class PushTTask:
     configurable_obs_keys = False
     supports_cameras = False
     score_measure = SCORE_MEASURE
+    paper_demos = "Diffusion Policy's human demonstrations"
 
     def action_format(self, controller: str) -> ActionFormat:
         """`PUSHT_ACTIONS`; Push-T's only controller is ``absolute`` (the agent's target position)."""

@@ -92,6 +92,7 @@ class RobosuiteArmTask:
     configurable_obs_keys: bool = True
     supports_cameras: bool = True
     score_measure: str | None = None
+    paper_demos: str = "robomimic's proficient-human demonstrations"
 
     def action_format(self, controller: str) -> ActionFormat:
         """`ABSOLUTE_ACTIONS` or `DELTA_ACTIONS`."""
@@ -157,7 +158,6 @@ class RobosuiteArmTask:
 
     def cameras(self, env, settings) -> _StateFrames:
         """The policy's cameras, (cameras, 3, h, w) uint8, drawn from the state as ingest draws a demo's."""
-
         from einops import rearrange
 
         def stacked(images: dict[str, np.ndarray]) -> np.ndarray:

@@ -102,7 +102,7 @@ class CarpInference:
         top_k: 1 takes the most likely token (greedy); k > 1 draws among the k most likely ones, with draws seeded
             per episode so results reproduce. An integer between 1 and ``codebook_size``.
         top_k_per_task: Task -> token choice when evaluating that task, overriding ``top_k``; each an integer between
-            1 and ``codebook_size``, tasks among lift, can and square.
+            1 and ``codebook_size``, tasks among the registered ones (``carp.tasks``).
     """
 
     top_k: int = 1
