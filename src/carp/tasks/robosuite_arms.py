@@ -31,6 +31,7 @@ DELTA_ACTIONS = ActionFormat(
 )
 _ACTION_FORMATS = {"absolute": ABSOLUTE_ACTIONS, "delta": DELTA_ACTIONS}
 
+
 def _insertion_offset() -> EpisodeMeasure:
     from carp.evaluation.insertion_offset import InsertionOffset  # imported on use: the registry stays light
 
