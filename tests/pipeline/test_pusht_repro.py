@@ -1,0 +1,51 @@
+"""End to end on Push-T: `dvc repro` with `tasks: [pusht]` on tiny params collects with the planning expert, ingests
+2-D targets, trains a tokenizer and CARP in Push-T's action space, evaluates with DP's score and a video, reports
+them with the scripted-demo caveat, and a second run does nothing."""
+
+import json
+import sys
+
+import pandas as pd
+import pytest
+
+from tests.pipeline.workspace import make_workspace, run, stages_run
+
+PUSHT = {
+    "tasks": ["pusht"],
+    "eval": {"max_steps": {"pusht": 30}, "video": True, "video_episodes": 1},
+}
+
+
+@pytest.mark.slow
+def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(tmp_path):
+    workspace = make_workspace(tmp_path / "carp", PUSHT)
+    first = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert first.returncode == 0, first.stderr[-3000:]
+    for output in (
+        "data/raw/pusht.hdf5",
+        "data/processed/pusht/replay.zarr",
+        "models/tokenizer",
+        "models/policy/pusht/carp/seed0/policy.pt",
+        "reports/eval/pusht/carp/seed0.json",
+        "reports/eval/videos",
+        "reports/report.md",
+    ):
+        assert (workspace / output).exists(), output
+    processed = json.loads((workspace / "data/processed/pusht/summary.json").read_text())
+    assert (processed["obs_dim"], processed["action_dim"], processed["episodes"]) == (20, 2, 3)
+    tokenizer_ref = json.loads((workspace / "models/tokenizer_ref.json").read_text())
+    assert "pusht-abs2" in json.dumps(tokenizer_ref)
+    summary = json.loads((workspace / "reports/eval/pusht/carp/seed0.json").read_text())
+    assert summary["episodes"] == 2 and summary["max_reward_episodes"] == 2
+    assert 0.0 <= summary["max_reward_mean"] <= 1.0
+    episodes = pd.read_csv(workspace / "reports/eval/pusht/carp/seed0_episodes.csv")
+    assert set(episodes["seed"]) == {100_000, 100_001} and (episodes["steps"] <= 30).all()
+    assert episodes["max_reward"].between(0, 1).all()
+    assert list((workspace / "reports/eval/videos").glob("pusht_carp-0*.gif"))
+    report = (workspace / "reports/report.md").read_text()
+    assert "The pusht demos are scripted by carp's expert (pusht_planner), not Diffusion Policy's human" in report
+    assert "| max_reward " in report
+
+    second = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert stages_run(second.stdout) == {"check_inputs"}, second.stdout
