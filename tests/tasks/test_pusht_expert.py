@@ -98,3 +98,25 @@ def test_expert_succeeds_within_the_step_limit(seed):
     success, steps = pusht_expert.run_episode(environment, seed)
     environment.close()
     assert success and steps <= pusht.MAX_STEPS
+
+
+def test_the_expert_backs_off_a_t_it_starts_against():
+    # DP's reset for seed 50 draws the agent against the T's crossbar: no push can start from there.
+    environment = pusht.PushTEnv(render_size=96)
+    environment.reset(50)
+    state = environment.state()
+    environment.close()
+    agent, centre = state[:2], pusht_expert.to_workspace(state[2:], pusht_expert.T_CENTER)
+    target = pusht_expert._retreat_target(state)
+    assert np.linalg.norm(target - agent) == pytest.approx(pusht_expert.RETREAT_DISTANCE)
+    assert np.linalg.norm(target - centre) > np.linalg.norm(agent - centre) + 29.0
+    corner = np.array([20.0, 20.0, *state[2:]])  # in a corner, backing off stays inside the workspace
+    assert np.all(pusht_expert._retreat_target(corner) >= pusht_expert.AGENT_RADIUS)
+
+
+@pytest.mark.slow
+def test_expert_succeeds_from_a_start_against_the_t():
+    environment = pusht.PushTEnv(render_size=96)
+    success, steps = pusht_expert.run_episode(environment, 50, expert_seed=50)
+    environment.close()
+    assert success and steps <= pusht.MAX_STEPS

@@ -80,6 +80,8 @@ FINE_ERROR = 12.0
 """Pose error (pixels) below which pushes are chosen by the coverage they reach on the scratch simulation."""
 FINE_CANDIDATES = 40
 WALL_MARGIN = 20.0
+RETREAT_DISTANCE = 30.0
+"""How far the agent backs off the T when no push can be reached from where it is."""
 
 
 def to_workspace(block_pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -311,14 +313,16 @@ class PushTExpert:
         if error < FINE_ERROR:
             candidates = np.argsort(pose_error(compose(block_pose[None], self.displacements)[0]), kind="stable")
             actions = self._best_by_rollout(env, candidates[:FINE_CANDIDATES], steps_left, by_coverage=True)
-            return actions if actions is not None else [state[:2]]
+            return actions if actions is not None else [_retreat_target(state)]
         actions = self._best_by_rollout(env, self._beam_first_pushes(block_pose), steps_left, by_coverage=False)
         if actions is None:
             # Near a wall the beam's favourites may all be unreachable (their start or their transit leaves the
             # workspace); any reachable push, the best predicted first, gets the block back into open space.
             ranked = np.argsort(pose_error(compose(block_pose[None], self.displacements)[0]), kind="stable")
             actions = self._best_by_rollout(env, ranked, steps_left, by_coverage=False)
-        return actions if actions is not None else [state[:2]]  # nothing reachable: stay, the next step replans
+        # Nothing reachable: the agent sits against or inside the T (DP's reset draws the two independently) or is
+        # boxed in by a wall. Backing off frees it; the next plan starts from open space.
+        return actions if actions is not None else [_retreat_target(state)]
 
     def _beam_first_pushes(self, block_pose: np.ndarray) -> np.ndarray:
         """Library indices of first pushes, best first, ranked by the best pose a beam search reaches after them."""
@@ -386,6 +390,15 @@ class PushTExpert:
             if not by_coverage and error < current_error - 1.0:
                 return actions
         return best_actions
+
+
+def _retreat_target(state: np.ndarray) -> np.ndarray:
+    """(2,) a target `RETREAT_DISTANCE` from the agent, straight away from the T's centre, inside the workspace."""
+    agent = state[:2]
+    away = agent - to_workspace(state[2:], T_CENTER)
+    length = float(np.linalg.norm(away))
+    direction = away / length if length > 1e-6 else np.array([0.0, -1.0])
+    return np.clip(agent + RETREAT_DISTANCE * direction, AGENT_RADIUS, WORKSPACE_SIZE - AGENT_RADIUS)
 
 
 def _wall_penalty(block_poses: np.ndarray) -> np.ndarray:
