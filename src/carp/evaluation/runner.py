@@ -127,7 +127,7 @@ def episodes_table(results: Sequence[EpisodeResult]) -> pd.DataFrame:
 
     ``chunk_ms_median`` is the episode's median of prediction plus decoding per chunk at batch 1 (NaN without a
     chunk); the report's latency ratios resample it over episodes. A task's own measures
-    (`carp.evaluation.task_measures`, e.g. Square's ``insertion_offset_mm``) follow as one column each.
+    (the task's ``measure``, e.g. Square's ``insertion_offset_mm``) follow as one column each.
     """
     rows = []
     for result in results:
