@@ -99,7 +99,9 @@ def main() -> None:
         episode = int(np.flatnonzero(buffer.valid_episodes)[0]) if buffer.valid_episodes.any() else 0
         figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
         figure_episode = (tasks[0], buffer.episode(episode)[1])
-        metrics = evaluate_tokenizer(tokenizer.eval(), held_out, own_normalizers, figure_episode, figure)
+        metrics = evaluate_tokenizer(
+            tokenizer.eval(), held_out, own_normalizers, figure_episode, figure, params.action_format.dimension_names
+        )
         try:
             sha256 = save_tokenizer_artifact(TOKENIZER_DIR, tokenizer, trained_with, params.action_space, metrics)
         except NonFiniteTokenizerError as error:
@@ -111,7 +113,7 @@ def main() -> None:
     write_json(TOKENIZER_REPORT_DIR / "metrics.json", metrics)
     write_history(TOKENIZER_REPORT_DIR / "history.csv", history)
     action = "trained on" if config.source == "pipeline" else f"fetched {config.source}, trained on"
-    names = dimension_names(tokenizer.spec.action_dim)
+    names = dimension_names(tokenizer.spec.action_dim, params.action_format.dimension_names)
     print(f"tokenizer {action} {list(trained_with)}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
 
 

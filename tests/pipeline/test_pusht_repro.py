@@ -33,6 +33,8 @@ def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(tmp_path)
         assert (workspace / output).exists(), output
     processed = json.loads((workspace / "data/processed/pusht/summary.json").read_text())
     assert (processed["obs_dim"], processed["action_dim"], processed["episodes"]) == (20, 2, 3)
+    tokenizer_metrics = json.loads((workspace / "reports/tokenizer/metrics.json").read_text())
+    assert {"mse/target_x", "mse/target_y"} <= set(tokenizer_metrics)
     tokenizer_ref = json.loads((workspace / "models/tokenizer_ref.json").read_text())
     assert "pusht-abs2" in json.dumps(tokenizer_ref)
     summary = json.loads((workspace / "reports/eval/pusht/carp/seed0.json").read_text())

@@ -29,6 +29,7 @@ class ActionFormat:
         to_policy: (..., stored_dim) -> (..., policy_dim); a module-level function, so that worker processes can
             receive it.
         to_env: (..., policy_dim) -> (..., stored_dim), the inverse.
+        dimension_names: the policy_dim dimensions' names, in the tokenizer's metrics and figures.
     """
 
     space: str
@@ -36,6 +37,7 @@ class ActionFormat:
     policy_dim: int
     to_policy: Callable[[np.ndarray], np.ndarray] = _unchanged
     to_env: Callable[[np.ndarray], np.ndarray] = _unchanged
+    dimension_names: tuple[str, ...] = ()
 
 
 class Expert(Protocol):

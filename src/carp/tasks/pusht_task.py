@@ -15,7 +15,10 @@ from carp.tasks import pusht
 from carp.tasks.base import ActionFormat
 
 PUSHT_ACTIONS = ActionFormat(
-    space=f"pusht-abs{pusht.ACTION_DIM}", stored_dim=pusht.ACTION_DIM, policy_dim=pusht.ACTION_DIM
+    space=f"pusht-abs{pusht.ACTION_DIM}",
+    stored_dim=pusht.ACTION_DIM,
+    policy_dim=pusht.ACTION_DIM,
+    dimension_names=("target_x", "target_y"),
 )
 
 SCORE_MEASURE = "max_reward"

@@ -25,9 +25,13 @@ ABSOLUTE_ACTIONS = ActionFormat(
     policy_dim=ROT6D_ACTION_DIM,
     to_policy=absolute_to_rot6d_actions,
     to_env=rot6d_to_absolute_actions,
+    dimension_names=("x", "y", "z", "rot0", "rot1", "rot2", "rot3", "rot4", "rot5", "gripper"),
 )
 DELTA_ACTIONS = ActionFormat(
-    space=f"panda-delta{ABSOLUTE_ACTION_DIM}", stored_dim=ABSOLUTE_ACTION_DIM, policy_dim=ABSOLUTE_ACTION_DIM
+    space=f"panda-delta{ABSOLUTE_ACTION_DIM}",
+    stored_dim=ABSOLUTE_ACTION_DIM,
+    policy_dim=ABSOLUTE_ACTION_DIM,
+    dimension_names=("dx", "dy", "dz", "drx", "dry", "drz", "gripper"),
 )
 _ACTION_FORMATS = {"absolute": ABSOLUTE_ACTIONS, "delta": DELTA_ACTIONS}
 

@@ -11,15 +11,13 @@ from carp.tokenizer.metrics import reconstruct_trajectory, reconstruction_metric
 from carp.tokenizer.plots import plot_reconstruction
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
-ABSOLUTE_DIMENSION_NAMES = ("x", "y", "z", "rot0", "rot1", "rot2", "rot3", "rot4", "rot5", "gripper")
-DELTA_DIMENSION_NAMES = ("dx", "dy", "dz", "drx", "dry", "drz", "gripper")
 
-
-def dimension_names(action_dim: int) -> tuple[str, ...]:
-    """Names of the A action dimensions (absolute 10-D or delta 7-D; generic names otherwise)."""
-    for names in (ABSOLUTE_DIMENSION_NAMES, DELTA_DIMENSION_NAMES):
-        if len(names) == action_dim:
-            return names
+def dimension_names(action_dim: int, names: Sequence[str] = ()) -> tuple[str, ...]:
+    """Names of the A action dimensions: ``names`` (an action format's) when given, else ``dim0, dim1, ...``."""
+    if names:
+        if len(names) != action_dim:
+            raise ValueError(f"expected {action_dim} dimension names, got {len(names)}: {list(names)}")
+        return tuple(names)
     return tuple(f"dim{index}" for index in range(action_dim))
 
 
@@ -29,6 +27,7 @@ def evaluate_tokenizer(
     normalizers: Mapping[str, MinMaxNormalizer],
     figure_episode: tuple[str, np.ndarray],
     figure_path: Path,
+    names: Sequence[str] = (),
 ) -> dict[str, float]:
     """Reconstruction metrics on held-out windows of one or more tasks and a figure of one whole held-out episode.
 
@@ -40,11 +39,13 @@ def evaluate_tokenizer(
         normalizers: task -> the statistics that task's actions are normalized with.
         figure_episode: (task, (T, A) raw actions of one of its episodes) for the figure.
         figure_path: PNG written here.
+        names: the A dimensions' names in metric keys and subplot titles (the action format's); empty gives
+            ``dim0, dim1, ...``.
 
     Returns:
         The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics` over all tasks' windows.
     """
-    names = dimension_names(tokenizer.spec.action_dim)
+    names = dimension_names(tokenizer.spec.action_dim, names)
     windows, half_ranges = [], []
     for task, task_windows in held_out_windows.items():
         normalizer = normalizers[task]
