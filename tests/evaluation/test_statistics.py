@@ -490,3 +490,9 @@ def test_compare_means_matches_welchs_formula_and_skips_missing_measurements():
     half = stats.t.ppf(0.975, degrees) * standard_error
     assert (result.difference.low, result.difference.high) == pytest.approx((-3.5 - half, -3.5 + half))
     assert compare_means(np.array([1.0, np.nan]), second) is None
+
+
+def test_wilson_bounds_are_exactly_0_and_1_at_no_and_all_successes():
+    # Rounding gave a lower bound of 7e-18 for 0 of 50, which made the report's error bars negative.
+    assert wilson_interval(0, 50)[0] == 0.0 and wilson_interval(50, 50)[1] == 1.0
+    assert 0.0 < wilson_interval(0, 50)[1] < 0.08 and 0.92 < wilson_interval(50, 50)[0] < 1.0

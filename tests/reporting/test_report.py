@@ -305,3 +305,18 @@ def test_the_seed_table_names_an_averaged_checkpoint_by_its_span():
         "mean of the last 3 of 4 candidates (to epoch 40)",
         "epoch 40 of 4 candidates",
     ]
+
+
+def test_a_policy_that_never_succeeds_is_reported_with_its_interval(tmp_path, inputs):
+    failing = summarize_episodes(
+        successes=[False] * 50,
+        steps=[300] * 50,
+        crashed=[False] * 50,
+        prediction_seconds=[0.007] * 10,
+        decoding_seconds=[0.0003] * 10,
+    )
+    runs = dataclasses.replace(
+        inputs, evaluation={"pusht": {"carp": failing | {"backend": "onnxruntime", "action_steps": 8}}}
+    )
+    markdown, _ = write_report(runs, tmp_path)
+    assert "0/50" in markdown.read_text() and (tmp_path / "figures" / "success_vs_latency.png").exists()

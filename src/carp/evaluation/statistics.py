@@ -183,7 +183,10 @@ def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float
     denominator = 1.0 + z * z / trials
     center = (proportion + z * z / (2 * trials)) / denominator
     half_width = z * math.sqrt(proportion * (1 - proportion) / trials + z * z / (4 * trials * trials)) / denominator
-    return max(0.0, center - half_width), min(1.0, center + half_width)
+    # At 0 (or all) successes the bound is exactly 0 (or 1); rounding would put it a hair above (or below).
+    lower = 0.0 if successes == 0 else max(0.0, center - half_width)
+    upper = 1.0 if successes == trials else min(1.0, center + half_width)
+    return lower, upper
 
 
 def z_value(level: float) -> float:
