@@ -3,10 +3,9 @@
 The file's task (named by its ``env_args``, `carp.tasks.task_for_env_args`) and the controller decide how actions are
 stored (the task's `ActionFormat`): absolute 7-D arm actions (pos, axis-angle, gripper) become 10-D (pos, 6-D
 rotation, gripper) and are converted back exactly when executed; delta arm actions and Push-T's 2-D targets are kept
-as they are. The output directory is built under a temporary name and
-renamed at the end, so a failed or interrupted ingestion never leaves a partial directory at the output path. Every
-check of the input file lives in :mod:`carp.data.robomimic_schema`, shared with the collect stage's import of a user's
-file.
+as they are. The output directory is built under a temporary name and renamed at the end, so a failed or interrupted
+ingestion never leaves a partial directory at the output path. Every check of the input file lives in
+:mod:`carp.data.robomimic_schema`, shared with the collect stage's import of a user's file.
 
 With camera settings, the buffer also holds each camera's images (read from the file or rendered from the stored
 states, see :mod:`carp.data.camera_images`), written into the staged store one demo at a time; without them the
