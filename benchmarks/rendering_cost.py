@@ -35,9 +35,9 @@ except RenderingError as error:
 
 from carp import simulation  # noqa: E402
 from carp.data.collect import run_expert_episode  # noqa: E402
-from carp.data.experts import make_expert  # noqa: E402
 from carp.data.rendering import CameraRenderer, RenderSettings, load_demo_model, render_states  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
+from carp.tasks import get_task  # noqa: E402
 
 VARIANTS = {
     "lean": {},
@@ -53,9 +53,10 @@ def percentile(values: list[float], fraction: float) -> float:
 
 def expert_states(task: str, steps: int, seed: int):
     """(T, S) states of one scripted episode of at most `steps` steps, and its demo attributes."""
-    env = simulation.make_env(simulation.make_env_args(task))
+    task_spec = get_task(task)
+    env = task_spec.make_env(task_spec.make_env_args("absolute"))
     try:
-        episode, _ = run_expert_episode(env, make_expert(task, env), seed, steps)
+        episode, _ = run_expert_episode(task_spec, env, seed, steps)
     finally:
         env.close()
     return episode.states, episode.attrs
