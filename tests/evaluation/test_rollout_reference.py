@@ -111,7 +111,7 @@ def record_rollout(env, backend: str, directory: Path) -> dict[str, np.ndarray]:
     deployment = policy.deployment(checkpoint, backend, directory)
     source = PolicySource(deployment.load, ABSOLUTE_ACTIONS, OBS_STEPS, ACTION_STEPS, inference={"top_k": 1})
     recorder = RecordingSource(source)
-    result = run_episode(get_task("lift"), env, recorder, EPISODE_SEED, OBS_KEYS, OBS_STEPS, CHUNKS * ACTION_STEPS)
+    result = run_episode(get_task(TASK), env, recorder, EPISODE_SEED, OBS_KEYS, OBS_STEPS, CHUNKS * ACTION_STEPS)
     assert result.error == "" and result.steps == CHUNKS * ACTION_STEPS
     return {
         "observations": np.stack(recorder.observations),
