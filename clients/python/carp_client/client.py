@@ -93,13 +93,15 @@ class PolicyClient:
 
     def _open(self) -> None:
         headers = {"Authorization": "Bearer " + self.token} if self.token else None
+        # The connection outlives this call, so no `with` block; entering it by hand is what websockets >= 17.1 asks
+        # of such a connection (its `legacy=True` does not exist in the older versions the client supports).
         connection = connect(
             self.url,
             additional_headers=headers,
             open_timeout=self.timeout,
             close_timeout=self.timeout,
             compression=None,
-        )
+        ).__enter__()
         try:
             frame = connection.recv(timeout=self.timeout)
             if isinstance(frame, str):
