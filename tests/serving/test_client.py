@@ -1,10 +1,13 @@
+import os
 import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from carp_client import PolicyClient
 
-from tests.serving.conftest import observations, start_server
+from tests.serving.conftest import CLIENT_DIR, observations, start_server
 
 
 def test_the_client_times_out_against_a_server_that_never_answers():
@@ -37,3 +40,14 @@ def test_the_client_reconnects_to_a_server_restarted_on_the_same_port(checkpoint
         finally:
             second.stop()
     assert reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
+
+
+def test_the_client_package_imports_neither_torch_nor_carp():
+    # Compared with the modules loaded before it: carp's venv imports `carp.dvc_dry_run` at start-up (a .pth file).
+    check = (
+        "import sys; before = set(sys.modules); import carp_client; "
+        "new = {name.split('.')[0] for name in set(sys.modules) - before}; "
+        "assert not new & {'torch', 'carp', 'onnxruntime'}, sorted(new)"
+    )
+    environment = os.environ | {"PYTHONPATH": str(CLIENT_DIR)}
+    subprocess.run([sys.executable, "-c", check], env=environment, check=True, timeout=60)
