@@ -1,0 +1,9 @@
+"""Robot-side client of `carp serve`: numpy observations in, action chunks out, over WebSocket and msgpack.
+
+Depends on numpy, msgpack and websockets only; it never imports torch or carp.
+"""
+
+from carp_client.client import PolicyClient, ServerError
+from carp_client.wire import WireError, decode, encode
+
+__all__ = ["PolicyClient", "ServerError", "WireError", "decode", "encode"]

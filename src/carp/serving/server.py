@@ -1,0 +1,343 @@
+"""The policy server: one WebSocket port that answers observation frames with action chunks, plus plain HTTP routes.
+
+Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
+
+1. On connect the server sends one metadata frame (:meth:`PolicyServer.metadata`): protocol, model, policy family,
+   observation and action specs, control period, the executed-action offset `To - 1` and `Ta`.
+2. Then each request (`carp.serving.session`) gets exactly one reply, in order: a binary frame
+   ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "timing_ms": {"queue", "inference",
+   "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape (3,), got (4,)``).
+   A bad request changes nothing and the connection stays open. Text for errors is openpi's convention too: its
+   client raises on a text frame.
+
+The same port answers HTTP GET ``/healthz`` (the process is up), ``/readyz`` (200 once the model is warmed up,
+503 before), ``/metadata`` (JSON) and ``/metrics`` (Prometheus text) through websockets' `process_request` hook.
+With a token every route but ``/healthz``, and the WebSocket upgrade, need ``Authorization: Bearer <token>``;
+others get 401 before any WebSocket frame is exchanged.
+
+Predictions run on a thread pool, off the event loop, so a slow chunk does not stall other robots' frames; the model
+lock (`ServedModel`) serializes them. Frames larger than `max_request_bytes` get an error reply; frames beyond four
+times that are refused by websockets itself (`max_size`), which closes the connection with code 1009 rather than
+buffer them.
+"""
+
+import asyncio
+import hmac
+import http
+import json
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.http11 import Request, Response
+
+from carp.serving.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
+from carp.serving.metrics import ServerMetrics
+from carp.serving.model import ServedModel
+from carp.serving.session import RequestError, ServingSpec, Session
+from carp.serving.wire import WireError, decode, encode
+
+logger = logging.getLogger(__name__)
+
+PROTOCOL_NAME = "carp-policy"
+PROTOCOL_VERSION = 1
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8000
+DEFAULT_MAX_REQUEST_BYTES = 1 << 20
+"""1 MiB: two 84 x 84 cameras take 42 kB a step; a larger image policy raises it."""
+OPEN_ROUTES = ("/healthz",)
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """Where and how the server listens.
+
+    Attributes:
+        host: interface to bind; loopback unless the robot is on another machine.
+        port: TCP port; 0 picks a free one (tests).
+        token: bearer token required on every route but `/healthz`; None serves without one.
+        max_request_bytes: largest request frame answered; larger ones get an error reply.
+    """
+
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    token: str | None = None
+    max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+
+    def __post_init__(self) -> None:
+        if self.token is not None and not self.token:
+            raise ValueError("the token must not be empty (leave it unset to serve without one)")
+        if self.max_request_bytes < 1:
+            raise ValueError(f"max_request_bytes must be positive, got {self.max_request_bytes}")
+
+
+class PolicyServer:
+    """Serves one `ServedModel` to any number of WebSocket clients, one `Session` each.
+
+    Args:
+        model: the loaded policy.
+        spec: what its requests and replies look like.
+        settings: bind address, token, frame limit.
+    """
+
+    def __init__(self, model: ServedModel, spec: ServingSpec, settings: ServerSettings = ServerSettings()) -> None:
+        self.model = model
+        self.spec = spec
+        self.settings = settings
+        self.metrics = ServerMetrics()
+        self.ready = False
+        # Two threads: the lock serializes predictions anyway; the second lets a request queue on the lock, which
+        # the reply reports as queue time, instead of in the executor's hidden queue.
+        self._executor = ThreadPoolExecutor(max_workers=2, thread_name_prefix="carp-serving")
+
+    def metadata(self) -> dict[str, Any]:
+        """The frame sent on connect and served at `/metadata`: plain values only (JSON and msgpack alike)."""
+        spec = self.spec
+        return {
+            "protocol": PROTOCOL_NAME,
+            "protocol_version": PROTOCOL_VERSION,
+            "model": asdict(self.model.source),
+            "model_version": self.model.source.model_version,
+            "policy_type": self.model.policy.policy_type,
+            "policy_description": self.model.policy.description,
+            "inference": dict(self.model.inference),
+            "observation": spec.observation_spec(),
+            "obs_steps": spec.obs_steps,
+            "action": {"shape": [spec.action_horizon, spec.action_dim], "dtype": "float32"},
+            "control_period_s": spec.control_period_s,
+            "executed_offset": spec.executed_offset,
+            "action_steps": spec.action_steps,
+            "max_request_bytes": self.settings.max_request_bytes,
+        }
+
+    async def start(self) -> Server:
+        """Bind, then warm the model up off the event loop; `/readyz` answers 200 from then on.
+
+        Raises:
+            OSError: the address cannot be bound.
+            ValueError: the warm-up prediction does not fit the spec (the server is closed again).
+        """
+        server = await serve(
+            self._handle,
+            self.settings.host,
+            self.settings.port,
+            process_request=self._process_request,
+            max_size=4 * self.settings.max_request_bytes,
+            # Raw float and image bytes compress poorly; deflate would only add latency.
+            compression=None,
+        )
+        try:
+            await asyncio.get_running_loop().run_in_executor(self._executor, self.model.warm_up, self.spec)
+        except BaseException:
+            server.close()
+            await server.wait_closed()
+            raise
+        self.ready = True
+        logger.info("serving %s on %s", self.model.source.path, ", ".join(_addresses(server)))
+        return server
+
+    def close(self) -> None:
+        """Release the prediction threads (after the WebSocket server has closed)."""
+        self._executor.shutdown(wait=True)
+
+    def _authorized(self, request: Request) -> bool:
+        if self.settings.token is None:
+            return True
+        expected = f"Bearer {self.settings.token}".encode()
+        return hmac.compare_digest(request.headers.get("Authorization", "").encode(), expected)
+
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        path = request.path.split("?", 1)[0]
+        if path == "/healthz":
+            return connection.respond(http.HTTPStatus.OK, "ok\n")
+        if not self._authorized(request):
+            response = connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong bearer token\n")
+            response.headers["WWW-Authenticate"] = "Bearer"
+            return response
+        if path == "/readyz":
+            if self.ready:
+                return connection.respond(http.HTTPStatus.OK, "ready\n")
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, "warming up\n")
+        if path == "/metadata":
+            return _with_content_type(
+                connection.respond(http.HTTPStatus.OK, json.dumps(self.metadata()) + "\n"), "application/json"
+            )
+        if path == "/metrics":
+            metrics = connection.respond(http.HTTPStatus.OK, self.metrics.render())
+            return _with_content_type(metrics, METRICS_CONTENT_TYPE)
+        if not self.ready:
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE, "warming up\n")
+        return None
+
+    async def _handle(self, connection: ServerConnection) -> None:
+        self.metrics.connections += 1
+        session = Session(self.spec)
+        try:
+            await connection.send(encode(self.metadata()))
+            async for frame in connection:
+                await self._answer(connection, session, frame)
+        except ConnectionClosed:
+            pass
+        finally:
+            self.metrics.connections -= 1
+
+    def _parse(self, frame: str | bytes) -> Any:
+        if isinstance(frame, str):
+            raise RequestError("frame: expected a binary msgpack frame, got text")
+        if len(frame) > self.settings.max_request_bytes:
+            raise RequestError(f"frame: {len(frame)} bytes exceed the limit of {self.settings.max_request_bytes}")
+        try:
+            return decode(frame)
+        except WireError as error:
+            raise RequestError(f"frame: {error}") from None
+
+    def _predict(self, observed) -> tuple[Any, float, float]:
+        started = time.perf_counter()
+        timed, waited = self.model.predict(observed)
+        return timed, started + waited, time.perf_counter()
+
+    async def _answer(self, connection: ServerConnection, session: Session, frame: str | bytes) -> None:
+        received = time.perf_counter()
+        self.metrics.requests += 1
+        try:
+            observed = session.observe(self._parse(frame))
+        except RequestError as error:
+            self.metrics.errors += 1
+            await connection.send(str(error))
+            return
+        loop = asyncio.get_running_loop()
+        try:
+            timed, predicting, predicted = await loop.run_in_executor(self._executor, self._predict, observed)
+        except Exception:  # noqa: BLE001 - logged here; the client gets one line, never the traceback
+            logger.exception("prediction failed")
+            self.metrics.errors += 1
+            await connection.send("prediction: failed on the server (see its log)")
+            return
+        reply = {
+            "actions": timed.actions[0],  # (H, A) float32
+            **observed.echo,
+            "model_version": self.model.source.model_version,
+            "timing_ms": {
+                "queue": 1e3 * (predicting - received),
+                "inference": 1e3 * (predicted - predicting),
+                "encoding": 1e3 * timed.encoding_seconds,
+            },
+        }
+        await connection.send(encode(reply))
+        self.metrics.observe_latency(time.perf_counter() - received)
+
+
+def _with_content_type(response: Response, content_type: str) -> Response:
+    del response.headers["Content-Type"]
+    response.headers["Content-Type"] = content_type
+    return response
+
+
+def _addresses(server: Server) -> list[str]:
+    return [f"{socket.getsockname()[0]}:{socket.getsockname()[1]}" for socket in server.sockets]
+
+
+def bound_port(server: Server) -> int:
+    """The TCP port `server` listens on (the one the OS picked for port 0)."""
+    return server.sockets[0].getsockname()[1]
+
+
+async def _serve_until(policy_server: PolicyServer, stop: asyncio.Event, on_started) -> None:
+    server = await policy_server.start()
+    try:
+        on_started(bound_port(server))
+        await stop.wait()
+    finally:
+        server.close()
+        await server.wait_closed()
+        policy_server.close()
+
+
+def serve_forever(policy_server: PolicyServer) -> None:
+    """Serve in this thread until interrupted (Ctrl-C or SIGTERM).
+
+    Raises:
+        OSError: the address cannot be bound.
+        ValueError: the warm-up prediction does not fit the spec.
+    """
+    import signal
+
+    async def main() -> None:
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        await _serve_until(policy_server, stop, lambda port: None)
+
+    try:
+        asyncio.run(main())
+    except KeyboardInterrupt:
+        logger.info("interrupted; the server has stopped")
+
+
+class ServerThread:
+    """A `PolicyServer` running on its own event loop in a background thread (tests, embedding in a program).
+
+    Use as a context manager: entering binds and warms up (or raises what `PolicyServer.start` raised), leaving
+    closes every connection and waits for the thread.
+    """
+
+    def __init__(self, policy_server: PolicyServer) -> None:
+        self.policy_server = policy_server
+        self.port: int | None = None
+        self._started = threading.Event()
+        self._failure: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._thread = threading.Thread(target=self._run, name="carp-serving-loop", daemon=True)
+
+    @property
+    def url(self) -> str:
+        """``ws://host:port`` of the running server."""
+        return f"ws://{self.policy_server.settings.host}:{self.port}"
+
+    def _run(self) -> None:
+        async def main() -> None:
+            self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+
+            def started(port: int) -> None:
+                self.port = port
+                self._started.set()
+
+            await _serve_until(self.policy_server, self._stop, started)
+
+        try:
+            asyncio.run(main())
+        except BaseException as error:  # noqa: BLE001 - handed to the thread that called `start`
+            self._failure = error
+        finally:
+            self._started.set()
+
+    def start(self, timeout_s: float = 60.0) -> "ServerThread":
+        """Start the thread and wait until the server is ready.
+
+        Raises:
+            TimeoutError: not ready within `timeout_s`.
+            OSError, ValueError: as `PolicyServer.start`.
+        """
+        self._thread.start()
+        if not self._started.wait(timeout_s):
+            raise TimeoutError(f"the server was not ready within {timeout_s} s")
+        if self._failure is not None:
+            raise self._failure
+        return self
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Close the server and its connections, and wait for the thread."""
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout_s)
+
+    def __enter__(self) -> "ServerThread":
+        return self.start()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()

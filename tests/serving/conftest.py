@@ -1,0 +1,85 @@
+"""A tiny served CARP policy (the policy tests' factory), its spec, and the in-process reference it must match."""
+
+import sys
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from carp.policies.registry import load_policy
+from carp.serving.model import ModelSource, ServedModel, file_sha256
+from carp.serving.server import PolicyServer, ServerSettings, ServerThread
+from carp.serving.session import ServingSpec
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
+
+# The robot-side client is its own package (clients/python), not installed in carp's environment.
+CLIENT_DIR = Path(__file__).resolve().parents[2] / "clients" / "python"
+if str(CLIENT_DIR) not in sys.path:
+    sys.path.insert(0, str(CLIENT_DIR))
+
+INFERENCE = {"top_k": 8}
+"""Sampling among 8 tokens, so the per-episode generator matters and a wrong seed or history shows."""
+
+SPEC = ServingSpec(
+    obs_keys=("object", "robot0_eef_pos"),
+    obs_steps=OBS_STEPS,
+    obs_dim=OBS_DIM,
+    action_horizon=8,
+    action_dim=2,
+    action_steps=4,
+    control_period_s=0.05,
+)
+MAX_REQUEST_BYTES = 4096
+
+
+@pytest.fixture(scope="package")
+def checkpoint(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("serving") / "policy.pt"
+    tiny_policy().save(path)
+    return path
+
+
+def served_model(checkpoint: Path) -> ServedModel:
+    policy = load_policy(checkpoint)
+    policy.configure_inference(**INFERENCE)
+    return ServedModel(policy, ModelSource(str(checkpoint), file_sha256(checkpoint)), dict(INFERENCE))
+
+
+def start_server(checkpoint: Path, **settings) -> ServerThread:
+    settings = {"port": 0, "max_request_bytes": MAX_REQUEST_BYTES} | settings
+    return ServerThread(PolicyServer(served_model(checkpoint), SPEC, ServerSettings(**settings))).start()
+
+
+@pytest.fixture(scope="package")
+def server(checkpoint):
+    running = start_server(checkpoint)
+    yield running
+    running.stop()
+
+
+@pytest.fixture(scope="package")
+def reference_policy(checkpoint):
+    policy = load_policy(checkpoint)
+    policy.configure_inference(**INFERENCE)
+    return policy
+
+
+def observations(steps: int, seed: int) -> list[np.ndarray]:
+    """`steps` random (Do,) float32 observations."""
+    rng = np.random.default_rng(seed)
+    return [rng.normal(size=OBS_DIM).astype(np.float32) for _ in range(steps)]
+
+
+def in_process_chunks(policy, episode: list[np.ndarray], seed: int) -> list[np.ndarray]:
+    """(H, A) chunks an in-process rollout predicts: first observation repeated `To` times, generator per episode."""
+    generator = torch.Generator()
+    generator.manual_seed(seed)
+    history = deque([episode[0]] * OBS_STEPS, maxlen=OBS_STEPS)
+    chunks = []
+    for index, obs in enumerate(episode):
+        if index:
+            history.append(obs)
+        chunks.append(policy.predict_action_timed(np.stack(history)[None], generator=generator).actions[0])
+    return chunks
