@@ -174,7 +174,7 @@ def test_one_comparison_table_per_task_with_a_row_per_policy(tmp_path, inputs):
     assert (tmp_path / "reports" / "figures" / "success_vs_latency.png").exists()
 
 
-def test_inference_budget_counts_the_chunks_of_400_control_steps(inputs):
+def test_inference_budget_counts_the_chunks_of_the_tasks_episode_limit(inputs):
     lift = inputs.evaluation["lift"]["carp"]
     lines = inference_budget_lines({"lift": {"carp": lift, "diffusion_transformer": _baseline(lift)}})
     # 400 steps / Ta = 8 -> 50 chunks; 2.0 + 0.5 ms and 40.0 + 0.5 ms per chunk.
@@ -184,6 +184,11 @@ def test_inference_budget_counts_the_chunks_of_400_control_steps(inputs):
     )
     assert lines[1].startswith("lift, diffusion_transformer (DDIM-10, torch): 2.02 s")
     # An image policy's cameras are rendered at every control step: that time comes apart from the policy's.
+    # Push-T's episodes end at 300 steps: its budget is 300 / 8 -> 38 chunks.
+    pusht = inference_budget_lines({"pusht": {"carp": lift}})
+    assert pusht[0] == (
+        "pusht, carp (greedy, onnxruntime): 0.10 s of inference over 300 control steps (38 chunks of 2.50 ms)"
+    )
     seen = inference_budget_lines({"lift": {"carp": {**lift, "render_step_ms_median": 60.0}}})
     assert seen[0].endswith("(50 chunks of 2.50 ms); rendering the cameras: 24.00 s (60.00 ms per step)")
     with_encoder = {**lift, "render_step_ms_median": 60.0, "latency_encode_ms_median": 1.25}

@@ -90,7 +90,15 @@ IMAGE_MEDIA_TYPES = {".png": "image/png", ".gif": "image/gif"}
 """Media type of each kind of figure the HTML embeds (plots are PNG, rollout videos animated GIF)."""
 
 CONTROL_STEPS = 400
-"""Control steps of the Table-1-style inference budget (the paper's supplementary table 1: 400 steps)."""
+"""Control steps of the Table-1-style inference budget for a task carp does not know (the paper's supplementary
+table 1: 400 steps, the arm tasks' episode limit)."""
+
+
+def budget_steps(task: str) -> int:
+    """Control steps of `task`'s inference budget: its protocol's episode limit (arms 400, Push-T 300)."""
+    from carp.tasks import TASK_NAMES, get_task
+
+    return get_task(task).default_max_steps if task in TASK_NAMES else CONTROL_STEPS
 
 
 def comparison_table(
@@ -191,22 +199,23 @@ def _milliseconds(value: float | None) -> str:
 
 
 def inference_budget_lines(evaluation: Mapping[str, Mapping[str, Mapping]]) -> list[str]:
-    """Table-1-style lines: per (task, policy), total inference time over `CONTROL_STEPS` control steps.
+    """Table-1-style lines: per (task, policy), total inference time over the task's episode limit (`budget_steps`).
 
-    A chunk is predicted every ``action_steps`` (Ta) control steps, so 400 steps take ``ceil(400 / Ta)`` chunks at
+    A chunk is predicted every ``action_steps`` (Ta) control steps, so N steps take ``ceil(N / Ta)`` chunks at
     the median batch-1 latency of prediction plus decoding (the camera encoder included for image policies). The
     cameras an image policy sees are rendered at every control step; that time is given apart.
     """
     lines = []
     for task, policies in evaluation.items():
+        steps = budget_steps(task)
         for policy, metrics in policies.items():
             if "latency_predict_ms_median" not in metrics or "action_steps" not in metrics:
                 continue
-            chunks = -(-CONTROL_STEPS // int(metrics["action_steps"]))
+            chunks = -(-steps // int(metrics["action_steps"]))
             chunk_ms = metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
             lines.append(
                 f"{task}, {policy} ({metrics.get('inference', '-')}, {metrics.get('backend', '-')}): "
-                f"{chunks * chunk_ms / 1000:.2f} s of inference over {CONTROL_STEPS} control steps "
+                f"{chunks * chunk_ms / 1000:.2f} s of inference over {steps} control steps "
                 f"({chunks} chunks of {chunk_ms:.2f} ms)"
                 + (
                     f", {metrics['latency_encode_ms_median']:.2f} ms of each in the camera encoder"
@@ -214,7 +223,7 @@ def inference_budget_lines(evaluation: Mapping[str, Mapping[str, Mapping]]) -> l
                     else ""
                 )
                 + (
-                    f"; rendering the cameras: {CONTROL_STEPS * metrics['render_step_ms_median'] / 1000:.2f} s "
+                    f"; rendering the cameras: {steps * metrics['render_step_ms_median'] / 1000:.2f} s "
                     f"({metrics['render_step_ms_median']:.2f} ms per step)"
                     if "render_step_ms_median" in metrics
                     else ""
