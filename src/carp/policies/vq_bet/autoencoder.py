@@ -131,7 +131,8 @@ def train_autoencoder(autoencoder: ActionAutoencoder, actions: torch.Tensor, tra
     device = actions.device
     generator = torch.Generator().manual_seed(training.seed)
     count = actions.shape[0]
-    autoencoder.train()
+    # A policy holds its VQ-VAE frozen; this phase is the one that trains it.
+    autoencoder.train().requires_grad_(True)
     with torch.no_grad():
         first = torch.randint(count, (max(training.batch_size, autoencoder.shape.num_codes),), generator=generator)
         autoencoder.quantizer.initialize(autoencoder.encode_to_latent(actions[first.to(device)]), generator)

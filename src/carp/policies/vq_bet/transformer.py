@@ -85,7 +85,7 @@ class BehaviorTransformer(nn.Module):
         self._initialize_gpt()
 
     def _initialize_gpt(self) -> None:
-        """nanoGPT's initialization of the GPT part; the heads keep PyTorch's default, as in VQ-BeT."""
+        """Initialize the GPT part as nanoGPT does; the heads keep PyTorch's default, as in VQ-BeT."""
         gpt = [self.input_projection, self.blocks, self.final_norm, self.output_projection]
         for module in (inner for part in gpt for inner in part.modules()):
             if isinstance(module, nn.Linear):
