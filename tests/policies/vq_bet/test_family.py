@@ -79,3 +79,27 @@ def test_gpt_and_code_head_freeze_after_half_the_epochs(tmp_path, monkeypatch):
     for name in after_first:
         changed = not torch.equal(after_first[name], after_second[name])
         assert changed == name.startswith("offset_head"), name
+
+
+class Interrupted(Exception):
+    """Stands in for a killed training run."""
+
+
+def test_a_run_interrupted_in_the_frozen_phase_resumes_to_the_uninterrupted_policy(tmp_path):
+    training = TrainingConfig(epochs=4, batch_size=8, checkpoint_every=1)
+
+    def run(directory, on_epoch_end=None):
+        return train_policy(
+            "vq_bet", tiny_config(), training, tiny_context(), tiny_data(), directory, on_epoch_end=on_epoch_end
+        )
+
+    def interrupt_after_third_epoch(epoch, metrics):
+        if epoch == 2:
+            raise Interrupted
+
+    uninterrupted = run(tmp_path / "uninterrupted")
+    with pytest.raises(Interrupted):
+        run(tmp_path / "interrupted", interrupt_after_third_epoch)
+    resumed = run(tmp_path / "interrupted")
+    for name, value in uninterrupted.state_dict().items():
+        assert torch.equal(value, resumed.state_dict()[name]), name
