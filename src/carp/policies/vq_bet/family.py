@@ -24,6 +24,7 @@ from carp.policies.vq_bet.autoencoder import ActionAutoencoder, AutoencoderTrain
 from carp.policies.vq_bet.config import VqBetConfig, VqBetInference
 from carp.policies.vq_bet.policy import POLICY_TYPE, VqBetPolicy, autoencoder_shape
 from carp.policies.vq_bet.transformer import BehaviorTransformer
+from carp.training import distributed
 from carp.training.checkpoint import CheckpointError, atomic_torch_save, read_checkpoint
 from carp.training.loop import OptimizerRecipe, data_digest, matrix_decay_groups
 from carp.training.runtime import resolve_device, seed_everything
@@ -105,7 +106,11 @@ def train(config: VqBetConfig, run: TrainingRun) -> VqBetPolicy:
     seed_everything(run.training.seed)
     context = run.context
     policy = build(config, context)
-    vq_identity = fit_autoencoder(policy.autoencoder, run, autoencoder_training(config, run.training.seed))
+    vq_training = autoencoder_training(config, run.training.seed)
+    # Under several processes rank 0 fits and saves the VQ-VAE and the others load it: one set of codes for all.
+    vq_identity = distributed.main_process_first(
+        lambda: fit_autoencoder(policy.autoencoder, run, vq_training), distributed.current_processes()
+    )
     epochs = run.training.epochs if run.epochs is None else run.epochs
     steps_per_epoch = math.ceil(run.data.obs.shape[0] / run.training.batch_size)
     policy.freeze_after_steps = math.ceil(epochs * config.freeze_fraction) * steps_per_epoch
