@@ -103,3 +103,21 @@ def test_a_run_interrupted_in_the_frozen_phase_resumes_to_the_uninterrupted_poli
     resumed = run(tmp_path / "interrupted")
     for name, value in uninterrupted.state_dict().items():
         assert torch.equal(value, resumed.state_dict()[name]), name
+
+
+def test_an_unreadable_kept_vqvae_is_refitted(tmp_path, caplog):
+    directory = tmp_path / "state"
+    directory.mkdir()
+    (directory / AUTOENCODER_NAME).write_bytes(b"not a checkpoint")
+    policy = train(directory)
+    assert "refitting the VQ-VAE" in caplog.text
+    fresh = train(tmp_path / "fresh")
+    assert torch.equal(policy.autoencoder.quantizer.codebooks, fresh.autoencoder.quantizer.codebooks)
+
+
+def test_the_weight_average_keeps_the_fitted_codebooks(tmp_path):
+    policy = train(tmp_path / "state", use_ema=True, ema_decay=0.5)
+    kept = torch.load(tmp_path / "state" / AUTOENCODER_NAME, weights_only=True)["state"]
+    for name, value in kept.items():
+        assert torch.equal(policy.autoencoder.state_dict()[name], value), name
+    assert bool(policy.autoencoder.quantizer.initialized)
