@@ -34,6 +34,8 @@ def test_every_field_of_every_config_section_is_documented():
         "inference.diffusion_transformer.",
         "next_token.",
         "inference.next_token.",
+        "vq_bet.",
+        "inference.vq_bet.",
     ]
     assert documentation_problems() == []
     for _, cls in sections:

@@ -28,6 +28,7 @@ from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
 from tests.policies.stub_family import STUB_FAMILY, StubConfig
+from tests.policies.vq_bet.factories import tiny_config as vq_bet_config
 
 TINY_CONFIGS = {
     "carp": CarpConfig(depth=1, width=16, num_heads=2),
@@ -38,11 +39,13 @@ TINY_CONFIGS = {
         num_layers=1, num_heads=2, width=16, num_train_steps=10, warmup_steps=0, attention_dropout=0.0
     ),
     "next_token": NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=0),
+    "vq_bet": vq_bet_config(),
 }
 TINY_INFERENCE = {
     "diffusion_unet": {"sampler": "ddim", "num_inference_steps": 4},
     "diffusion_transformer": {"sampler": "ddpm", "num_inference_steps": 10},
     "next_token": {"top_k": 3},
+    "vq_bet": {"code_choice": "sample"},
 }
 
 
@@ -128,7 +131,7 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
 
 def test_model_calls_per_chunk_are_the_familys_sequential_steps():
     context = tiny_context()
-    expected = {"carp": 2, "diffusion_unet": 4, "diffusion_transformer": 10, "next_token": 2 * (1 + 2)}
+    expected = {"carp": 2, "diffusion_unet": 4, "diffusion_transformer": 10, "next_token": 2 * (1 + 2), "vq_bet": 1}
     for name, calls in expected.items():
         policy = build_policy(name, TINY_CONFIGS[name], context)
         policy.configure_inference(**TINY_INFERENCE.get(name, {}))

@@ -28,6 +28,7 @@ FAMILY_MODULES = {
         "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
     ),
     "next_token": ("carp.policies.next_token.config:SECTIONS", "carp.policies.next_token.family:FAMILY"),
+    "vq_bet": ("carp.policies.vq_bet.config:SECTIONS", "carp.policies.vq_bet.family:FAMILY"),
 }
 """One entry per family: registry name -> (`module:attribute` of its (config class, inference class),
 `module:attribute` of its :class:`PolicyFamily`)."""
