@@ -54,8 +54,8 @@ def start_server(checkpoint: Path, **settings) -> ServerThread:
 
 @pytest.fixture(scope="package")
 def server(checkpoint):
-    # Built before the per-test one-thread setting applies: the server warms up on its first prediction, and built
-    # under another thread count its chunks differed from the one-thread in-process references in the last bits.
+    # Built before the per-test one-thread setting applies, and a server built and warmed up under another thread
+    # count computes chunks that differ from the one-thread in-process references in the last bits.
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
