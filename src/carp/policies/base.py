@@ -82,7 +82,8 @@ class Policy(Protocol):
 
         Args:
             obs: (B, To, Do) raw observations.
-            task_index: None for single-task policies; one index or (B,) otherwise.
+            task_index: None for single-task policies (and a multi-task policy's selected task); one index or (B,)
+                otherwise.
             generator: random source of any sampling (top-k draws, diffusion noise), seeded per episode.
         """
         ...
