@@ -91,6 +91,7 @@ def main() -> None:
                 video_episodes=config.video_episodes if config.video and seeds == config.test_seeds() else 0,
                 backend=config.backend,
                 cameras=cameras,
+                task=args.task,
             )
 
         evaluated = evaluate_with_selection(
@@ -110,6 +111,7 @@ def main() -> None:
         if "validation_max_success_rate" in summary:
             summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
         policy = load_policy(evaluated.tested)
+        policy.select_task(args.task)
         policy.configure_inference(**inference)
         summary.update(
             buffer_latency(

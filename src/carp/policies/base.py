@@ -71,6 +71,12 @@ class Policy(Protocol):
 
     policy_type: str
     metadata: dict[str, Any]
+    tasks: Any
+    """A multi-task policy's `carp.policies.tasks.PolicyTasks`; None for a single-task policy."""
+
+    def select_task(self, task: str) -> None:
+        """Evaluate `task` from now on; ValueError if the policy was not trained on it (`carp.policies.tasks`)."""
+        ...
 
     def predict_action_timed(
         self,
