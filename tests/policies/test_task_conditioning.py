@@ -106,3 +106,23 @@ def test_task_records_are_checked():
             action_horizon=8,
             tasks=tiny_tasks(2, normalizer, normalizer),
         )
+
+
+def test_a_diffusion_policy_trains_its_task_embedding_and_the_loop_checks_the_task_ids(tmp_path):
+    from carp.config import TrainingConfig
+    from carp.policies.registry import train_policy
+    from carp.training.loop import PolicyTrainingData
+
+    context = _context(2)
+    generator = torch.Generator().manual_seed(0)
+    obs = torch.rand(8, OBS_STEPS, OBS_DIM, generator=generator) * 2 - 1
+    actions = torch.rand(8, context.action_horizon, 2, generator=generator) * 2 - 1
+    training = TrainingConfig(epochs=2, batch_size=4)
+    section = TINY_SECTIONS["diffusion_unet"]
+    with pytest.raises(ValueError, match="needs task_ids of shape \\(N,\\) = \\(8,\\)"):
+        train_policy("diffusion_unet", section, training, context, PolicyTrainingData(obs, actions), tmp_path / "a")
+    torch.manual_seed(0)
+    initial = build_policy("diffusion_unet", section, context).observation_encoder.task_embedding.weight.clone()
+    data = PolicyTrainingData(obs, actions, torch.arange(8) % 2)
+    policy = train_policy("diffusion_unet", section, training, context, data, tmp_path / "b")
+    assert not torch.equal(policy.observation_encoder.task_embedding.weight, initial)
