@@ -71,6 +71,12 @@ class Policy(Protocol):
 
     policy_type: str
     metadata: dict[str, Any]
+    tasks: Any
+    """A multi-task policy's `carp.policies.tasks.PolicyTasks`; None for a single-task policy."""
+
+    def select_task(self, task: str) -> None:
+        """Evaluate `task` from now on; ValueError if the policy was not trained on it (`carp.policies.tasks`)."""
+        ...
 
     def predict_action_timed(
         self,
@@ -82,7 +88,8 @@ class Policy(Protocol):
 
         Args:
             obs: (B, To, Do) raw observations.
-            task_index: None for single-task policies; one index or (B,) otherwise.
+            task_index: None for single-task policies (and a multi-task policy's selected task); one index or (B,)
+                otherwise.
             generator: random source of any sampling (top-k draws, diffusion noise), seeded per episode.
         """
         ...
