@@ -1,7 +1,9 @@
 """The `carp` console command: `carp serve --model <policy.pt>` serves a trained policy to robots (issue 69).
 
-Like a pipeline stage script, this module only parses arguments, loads the params and calls one library function
-(`carp.serving.startup.serve_checkpoint`); it lives in the package because a console script must be importable.
+The checkpoint describes what it serves (`carp.serving.protocol`); `--params` only chooses the inference settings
+(and gives the spec of a checkpoint trained before checkpoints recorded it). Like a pipeline stage script, this module
+only parses arguments, loads the params and calls one library function (`carp.serving.startup.serve_checkpoint`); it
+lives in the package because a console script must be importable.
 Start-up errors print one `error: ...` line and exit with status 1.
 """
 
@@ -22,7 +24,11 @@ def _parser() -> argparse.ArgumentParser:
     serve = commands.add_parser("serve", help="serve a policy checkpoint over WebSocket (msgpack frames)")
     serve.add_argument("--model", type=Path, required=True, help="policy checkpoint (models/policy/.../policy.pt)")
     serve.add_argument(
-        "--params", type=Path, default=Path("params.yaml"), help="params the policy was trained with (To, H, Ta, keys)"
+        "--params",
+        type=Path,
+        default=None,
+        help="params whose inference.<family> settings apply (default: the family's defaults); for a checkpoint that "
+        "does not record its serving protocol, the params it was trained with",
     )
     serve.add_argument("--host", default=DEFAULT_HOST, help="interface to bind (default: loopback only)")
     serve.add_argument("--port", type=int, default=DEFAULT_PORT)
@@ -43,7 +49,8 @@ def main(argv: list[str] | None = None) -> None:
 
     try:
         settings = ServerSettings(args.host, args.port, args.token, args.max_request_bytes)
-        serve_checkpoint(args.model, load_params(args.params), settings)
+        params = load_params(args.params) if args.params is not None else None
+        serve_checkpoint(args.model, params, settings)
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)

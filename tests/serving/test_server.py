@@ -54,6 +54,15 @@ def test_served_chunks_equal_in_process_prediction_bit_for_bit(server, reference
     assert any(not np.array_equal(a, b) for a, b in zip(expected[:6], in_process_chunks(reference_policy, first, 5)))
 
 
+def test_per_key_requests_get_the_chunks_of_the_concatenated_obs(server, reference_policy):
+    episode = observations(3, seed=7)
+    with PolicyClient(server.url, timeout=10) as client:
+        client.reset(seed=2)
+        served = [client.infer({"object": obs[:1], "robot0_eef_pos": obs[1:]})["actions"] for obs in episode]
+    for reply, chunk in zip(served, in_process_chunks(reference_policy, episode, 2), strict=True):
+        np.testing.assert_array_equal(reply, chunk)
+
+
 def test_the_metadata_frame_and_route_describe_the_policy_and_its_spec(server, checkpoint):
     with PolicyClient(server.url) as client:
         metadata = client.metadata
@@ -64,7 +73,12 @@ def test_the_metadata_frame_and_route_describe_the_policy_and_its_spec(server, c
     assert metadata["model"]["path"] == str(checkpoint) and len(metadata["model"]["sha256"]) == 64
     assert metadata["model"]["name"] is None
     assert metadata["policy_type"] == "carp" and metadata["inference"] == {"top_k": 8}
-    assert metadata["observation"]["obs"] == {"shape": [3], "dtype": "float32", "keys": ["object", "robot0_eef_pos"]}
+    assert metadata["observation"]["obs"] == {
+        "shape": [3], "dtype": "float32", "keys": ["object", "robot0_eef_pos"], "widths": [1, 2]
+    }  # fmt: skip
+    assert metadata["observation_keys"] == {
+        "object": {"shape": [1], "dtype": "float32"}, "robot0_eef_pos": {"shape": [2], "dtype": "float32"}
+    }  # fmt: skip
     assert metadata["action"] == {"shape": [8, 2], "dtype": "float32"}
     assert (metadata["obs_steps"], metadata["executed_offset"], metadata["action_steps"]) == (2, 1, 4)
     assert metadata["control_period_s"] == SPEC.control_period_s

@@ -120,8 +120,10 @@ class PolicyClient:
         """Send one step's observation; return the server's reply.
 
         Args:
-            obs: ``obs`` (Do,) float32 and, for an image policy, ``images`` (cameras, 3, h, w) uint8 (see the
-                metadata's ``observation``); ``step`` and ``timestamp`` are added unless given.
+            obs: ``obs`` (Do,) float32, or one (width,) float32 array per low-dim key under its name (the
+                metadata's ``observation_keys``, when the server lists them), and for an image policy ``images``
+                (cameras, 3, h, w) uint8 (see the metadata's ``observation``); ``step`` and ``timestamp`` are added
+                unless given.
 
         Returns:
             ``actions`` (H, A) float32 (execute rows ``executed_offset`` to ``executed_offset + action_steps``),

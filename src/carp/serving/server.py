@@ -3,7 +3,8 @@
 Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
 
 1. On connect the server sends one metadata frame (:meth:`PolicyServer.metadata`): protocol, model, policy family,
-   observation and action specs, control period, the executed-action offset `To - 1` and `Ta`.
+   observation and action specs (``observation_keys``: each low-dim key's shape, when a request may send them one
+   by one), control period, the executed-action offset `To - 1` and `Ta`.
 2. Then each request (`carp.serving.session`) gets exactly one reply, in order: a binary frame
    ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "timing_ms": {"queue", "inference",
    "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape (3,), got (4,)``).
@@ -107,6 +108,7 @@ class PolicyServer:
             "policy_description": self.model.policy.description,
             "inference": dict(self.model.inference),
             "observation": spec.observation_spec(),
+            "observation_keys": spec.key_spec(),
             "obs_steps": spec.obs_steps,
             "action": {"shape": [spec.action_horizon, spec.action_dim], "dtype": "float32"},
             "control_period_s": spec.control_period_s,

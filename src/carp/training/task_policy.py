@@ -23,6 +23,7 @@ from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import train_policy
+from carp.serving.protocol import SERVING_METADATA_KEY, training_protocol
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
@@ -144,7 +145,8 @@ def train_task_policy(
         family: registered policy family.
         family_config: the family's params section.
         training: the shared training loop's settings (its epochs for `task`).
-        data: `To` and `H`.
+        data: `To` and `H`; with the windows' replay buffer, the serving protocol stored in the checkpoint's metadata
+            (`carp.serving.protocol`).
         inputs: see :func:`load_task_policy_inputs`.
         task: the task's name, stored in the checkpoint's metadata.
         checkpoint_dir: resumable training states of this (task, family) pair.
@@ -169,7 +171,13 @@ def train_task_policy(
         obs_steps=data.obs_steps,
         action_horizon=data.action_horizon,
         tokenizer_artifact=inputs.artifact,
-        metadata={"task": task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+        metadata={
+            "task": task,
+            "tokenizer": asdict(inputs.reference),
+            "mlflow_run_id": tracking_run_id,
+            # What a robot sends and executes, so that `carp serve` needs only the checkpoint.
+            SERVING_METADATA_KEY: training_protocol(data, windows.buffer.attrs, inputs.image_encoder),
+        },
         image_encoder=inputs.image_encoder,
     )
     return train_policy(
