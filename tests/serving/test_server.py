@@ -6,6 +6,7 @@ import urllib.request
 import msgpack
 import numpy as np
 import pytest
+import torch
 from carp_client import PolicyClient, ServerError
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
@@ -61,6 +62,21 @@ def test_per_key_requests_get_the_chunks_of_the_concatenated_obs(server, referen
         served = [client.infer({"object": obs[:1], "robot0_eef_pos": obs[1:]})["actions"] for obs in episode]
     for reply, chunk in zip(served, in_process_chunks(reference_policy, episode, 2), strict=True):
         np.testing.assert_array_equal(reply, chunk)
+
+
+def test_observation_only_requests_fill_the_history_without_drawing_a_prediction(server, reference_policy):
+    episode = observations(5, seed=9)
+    with PolicyClient(server.url, timeout=10) as client:
+        client.reset(seed=1)
+        first = client.infer({"obs": episode[0]})["actions"]
+        replies = [client.observe({"obs": obs}) for obs in episode[1:4]]
+        last = client.infer({"obs": episode[4]})["actions"]
+    assert [reply["step"] for reply in replies] == [1, 2, 3] and all("actions" not in reply for reply in replies)
+    # Two predictions, two draws: the second sees steps 3 and 4, as a rollout executing Ta = 4 actions would.
+    generator = torch.Generator().manual_seed(1)
+    for history, served in (([episode[0]] * 2, first), (episode[3:5], last)):
+        expected = reference_policy.predict_action_timed(np.stack(history)[None], generator=generator).actions[0]
+        np.testing.assert_array_equal(served, expected)
 
 
 def test_the_metadata_frame_and_route_describe_the_policy_and_its_spec(server, checkpoint):

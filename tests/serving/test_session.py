@@ -28,6 +28,7 @@ def test_the_first_observation_fills_the_history_then_each_new_one_pushes_out_th
         ({"obs": np.zeros(3)}, "obs: expected dtype float32, got float64"),
         ({"obs": np.array([0, np.nan, 0], np.float32)}, "obs: holds NaN"),
         ({"obs": np.zeros(3, np.float32), "reset": 1}, "reset: expected true or false"),
+        ({"obs": np.zeros(3, np.float32), "predict": "no"}, "predict: expected true or false"),
         ({"obs": np.zeros(3, np.float32), "seed": "3"}, "seed: expected an integer"),
         ({"obs": np.zeros(3, np.float32), "step": 1.5}, "step: expected an integer"),
         ({"obs": np.zeros(3, np.float32), "timestamp": "now"}, "timestamp: expected a number"),

@@ -161,6 +161,15 @@ class PolicyClient:
         self._reset_seed = None
         return decode(reply)
 
+    def observe(self, obs: dict[str, Any]) -> dict[str, Any]:
+        """Send one step's observation for the history only (no chunk is predicted); return the server's reply.
+
+        A robot that executes several actions of a chunk sends the steps in between this way, so that the server's
+        history holds the last `To` steps when `infer` asks for the next chunk. Arguments and errors as `infer`;
+        the reply has ``step``, ``timestamp`` and ``model_version``.
+        """
+        return self.infer({**obs, "predict": False})
+
     def close(self) -> None:
         """Close the connection (the next call reopens it)."""
         if self._connection is not None:

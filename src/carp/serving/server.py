@@ -8,8 +8,9 @@ Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
 2. Then each request (`carp.serving.session`) gets exactly one reply, in order: a binary frame
    ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "timing_ms": {"queue", "inference",
    "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape (3,), got (4,)``).
-   A bad request changes nothing and the connection stays open. Text for errors is openpi's convention too: its
-   client raises on a text frame.
+   A request with ``predict: false`` gets the same reply without ``actions`` and ``timing_ms`` (it only adds its
+   observation to the history). A bad request changes nothing and the connection stays open. Text for errors is
+   openpi's convention too: its client raises on a text frame.
 
 The same port answers HTTP GET ``/healthz`` (the process is up), ``/readyz`` (200 once the model is warmed up,
 503 before), ``/metadata`` (JSON) and ``/metrics`` (Prometheus text) through websockets' `process_request` hook.
@@ -211,6 +212,9 @@ class PolicyServer:
         except RequestError as error:
             self.metrics.errors += 1
             await connection.send(str(error))
+            return
+        if not observed.predict:
+            await connection.send(encode({**observed.echo, "model_version": self.model.source.model_version}))
             return
         loop = asyncio.get_running_loop()
         try:

@@ -14,6 +14,9 @@ A request is a map:
   ``{"object": (10,), "robot0_eef_pos": (3,), ...}``, which the server concatenates in the spec's order. A request
   sends one form or the other, not both.
 - ``images``: (cameras, 3, h, w) uint8 camera images of the current step; only for an image policy.
+- ``predict`` (optional bool, default true): false only adds the observation to the history and gets a reply
+  without ``actions``. A robot that executes ``Ta`` actions per chunk sends the steps in between this way, so that
+  the history holds the last ``To`` steps when it asks for the next chunk, as in the rollout loop.
 - ``reset`` (optional bool): this observation starts a new episode; ``seed`` (optional int, default 0) seeds its
   draws. A new connection starts an episode with seed 0.
 - ``step`` and ``timestamp`` (optional): echoed in the reply, so the robot can match replies and measure latency.
@@ -154,12 +157,14 @@ class Observed:
         generator: the episode's random source; used by one prediction at a time (a connection's requests are
             answered in order).
         echo: the request's ``step`` and ``timestamp`` (None where it sent none), for the reply.
+        predict: whether the request asks for a chunk (false: observation only).
     """
 
     obs_history: np.ndarray
     image_history: np.ndarray | None
     generator: torch.Generator
     echo: dict[str, Any] = field(default_factory=dict)
+    predict: bool = True
 
 
 class Session:
@@ -199,7 +204,7 @@ class Session:
 
         Raises:
             RequestError: a missing key (``obs``, or one of the per-key observations), both forms at once, a wrong
-                shape or dtype, a non-finite value, a malformed `reset`, `seed`, `step` or `timestamp`.
+                shape or dtype, a non-finite value, a malformed `predict`, `reset`, `seed`, `step` or `timestamp`.
         """
         if not isinstance(request, Mapping):
             raise RequestError(f"request: expected a map, got {type(request).__name__}")
@@ -207,9 +212,10 @@ class Session:
         images = None
         if self.spec.image_shape is not None:
             images = _array(request, IMAGES_KEY, self.spec.image_shape, np.dtype(np.uint8))
-        reset = request.get("reset", False)
-        if not isinstance(reset, bool):
-            raise RequestError(f"reset: expected true or false, got {type(reset).__name__}")
+        reset, predict = request.get("reset", False), request.get("predict", True)
+        for key, flag in (("reset", reset), ("predict", predict)):
+            if not isinstance(flag, bool):
+                raise RequestError(f"{key}: expected true or false, got {type(flag).__name__}")
         seed = _optional_number(request, "seed", 0, (int,))
         echo = {
             "step": _optional_number(request, "step", None, (int,)),
@@ -231,4 +237,5 @@ class Session:
             image_history=np.stack(self._images) if images is not None else None,  # (To, cameras, 3, h, w)
             generator=self.generator,
             echo=echo,
+            predict=predict,
         )
