@@ -73,7 +73,14 @@ def start_server(checkpoint: Path, **settings) -> ServerThread:
 
 @pytest.fixture(scope="package")
 def server(checkpoint):
-    running = start_server(checkpoint)
+    # Built before the per-test one-thread setting applies, and a server built and warmed up under another thread
+    # count computes chunks that differ from the one-thread in-process references in the last bits.
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        running = start_server(checkpoint)
+    finally:
+        torch.set_num_threads(previous)
     yield running
     running.stop()
 
