@@ -6,10 +6,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import zarr
 
 from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
 from carp.data.dataset import TaskWindows
-from carp.data.ingest import ingest_demonstrations
+from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
@@ -199,3 +200,15 @@ def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):
         load_task_policy_inputs(
             task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, other
         )
+
+
+def test_inputs_refuse_a_buffer_ingested_before_it_recorded_its_observation_widths(tmp_path):
+    write_synthetic_file(tmp_path / "raw.hdf5", lengths=(30, 25, 40, 20))
+    task_dir = tmp_path / "processed" / "lift"
+    ingest_demonstrations(tmp_path / "raw.hdf5", task_dir, PROPRIOCEPTION_KEYS)
+    reference = _tokenizer_files(tmp_path / "tokenizer-files")
+    store = zarr.open_group(str(task_dir / BUFFER_DIRNAME), mode="r+")
+    del store.attrs["obs_widths"]  # what an ingestion before the serving protocol left
+    with pytest.raises(ValueError, match=r"replay.zarr: attrs lack obs_widths .*run the ingest stage again") as error:
+        load_task_policy_inputs(task_dir, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+    assert str(error.value).startswith(str(task_dir / BUFFER_DIRNAME)) and "\n" not in str(error.value)

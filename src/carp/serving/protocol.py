@@ -37,10 +37,15 @@ def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None)
             image size are the images the policy sees); None for a state policy.
 
     Raises:
-        ProtocolError: the attributes lack the keys or widths (a buffer ingested before they were recorded).
+        ProtocolError: the attributes lack the keys or widths (a buffer ingested before they were recorded); the
+            message names the missing attribute.
     """
-    if "obs_keys" not in buffer_attrs or "obs_widths" not in buffer_attrs:
-        raise ProtocolError("the replay buffer records no obs_keys and obs_widths (ingest the data again)")
+    missing = [key for key in ("obs_keys", "obs_widths") if key not in buffer_attrs]
+    if missing:
+        raise ProtocolError(
+            f"attrs lack {' and '.join(missing)} (the replay buffer was ingested before carp recorded them; run "
+            "the ingest stage again)"
+        )
     return {
         "format": PROTOCOL_FORMAT,
         "observations": "state" if image_encoder is None else "image",

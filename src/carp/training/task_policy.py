@@ -23,7 +23,7 @@ from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import train_policy
-from carp.serving.protocol import SERVING_METADATA_KEY, training_protocol
+from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
@@ -103,12 +103,20 @@ def load_task_policy_inputs(
         FileNotFoundError: a file is missing.
         CheckpointError: the tokenizer is corrupt or not the referenced one.
         TokenizerMismatchError: the tokenizer does not fit the params.
-        ValueError: the buffer holds no images, or other cameras or another image size than `image_encoder`.
+        ValueError: the buffer does not record its observation keys and widths (ingested before they were
+            recorded: the message names the buffer and the missing attribute), holds no images, or other cameras or
+            another image size than `image_encoder`.
     """
     reference = TokenizerReference.load(reference_path)
     artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
     check_compatible(artifact, action_space, scales, codebook_size)
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
+    try:
+        # Checked before any training: the trained checkpoint records this protocol, and an old buffer that cannot
+        # give it should stop the stage at its start with one line, not after the epochs.
+        training_protocol(data, windows.buffer.attrs, image_encoder)
+    except ProtocolError as error:
+        raise ValueError(f"{Path(task_dir) / BUFFER_DIRNAME}: {error}") from None
     if image_encoder is None:
         return TaskPolicyInputs(reference, artifact, windows)
     store = Path(task_dir) / BUFFER_DIRNAME
