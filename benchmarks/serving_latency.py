@@ -24,15 +24,15 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-CLIENT_DIR = ROOT / "clients" / "python"
-if str(CLIENT_DIR) not in sys.path:
-    sys.path.insert(0, str(CLIENT_DIR))
+for folder in (ROOT, ROOT / "clients" / "python"):
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
 
 from carp_client import PolicyClient  # noqa: E402
 
-from carp.serving.demo import random_lift_policy  # noqa: E402
 from carp.serving.server import PolicyServer, ServerSettings, ServerThread  # noqa: E402
 from carp.serving.startup import ServingStartError, load_served_model  # noqa: E402
+from tests.serving.random_policy import random_lift_policy  # noqa: E402
 
 WARM_UP_REQUESTS = 5
 

@@ -1,11 +1,11 @@
 """A robot's control loop against `carp serve`, with carp's own Lift simulator standing in for the robot.
 
 The server runs in this process (`ServerThread`) on a checkpoint (`--checkpoint`, one that records its serving
-protocol) or on a randomly initialized tiny CARP policy (`carp.serving.demo`). The loop talks to it only through the
-robot-side client (`carp_client`): every control step it sends the step's observation, one array per key, asking for
-a chunk when the `ChunkScheduler` has no action for the step (every `Ta` steps, as carp's evaluation executes a
-chunk) and sending the other steps as observations only, so the server's history holds the last `To` steps. With
-`--ensemble-m` it asks at every step and executes ACT's temporal ensemble of the overlapping chunks instead.
+protocol) or on a randomly initialized tiny CARP policy (`tests/serving/random_policy.py`). The loop talks to it
+only through the robot-side client (`carp_client`): every control step it sends the step's observation, one array per
+key, asking for a chunk when the `ChunkScheduler` has no action for the step (every `Ta` steps, as carp's evaluation
+executes a chunk) and sending the other steps as observations only, so the server's history holds the last `To` steps.
+With `--ensemble-m` it asks at every step and executes ACT's temporal ensemble of the overlapping chunks instead.
 
 With `--compare` the same seeds also run in-process (`carp.evaluation.rollout.run_episode` with a `PolicySource` of
 the same checkpoint and inference settings) and the executed actions are compared: plain execution reproduces the
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-for folder in (ROOT / "src", ROOT / "clients" / "python"):
+for folder in (ROOT, ROOT / "src", ROOT / "clients" / "python"):
     if str(folder) not in sys.path:
         sys.path.insert(0, str(folder))
 
@@ -161,9 +161,9 @@ def main() -> int:
 
     from carp.config import Params
     from carp.policies.carp.config import CarpInference
-    from carp.serving.demo import random_lift_policy
     from carp.serving.startup import ServingStartError
     from carp.tasks import get_task
+    from tests.serving.random_policy import random_lift_policy
 
     with tempfile.TemporaryDirectory() as folder:
         checkpoint = args.checkpoint

@@ -7,9 +7,9 @@ import pytest
 
 from carp.config import Params
 from carp.policies.carp.config import CarpInference
-from carp.serving.demo import random_lift_policy
 from carp.tasks import get_task
 from tests.serving.conftest import CLIENT_DIR
+from tests.serving.random_policy import random_lift_policy
 
 EXAMPLE = CLIENT_DIR.parents[1] / "examples" / "serve_control_loop.py"
 SEEDS, MAX_STEPS = (100000, 100001), 24

@@ -1,7 +1,7 @@
-"""A randomly initialized CARP policy for Lift that records its serving protocol.
+"""A randomly initialized CARP policy for Lift that records its serving protocol (a test factory, not the library).
 
-What the serving example (`examples/serve_control_loop.py`) and the latency benchmark (`benchmarks/serving_latency.py`)
-serve without a trained checkpoint, and what their tests serve.
+What the serving tests, the example control loop (`examples/serve_control_loop.py`) and the latency benchmark
+(`benchmarks/serving_latency.py`) serve without a trained checkpoint; those two put the repository root on the path.
 
 Its actions are meaningless (random weights) but well formed: 10-D absolute actions (`panda-abs10`) inside a box
 around Lift's workspace, so a simulator can execute them. Its speed does not depend on the weights.
