@@ -47,9 +47,9 @@ PROTOCOL = {
 MAX_REQUEST_BYTES = 4096
 
 
-def save_tiny_checkpoint(path: Path, **metadata) -> Path:
-    """The tiny CARP policy saved at `path`, trained on lift as far as its metadata says, with `metadata` added."""
-    policy = tiny_policy()
+def save_tiny_checkpoint(path: Path, seed: int = 0, **metadata) -> Path:
+    """The tiny CARP policy of `seed` saved at `path`, trained on lift as far as its metadata says, with `metadata`."""
+    policy = tiny_policy(seed=seed)
     policy.metadata.update({"task": "lift", "serving": PROTOCOL} | metadata)
     policy.save(path)
     return path

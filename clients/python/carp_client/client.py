@@ -16,9 +16,22 @@ from websockets.sync.client import ClientConnection, connect
 
 from carp_client.wire import decode, encode
 
+SPEC_KEYS = (
+    "observation", "observation_keys", "obs_steps", "action", "executed_offset", "action_steps", "control_period_s"
+)  # fmt: skip
+"""The metadata entries that say what a request holds and how to execute a reply."""
+
 
 class ServerError(RuntimeError):
     """The server answered a request with an error line (e.g. ``obs: expected shape (3,), got (4,)``)."""
+
+
+class SpecChangedError(ConnectionError):
+    """The server now serves a policy with another observation or action spec; read `PolicyClient.metadata` again.
+
+    The server closes every connection when a reload changes the spec; the client reconnects, finds the new
+    metadata and raises this instead of sending the old kind of request.
+    """
 
 
 class PolicyClient:
@@ -131,6 +144,7 @@ class PolicyClient:
 
         Raises:
             ServerError: the server rejected the request (the connection stays usable).
+            SpecChangedError: the server swapped in a policy with another spec (the metadata is the new one).
             TimeoutError: no reply within `timeout`; the connection is dropped and reopened by the next call.
             ConnectionError, PermissionError: the connection was lost and could not be reopened.
         """
@@ -142,7 +156,13 @@ class PolicyClient:
         frame = encode(request)
         for attempt in range(2):
             if self._connection is None:
+                known = self._metadata
                 self.connect()
+                if known is not None and _spec(known) != _spec(self._metadata):
+                    raise SpecChangedError(
+                        f"{self.url} now serves a policy with another observation or action spec: read the metadata "
+                        "again and build the requests from it"
+                    )
             try:
                 self._connection.send(frame)
                 reply = self._connection.recv(timeout=self.timeout)
@@ -182,3 +202,7 @@ class PolicyClient:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _spec(metadata: dict[str, Any]) -> dict[str, Any]:
+    return {key: metadata.get(key) for key in SPEC_KEYS}

@@ -238,6 +238,11 @@ class TokenizedPolicy(PolicyModule):
         """`greedy` or `top-<k>`, the token choice of predictions."""
         return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
+    @property
+    def draws_random(self) -> bool:
+        """Top-k choice with k > 1 draws; greedy does not."""
+        return self.top_k > 1
+
     def task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
         """(B,) long task indices on the policy's device, or None for a single-task call.
 

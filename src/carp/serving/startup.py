@@ -1,4 +1,8 @@
-"""From a checkpoint file to a running server: what `carp serve` calls.
+"""From a checkpoint file or a registered version to a running server: what `carp serve` calls.
+
+`--model` is a `policy.pt` path or a registry URI ``models:/<name>@<alias>`` (`carp.tracking.registry`: one
+registered model per task and family, an alias the user moves). The served version, its sha256 and the alias it came
+from are in the metadata; :func:`model_reloader` tells the server when the alias has moved (or the file changed).
 
 The spec comes from the checkpoint itself: training records the serving protocol (`carp.serving.protocol`: the
 observation keys and widths, `To`, `H`, `Ta`, the cameras) in its metadata, `Do` and `A` come from the policy's
@@ -12,6 +16,8 @@ then comes from their `data` section, as evaluation takes it (`carp.evaluation.r
 concatenated ``obs`` (the per-key widths are unknown). The warm-up checks the predicted (H, A) against the spec.
 """
 
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from carp.policies.base import Policy
@@ -19,6 +25,8 @@ from carp.serving.model import ModelSource, ServedModel, file_sha256
 from carp.serving.protocol import recorded_protocol, spec_from_protocol
 from carp.serving.server import PolicyServer, ServerSettings, serve_forever
 from carp.serving.session import ServingSpec
+
+REGISTRY_PREFIX = "models:/"
 
 
 class ServingStartError(RuntimeError):
@@ -86,36 +94,75 @@ def default_inference(family: str, task: str) -> dict:
     return get_sections(family)[1]().settings_for(task)
 
 
-def load_served_model(model_path: Path, params=None) -> tuple[ServedModel, ServingSpec]:
-    """Load the checkpoint at `model_path`, apply its inference settings and derive its spec.
+def is_registry_uri(model: str | Path) -> bool:
+    """Whether `model` names a registered version (``models:/<name>@<alias>``) rather than a file."""
+    return isinstance(model, str) and model.startswith(REGISTRY_PREFIX)
+
+
+def load_served_model(
+    model: str | Path, params=None, tracking_uri: str | None = None
+) -> tuple[ServedModel, ServingSpec]:
+    """Load the policy `model` names, apply its inference settings and derive its spec.
 
     Args:
-        model_path: a policy checkpoint (`policy.pt`).
+        model: a policy checkpoint (`policy.pt`), or a registry URI ``models:/<name>@<alias>`` whose version is
+            downloaded (and checked against its sha256 tag) into a temporary directory, loaded, and removed.
         params: a `carp.config.Params` whose `inference.<family>` settings apply (and whose `data` section gives
             the spec of a checkpoint that does not record it); None for the family's default settings.
+        tracking_uri: the MLflow store holding the registry; needed for a registry URI only.
 
     Raises:
-        ServingStartError: no such file, an unreadable checkpoint, one without the task it was trained on, or one
-            without a recorded protocol and no params.
+        ServingStartError: no such file, model or alias, an unreadable checkpoint, one without the task it was
+            trained on, or one without a recorded protocol and no params.
     """
+    if not is_registry_uri(model):
+        return _load_checkpoint(Path(model), params)
+    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri)
+
+
+def _resolve(uri: str, tracking_uri: str | None):
+    from carp.tracking.registry import resolve_alias
+
+    if tracking_uri is None:
+        raise ServingStartError(f"{uri}: a registry URI needs the tracking URI of the registry (--tracking-uri)")
+    try:
+        return resolve_alias(tracking_uri, uri)
+    except (LookupError, ValueError) as error:
+        raise ServingStartError(str(error)) from None
+
+
+def _load_registered(uri: str, reference, params, tracking_uri: str) -> tuple[ServedModel, ServingSpec]:
+    from carp.tracking.registry import fetch_registered_policy
+
+    with tempfile.TemporaryDirectory(prefix="carp-serve-") as folder:
+        try:
+            checkpoint = fetch_registered_policy(tracking_uri, reference, Path(folder))
+        except LookupError as error:
+            raise ServingStartError(str(error)) from None
+        source = ModelSource(uri, file_sha256(checkpoint), reference.name, reference.version, reference.alias)
+        return _load_checkpoint(checkpoint, params, source)
+
+
+def _load_checkpoint(model_path: Path, params, source: ModelSource | None = None) -> tuple[ServedModel, ServingSpec]:
+    """Load the checkpoint file at `model_path`; `source` names it (default: the path and its sha256)."""
     from carp.policies.registry import load_policy
     from carp.training.checkpoint import CheckpointError
 
-    model_path = Path(model_path)
+    label = model_path if source is None else source.path
     if not model_path.is_file():
-        raise ServingStartError(f"{model_path}: no such model file")
+        raise ServingStartError(f"{label}: no such model file")
     try:
         policy = load_policy(model_path)
     except (CheckpointError, OSError) as error:
-        raise ServingStartError(str(error)) from None
+        raise ServingStartError(str(error) if source is None else f"{label}: {error}") from None
     task = policy.metadata.get("task")
     if not task:
-        raise ServingStartError(f"{model_path}: the checkpoint does not name the task it was trained on")
+        raise ServingStartError(f"{label}: the checkpoint does not name the task it was trained on")
     try:
         spec = recorded_spec(policy, task)
         if spec is None and params is None:
             raise ServingStartError(
-                f"{model_path}: the checkpoint does not record its serving protocol (trained before carp recorded "
+                f"{label}: the checkpoint does not record its serving protocol (trained before carp recorded "
                 "it); train it again, or pass --params with the params it was trained with"
             )
         if spec is None:
@@ -126,21 +173,46 @@ def load_served_model(model_path: Path, params=None) -> tuple[ServedModel, Servi
             inference = default_inference(policy.policy_type, task)
         policy.configure_inference(**inference)
     except (KeyError, TypeError, ValueError) as error:
-        raise ServingStartError(f"{model_path}: {error}") from None
-    source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
+        raise ServingStartError(f"{label}: {error}") from None
+    if source is None:
+        source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
     return ServedModel(policy, source, inference), spec
 
 
-def serve_checkpoint(model_path: Path, params, settings: ServerSettings) -> None:
-    """Serve the checkpoint at `model_path` with `settings` until interrupted; `params` as `load_served_model`.
+def model_reloader(
+    model: str | Path, params=None, tracking_uri: str | None = None
+) -> Callable[[ModelSource], tuple[ServedModel, ServingSpec] | None]:
+    """What `PolicyServer` calls to find out whether to serve another model, for `model` as `load_served_model`.
+
+    For a registry URI the alias is resolved again: a version other than the served one is loaded. For a file, its
+    bytes are hashed again: other bytes are loaded. Otherwise it returns None (nothing is downloaded or loaded).
+    """
+
+    def reload(served: ModelSource) -> tuple[ServedModel, ServingSpec] | None:
+        if is_registry_uri(model):
+            reference = _resolve(str(model), tracking_uri)
+            if reference.version == served.version:
+                return None
+            return _load_registered(str(model), reference, params, tracking_uri)
+        path = Path(model)
+        if path.is_file() and file_sha256(path) == served.sha256:
+            return None
+        return _load_checkpoint(path, params)
+
+    return reload
+
+
+def serve_checkpoint(model: str | Path, params, settings: ServerSettings, tracking_uri: str | None = None) -> None:
+    """Serve `model` (as `load_served_model`) with `settings` until interrupted, following it as it moves.
 
     Raises:
         ServingStartError: the model cannot be loaded, the address cannot be bound, or the warm-up prediction does
             not fit the spec.
     """
-    model, spec = load_served_model(model_path, params)
+    served, spec = load_served_model(model, params, tracking_uri)
+    reloader = model_reloader(model, params, tracking_uri)
     try:
-        serve_forever(PolicyServer(model, spec, settings))
+        serve_forever(PolicyServer(served, spec, settings, reloader))
     except OSError as error:
         address = f"{settings.host}:{settings.port}"
         raise ServingStartError(f"cannot listen on {address}: {error.strerror or error}") from None
