@@ -5,12 +5,17 @@ the default configuration (A = 10, H = 16, depth 8, D = 64; `--tiny` for the tes
 on the weights), measures per chunk, after a warm-up:
 - in-process: `predict_action_timed` on a (1, To, Do) observation history, as evaluation calls the PyTorch policy;
 - loopback: `PolicyClient.infer` with one step's per-key observation to a `ServerThread` on 127.0.0.1 in this
-  process, from 1 and 4 clients at once (`--clients`), each on its own thread and connection. The server serializes
-  predictions (one model lock), so with several clients the round trip includes waiting for the others.
+  process, from 1 and 4 clients at once (`--clients`), each on its own thread and connection, sending back to back.
+  The server predicts one call at a time; each client count runs with batching off (`max_batch_size` 1: a request
+  waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting together share a call, for a
+  policy that draws nothing random, e.g. greedy CARP).
 
-Prints p50 and p99 in milliseconds. Predictions run on one torch thread (`--threads`), as evaluation workers do.
+Prints p50 and p99 in milliseconds and the throughput in chunks per second (in-process: one over the mean; loopback:
+all clients' timed requests over the wall time of the run). Predictions run on one torch thread (`--threads`), as
+evaluation workers do.
 
 Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [--requests 200] [--clients 1 4]
+       [--max-batch 8]
 """
 
 import argparse
@@ -56,8 +61,11 @@ def in_process_seconds(policy, obs_steps: int, obs_dim: int, requests: int) -> l
     return seconds
 
 
-def client_round_trips(url: str, keys: dict[str, int], requests: int, seed: int, out: list[float]) -> None:
-    """One client's round-trip seconds of `requests` requests, after a warm-up, appended to `out`."""
+def client_round_trips(
+    url: str, keys: dict[str, int], requests: int, seed: int, out: list[float], span: list[float]
+) -> None:
+    """One client's round-trip seconds of `requests` requests, after a warm-up, appended to `out`; `span` receives
+    the `perf_counter` times its first timed request left and its last reply arrived."""
     rng = np.random.default_rng(seed)
     with PolicyClient(url, timeout=60) as client:
         client.reset(seed)
@@ -65,15 +73,24 @@ def client_round_trips(url: str, keys: dict[str, int], requests: int, seed: int,
             request = {key: rng.uniform(-1, 1, size=width).astype(np.float32) for key, width in keys.items()}
             started = time.perf_counter()
             client.infer(request)
+            finished = time.perf_counter()
+            if index == WARM_UP_REQUESTS:
+                span.append(started)
             if index >= WARM_UP_REQUESTS:
-                out.append(time.perf_counter() - started)
+                out.append(finished - started)
+        span.append(finished)
 
 
-def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int) -> list[float]:
-    """Round-trip seconds of every request of `clients` clients sending `requests` requests each at once."""
+def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int) -> tuple[list[float], float]:
+    """Round-trip seconds of every request of `clients` clients sending `requests` requests each at once.
+
+    Returns:
+        The seconds, and the wall seconds from the first timed request sent to the last reply received.
+    """
     results: list[list[float]] = [[] for _ in range(clients)]
+    spans: list[list[float]] = [[] for _ in range(clients)]
     threads = [
-        threading.Thread(target=client_round_trips, args=(url, keys, requests, index, results[index]))
+        threading.Thread(target=client_round_trips, args=(url, keys, requests, index, results[index], spans[index]))
         for index in range(clients)
     ]
     for thread in threads:
@@ -82,7 +99,8 @@ def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int
         thread.join()
     if any(len(result) != requests for result in results):
         raise RuntimeError("a client did not finish its requests (see the errors above)")
-    return [value for result in results for value in result]
+    wall = max(span[1] for span in spans) - min(span[0] for span in spans)
+    return [value for result in results for value in result], wall
 
 
 def main() -> int:
@@ -94,9 +112,10 @@ def main() -> int:
     parser.add_argument("--requests", type=int, default=200, help="timed requests per client (and in-process)")
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 4], help="concurrent clients of each run")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the predictions")
+    parser.add_argument("--max-batch", type=int, default=8, help="most requests per call with batching on")
     args = parser.parse_args()
-    if args.requests < 1 or any(clients < 1 for clients in args.clients) or args.threads < 1:
-        print("error: --requests, --clients and --threads must be positive", file=sys.stderr)
+    if min(args.requests, *args.clients, args.threads, args.max_batch) < 1:
+        print("error: --requests, --clients, --threads and --max-batch must be positive", file=sys.stderr)
         return 1
     torch.set_num_threads(args.threads)
 
@@ -118,21 +137,22 @@ def main() -> int:
         print(
             f"serving latency: {label}, {model.policy.description}; To={spec.obs_steps}, Do={spec.obs_dim}, "
             f"(H, A)=({spec.action_horizon}, {spec.action_dim}); {args.requests} requests per client after "
-            f"{WARM_UP_REQUESTS} warm-up; {args.threads} torch thread(s)"
+            f"{WARM_UP_REQUESTS} warm-up; {args.threads} torch thread(s); batching "
+            f"{'possible' if model.batches else 'never (the policy samples)'}"
         )
-        rows = [
-            ("in-process prediction", 1, in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests))
-        ]
+        seconds = in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests)
+        rows = [("in-process prediction", 1, "-", seconds, sum(seconds))]
         keys = dict(zip(spec.obs_keys, spec.obs_widths))
-        with ServerThread(PolicyServer(model, spec, ServerSettings(port=0))) as server:
-            for clients in args.clients:
-                rows.append(
-                    ("loopback round trip", clients, loopback_seconds(server.url, keys, clients, args.requests))
-                )
-    print(f"{'path':<24}{'clients':>8}{'p50 ms':>10}{'p99 ms':>10}")
-    for name, clients, seconds in rows:
+        for max_batch in sorted({1, args.max_batch}):
+            settings = ServerSettings(port=0, max_batch_size=max_batch)
+            with ServerThread(PolicyServer(model, spec, settings)) as server:
+                for clients in args.clients:
+                    seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
+                    rows.append(("loopback round trip", clients, "off" if max_batch == 1 else "on", seconds, wall))
+    print(f"{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}")
+    for name, clients, batching, seconds, wall in rows:
         p50, p99 = percentiles_ms(seconds)
-        print(f"{name:<24}{clients:>8}{p50:>10.2f}{p99:>10.2f}")
+        print(f"{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{len(seconds) / wall:>10.1f}")
     return 0
 
 

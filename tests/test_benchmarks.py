@@ -250,15 +250,18 @@ def test_serving_latency_prints_in_process_and_loopback_rows():
     assert completed.returncode == 0, completed.stderr[-2000:]
     header = completed.stdout.splitlines()[0]
     assert "random Lift CARP policy (tiny)" in header and "Do=19, (H, A)=(8, 10)" in header
-    pattern = rf"^(in-process prediction|loopback round trip)\s+(\d+)\s+{NUMBER}\s+{NUMBER}$"
+    assert "batching possible" in header  # the family's default inference is greedy
+    pattern = rf"^(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}$"
     rows = re.findall(pattern, completed.stdout, flags=re.MULTILINE)
-    assert [(name, clients) for name, clients, *_ in rows] == [
-        ("in-process prediction", "1"),
-        ("loopback round trip", "1"),
-        ("loopback round trip", "2"),
+    assert [tuple(row[:3]) for row in rows] == [
+        ("in-process prediction", "1", "-"),
+        ("loopback round trip", "1", "off"),
+        ("loopback round trip", "2", "off"),
+        ("loopback round trip", "1", "on"),
+        ("loopback round trip", "2", "on"),
     ]
-    for _, _, p50, p99 in rows:
-        assert 0 < float(p50) <= float(p99)
+    for *_, p50, p99, throughput in rows:
+        assert 0 < float(p50) <= float(p99) and float(throughput) > 0
 
 
 def test_serving_latency_refuses_a_checkpoint_without_its_protocol_in_one_line(tmp_path):

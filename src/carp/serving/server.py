@@ -6,11 +6,11 @@ Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
    observation and action specs (``observation_keys``: each low-dim key's shape, when a request may send them one
    by one), control period, the executed-action offset `To - 1` and `Ta`.
 2. Then each request (`carp.serving.session`) gets exactly one reply, in order: a binary frame
-   ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "timing_ms": {"queue", "inference",
-   "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape (3,), got (4,)``).
-   A request with ``predict: false`` gets the same reply without ``actions`` and ``timing_ms`` (it only adds its
-   observation to the history). A bad request changes nothing and the connection stays open. Text for errors is
-   openpi's convention too: its client raises on a text frame.
+   ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "batch_size", "timing_ms": {"queue",
+   "inference", "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape
+   (3,), got (4,)``). A request with ``predict: false`` gets the same reply without ``actions``, ``batch_size`` and
+   ``timing_ms`` (it only adds its observation to the history). A bad request changes nothing and the connection
+   stays open. Text for errors is openpi's convention too: its client raises on a text frame.
 
 The same port answers HTTP GET ``/healthz`` (the process is up), ``/readyz`` (200 once the model is warmed up,
 503 before), ``/metadata`` (JSON) and ``/metrics`` (Prometheus text) through websockets' `process_request` hook.
