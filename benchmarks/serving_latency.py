@@ -10,8 +10,9 @@ on the weights), measures per chunk, after a warm-up:
   waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting together share a call, for a
   policy that draws nothing random, e.g. greedy CARP).
 
-Prints p50 and p99 in milliseconds and the throughput in chunks per second (in-process: one over the mean; loopback:
-all clients' timed requests over the wall time of the run). Predictions run on one torch thread (`--threads`), as
+Prints p50 and p99 in milliseconds, the throughput in chunks per second (in-process: one over the mean; loopback:
+all clients' timed requests over the wall time of the run) and the mean chunks per prediction call (warm-up
+requests included). Predictions run on one torch thread (`--threads`), as
 evaluation workers do.
 
 Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [--requests 200] [--clients 1 4]
@@ -141,18 +142,24 @@ def main() -> int:
             f"{'possible' if model.batches else 'never (the policy samples)'}"
         )
         seconds = in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests)
-        rows = [("in-process prediction", 1, "-", seconds, sum(seconds))]
+        rows = [("in-process prediction", 1, "-", seconds, sum(seconds), 1.0)]
         keys = dict(zip(spec.obs_keys, spec.obs_widths))
         for max_batch in sorted({1, args.max_batch}):
             settings = ServerSettings(port=0, max_batch_size=max_batch)
             with ServerThread(PolicyServer(model, spec, settings)) as server:
+                metrics = server.policy_server.metrics
                 for clients in args.clients:
+                    calls, chunks = metrics.model_calls, metrics.predicted_chunks
                     seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
-                    rows.append(("loopback round trip", clients, "off" if max_batch == 1 else "on", seconds, wall))
-    print(f"{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}")
-    for name, clients, batching, seconds, wall in rows:
+                    mean_batch = (metrics.predicted_chunks - chunks) / (metrics.model_calls - calls)
+                    batching = "off" if max_batch == 1 else "on"
+                    rows.append(("loopback round trip", clients, batching, seconds, wall, mean_batch))
+    header = f"{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}{'per call':>10}"
+    print(header)
+    for name, clients, batching, seconds, wall, mean_batch in rows:
         p50, p99 = percentiles_ms(seconds)
-        print(f"{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{len(seconds) / wall:>10.1f}")
+        throughput = len(seconds) / wall
+        print(f"{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{throughput:>10.1f}{mean_batch:>10.2f}")
     return 0
 
 
