@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import subprocess
 import venv
 
@@ -49,7 +50,9 @@ def test_the_client_package_from_a_fresh_numpy_2_environment_gets_the_served_chu
     numpy_2 = pip(environment, "numpy>=2")
     if numpy_2.returncode != 0:
         pytest.skip(f"no package registry reachable for numpy>=2 (pip said: {numpy_2.stderr.strip()[-300:]})")
-    installed = pip(environment, str(CLIENT_DIR))
+    # Built from a copy: setuptools writes its build directory beside the sources.
+    sources = shutil.copytree(CLIENT_DIR, tmp_path / "client", ignore=shutil.ignore_patterns("build", "*.egg-info"))
+    installed = pip(environment, str(sources))
     assert installed.returncode == 0, installed.stderr[-2000:]
 
     episode = observations(4, seed=11)
