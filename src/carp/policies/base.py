@@ -122,6 +122,15 @@ class Policy(Protocol):
         """Short human-readable name of the configuration for reports, e.g. `DDIM-10` or `greedy`."""
         ...
 
+    @property
+    def draws_random(self) -> bool:
+        """Whether predictions at the current inference settings draw from the generator (sampling, noise).
+
+        A policy that draws nothing predicts each row of a batch as it would alone, so a server may batch requests
+        of several episodes; one that draws would give a batched row other draws than its episode's generator.
+        """
+        ...
+
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Scalar float32 loss of one batch of normalized windows.
 

@@ -302,6 +302,11 @@ class TokenizedPolicy(PolicyModule):
         """`greedy` or `top-<k>`, the token choice of predictions."""
         return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
+    @property
+    def draws_random(self) -> bool:
+        """Top-k choice with k > 1 draws; greedy does not."""
+        return self.top_k > 1
+
     @classmethod
     def with_checkpoint_parts(cls, transformer: nn.Module, checkpoint: dict[str, Any]) -> "TokenizedPolicy":
         """A policy of this family around `transformer` (weights loaded) with the checkpoint's other parts.

@@ -27,6 +27,7 @@ from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import train_policy
 from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
+from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
@@ -106,12 +107,20 @@ def load_task_policy_inputs(
         FileNotFoundError: a file is missing.
         CheckpointError: the tokenizer is corrupt or not the referenced one.
         TokenizerMismatchError: the tokenizer does not fit the params.
-        ValueError: the buffer holds no images, or other cameras or another image size than `image_encoder`.
+        ValueError: the buffer does not record its observation keys and widths (ingested before they were
+            recorded: the message names the buffer and the missing attribute), holds no images, or other cameras or
+            another image size than `image_encoder`.
     """
     reference = TokenizerReference.load(reference_path)
     artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
     check_compatible(artifact, action_space, scales, codebook_size)
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
+    try:
+        # Checked before any training: the trained checkpoint records this protocol, and an old buffer that cannot
+        # give it should stop the stage at its start with one line, not after the epochs.
+        training_protocol(data, windows.buffer.attrs, image_encoder)
+    except ProtocolError as error:
+        raise ValueError(f"{Path(task_dir) / BUFFER_DIRNAME}: {error}") from None
     if image_encoder is None:
         return TaskPolicyInputs(reference, artifact, windows)
     store = Path(task_dir) / BUFFER_DIRNAME
@@ -148,7 +157,8 @@ def train_task_policy(
         family: registered policy family.
         family_config: the family's params section.
         training: the shared training loop's settings (its epochs for `task`).
-        data: `To` and `H`.
+        data: `To` and `H`; with the windows' replay buffer, the serving protocol stored in the checkpoint's metadata
+            (`carp.serving.protocol`).
         inputs: see :func:`load_task_policy_inputs`.
         task: the task's name, stored in the checkpoint's metadata.
         checkpoint_dir: resumable training states of this (task, family) pair.
@@ -173,7 +183,13 @@ def train_task_policy(
         obs_steps=data.obs_steps,
         action_horizon=data.action_horizon,
         tokenizer_artifact=inputs.artifact,
-        metadata={"task": task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+        metadata={
+            "task": task,
+            "tokenizer": asdict(inputs.reference),
+            "mlflow_run_id": tracking_run_id,
+            # What a robot sends and executes, so that `carp serve` needs only the checkpoint.
+            SERVING_METADATA_KEY: training_protocol(data, windows.buffer.attrs, inputs.image_encoder),
+        },
         image_encoder=inputs.image_encoder,
     )
     return train_policy(

@@ -288,6 +288,11 @@ class OnnxPolicy:
         return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
     @property
+    def draws_random(self) -> bool:
+        """A graph exported with top_k > 1 takes drawn uniforms."""
+        return self.top_k > 1
+
+    @property
     def top_k(self) -> int:
         """The token choice the graph was exported with (1 = greedy)."""
         return 1 if self._uniforms_shape is None else self._uniforms_shape[-1]

@@ -81,6 +81,11 @@ class DiffusionPolicy(PolicyModule):
         """The sampler, e.g. `DDPM-100` or `DDIM-10`."""
         return self.sampler.description
 
+    @property
+    def draws_random(self) -> bool:
+        """Always: every chunk starts from drawn noise (DDIM's later steps are deterministic, its start is not)."""
+        return True
+
     def predict_action_timed(
         self,
         obs: np.ndarray | torch.Tensor,

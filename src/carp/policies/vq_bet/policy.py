@@ -99,6 +99,11 @@ class VqBetPolicy(PolicyModule):
         return "sampled" if self.code_choice == "sample" else "greedy"
 
     @property
+    def draws_random(self) -> bool:
+        """Sampled code choice draws; greedy does not."""
+        return self.code_choice == "sample"
+
+    @property
     def model_calls_per_chunk(self) -> int:
         """One GPT call per chunk."""
         return 1
