@@ -21,7 +21,7 @@ import yaml
 from mlflow import MlflowClient
 from optuna.trial import TrialState
 
-from tests.pipeline.workspace import dvc, make_workspace, run, tool_env
+from tests.pipeline.workspace import dvc, make_workspace, queue_status, run, run_queued_experiments, tool_env
 from tests.services import service_directory, tool, tracking_server
 
 SWEEP = {
@@ -118,8 +118,8 @@ def test_two_queued_experiments_run_at_once_on_a_fresh_store_keep_every_run(temp
         command = dvc("exp", "run", "--queue", "-n", name, "-S", f"scales={scales}", "-S", f"codebook_size={size}")
         queued = run(command, workspace)
         assert queued.returncode == 0, queued.stderr[-3000:]
-    completed = run(dvc("exp", "run", "--run-all", "--jobs", "2"), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
-    assert completed.returncode == 0, completed.stderr[-3000:]
+    run_queued_experiments(workspace, jobs=2, timeout=2 * TRIAL_TIMEOUT_SECONDS)
+    assert queue_status(workspace)[0] == {"Success": 2}, run(dvc("queue", "status"), workspace).stdout
     assert (workspace / "params.yaml").read_text() == params_before
 
     shown = experiments(workspace)

@@ -18,7 +18,7 @@ import yaml
 from mlflow import MlflowClient
 
 from carp.tracking.registry import fetch_registered_tokenizer
-from tests.pipeline.workspace import dvc, make_workspace, stages_run, tool_env
+from tests.pipeline.workspace import dvc, make_workspace, queue_status, run_queued_experiments, stages_run, tool_env
 from tests.services import object_store, s3_keys, service_directory, tool, tracking_server
 
 STAGES = {
@@ -127,7 +127,8 @@ def test_two_queued_experiments_run_at_once_log_every_run_into_the_server(pipeli
     sizes = {"shared-a": 8, "shared-b": 32}
     for name, size in sizes.items():
         run(dvc("exp", "run", "--queue", "-n", name, "-S", f"codebook_size={size}"), workspace)
-    run(dvc("exp", "run", "--run-all", "--jobs", "2"), workspace)
+    run_queued_experiments(workspace, jobs=2)
+    assert queue_status(workspace)[0] == {"Success": 2}, run(dvc("queue", "status"), workspace).stdout
 
     runs = server_runs(services.url)
     for name, size in sizes.items():

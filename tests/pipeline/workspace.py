@@ -5,6 +5,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import yaml
@@ -90,3 +91,62 @@ def make_workspace(directory: Path, params: dict | None = None) -> Path:
 def stages_run(dvc_stdout: str) -> set[str]:
     """Names of the stages a `dvc repro` / `dvc exp run` ran, from its "Running stage 'name':" lines."""
     return set(re.findall(r"Running stage '([^']+)'", dvc_stdout))
+
+
+def queue_status(workspace: Path) -> tuple[dict[str, int], int]:
+    """Counts of queued experiments by status (``{"Queued": 1, "Running": 1, ...}``) and of live queue workers."""
+    shown = run(dvc("queue", "status"), workspace, timeout=120).stdout
+    counts: dict[str, int] = {}
+    for line in shown.splitlines():
+        words = line.split()
+        if words and words[-1] in ("Queued", "Running", "Success", "Failed"):
+            counts[words[-1]] = counts.get(words[-1], 0) + 1
+    workers = re.search(r"Worker status: (\d+) active, (\d+) idle", shown)
+    return counts, (int(workers[1]) + int(workers[2])) if workers else 0
+
+
+def start_queue_workers(workspace: Path, jobs: int) -> None:
+    """``dvc queue start -j jobs``; its output goes to a file, as the workers it spawns keep its pipes open."""
+    log = workspace / ".dvc" / "tmp" / "queue-start.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("a") as output:
+        started = subprocess.run(
+            dvc("queue", "start", "-j", str(jobs)),
+            cwd=workspace,
+            env=tool_env(),
+            stdout=output,
+            stderr=output,
+            timeout=120,
+        )
+    assert started.returncode == 0, log.read_text()[-3000:]
+
+
+def run_queued_experiments(workspace: Path, jobs: int, timeout: float = 1800, stall_seconds: float = 90) -> int:
+    """Start ``jobs`` queue workers (``dvc queue start -j``, as ``dvc exp run --run-all --jobs`` does) and wait until
+    no experiment is queued or running; returns how often stalled workers were restarted.
+
+    DVC's queue can leave an experiment queued after every worker has exited (treeverse/dvc#10398, #10562): a user
+    then runs ``dvc queue start`` again, and so does this, when experiments stay queued with no worker alive for
+    ``stall_seconds``. On timeout, raises with the queue's status and the workers' logs.
+    """
+    start_queue_workers(workspace, jobs)
+    deadline, restarts, stalled_since = time.monotonic() + timeout, 0, None
+    while time.monotonic() < deadline:
+        counts, workers = queue_status(workspace)
+        if not counts.get("Queued") and not counts.get("Running"):
+            return restarts
+        if counts.get("Queued") and workers == 0:
+            stalled_since = stalled_since or time.monotonic()
+            if time.monotonic() - stalled_since > stall_seconds:
+                start_queue_workers(workspace, jobs)
+                restarts, stalled_since = restarts + 1, None
+        else:
+            stalled_since = None
+        time.sleep(10)
+    logs = "\n".join(
+        f"--- {path.name}\n{path.read_text(errors='replace')[-2000:]}"
+        for path in sorted((workspace / ".dvc" / "tmp" / "exps" / "celery").glob("*.out"))
+    )
+    raise AssertionError(
+        f"queued experiments unfinished after {timeout:.0f} s\n{run(dvc('queue', 'status'), workspace).stdout}\n{logs}"
+    )
