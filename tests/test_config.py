@@ -37,7 +37,7 @@ def test_defaults_follow_the_design():
         ({"scales": [1, 2, 3]}, "scales=[1, 2, 3]: must end at the latent length"),
         ({"scales": [1, 3, 2, 4]}, "scales=[1, 3, 2, 4]: must be positive and strictly increasing"),
         ({"codebook_size": 1}, "codebook_size=1: must be >= 2"),
-        ({"tasks": ["stack"]}, "tasks=('stack',): every task must be one of"),
+        ({"tasks": ["peg_in_hole"]}, "tasks=('peg_in_hole',): every task must be one of"),
         ({"tasks": []}, "tasks=(): must list at least one task"),
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),

@@ -97,11 +97,11 @@ class DataConfig:
         valid_fraction: Share of each task's demos held out for validation metrics when the file has no
             ``mask/valid`` (that mask wins when present); a number in [0, 1).
         raw_files: Task -> path of your own robomimic-schema HDF5 file (relative to the project root), validated and
-            used instead of scripted collection; tasks among lift, can, square and pusht. Its ``env_args`` must name
-            the task's env and its actions the task's width (7 for the arms, 2 for Push-T).
+            used instead of scripted collection; tasks among the registered ones (``carp.tasks``). Its ``env_args``
+            must name the task's env and its actions the task's width (7 for the arms, 2 for Push-T).
         num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
-            among lift, can, square and pusht. DVC tracks the whole mapping: changing one entry reruns every ``collect``
-            stage, but collection is deterministic, so only that task's data and what depends on it change.
+            among the registered ones (``carp.tasks``). DVC tracks the whole mapping: changing one entry reruns every
+            ``collect`` stage, but collection is deterministic, so only that task's data and what depends on it change.
         observations: What the policy observes: ``state`` (the low-dim ``obs_keys``, object pose included) or
             ``image`` (camera images of ``cameras`` plus the proprioception of ``proprioception_keys``, no object
             pose). Only the ingest stage tracks the image settings; in a ``state`` run, changing one reruns ingest
@@ -397,8 +397,8 @@ class TrainingConfig:
             elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
             and inference stay float32 (see ``carp.training.runtime.resolve_precision``).
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
-            among lift, can, square and pusht. DVC tracks the mapping as one parameter, so a change reruns every
-            ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+            among the registered ones (``carp.tasks``). DVC tracks the mapping as one parameter, so a change reruns
+            every ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
         epochs_per_policy: Policy family -> its epochs on every task, overriding ``epochs`` and ``epochs_per_task``
             (families converge at different rates: Diffusion Policy's denoisers need several times CARP's epochs);
             each an integer >= 1, families among the registered ones. Tracked like ``epochs_per_task``.
@@ -697,10 +697,10 @@ class Params:
             the latent length ``l = data.action_horizon / 2**len(tokenizer.channel_mult)`` (4 by default).
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
-        tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can and
-            square, and pusht), each at most once, all in one action space (one tokenizer serves them: the arms and
-            Push-T do not mix); the per-task stages (``collect``, ``ingest``, ``train_policy``, ``evaluate``) fan out
-            over this list.
+        tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
+            square, stack and nut_assembly, and pusht), each at most once, all in one action space (one tokenizer
+            serves them: the arms and Push-T do not mix); the per-task stages (``collect``, ``ingest``,
+            ``train_policy``, ``evaluate``) fan out over this list.
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.

@@ -17,9 +17,15 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-TASK_ENV_NAMES = {"lift": "Lift", "can": "PickPlaceCan", "square": "NutAssemblySquare"}
+TASK_ENV_NAMES = {
+    "lift": "Lift",
+    "can": "PickPlaceCan",
+    "square": "NutAssemblySquare",
+    "stack": "Stack",
+    "nut_assembly": "NutAssembly",
+}
 # Width of robomimic's "object" observation (robosuite's "object-state") per task.
-OBJECT_OBS_DIMS = {"lift": 10, "can": 14, "square": 14}
+OBJECT_OBS_DIMS = {"lift": 10, "can": 14, "square": 14, "stack": 23, "nut_assembly": 28}
 # robot0_eef_pos (3) + robot0_eef_quat (4) + robot0_gripper_qpos (2), the proprioception used by default.
 ROBOT_OBS_DIM = 9
 LOW_DIM_OBS_DIMS = {task: dim + ROBOT_OBS_DIM for task, dim in OBJECT_OBS_DIMS.items()}

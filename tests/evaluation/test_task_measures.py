@@ -53,6 +53,37 @@ class DropNut:
         return hold_still(env), None
 
 
+def peg_top(env, peg_body: int) -> float:
+    """World height of a peg's top face (``peg1`` a box, ``peg2`` a cylinder)."""
+    import mujoco
+
+    data, model = env.sim.data, env.sim.model
+    geom = np.flatnonzero(model.geom_bodyid == peg_body)[0]
+    half_height = model.geom_size[geom][1 if model.geom_type[geom] == mujoco.mjtGeom.mjGEOM_CYLINDER else 2]
+    return float(data.geom_xpos[geom][2] + half_height)
+
+
+class DropBothNuts:
+    """NutAssembly: puts nut i above peg i + 1, its hole centre ``offsets_m[i]`` (x, y) beside the peg's centre and its
+    underside 1 cm above the peg's top, square to the world axes; then holds the arm still while both fall."""
+
+    def __init__(self, offsets_m: tuple[tuple[float, float], tuple[float, float]]) -> None:
+        self.offsets_m = offsets_m
+
+    def reset(self, env, seed: int) -> None:
+        data, model = env.sim.data, env.sim.model
+        for nut, peg_body, offset in zip(env.nuts, (env.peg1_body_id, env.peg2_body_id), self.offsets_m, strict=True):
+            peg = data.body_xpos[peg_body]
+            nut_half_height = model.geom_size[env.obj_geom_id[nut.name][0]][2]
+            height = peg_top(env, peg_body) + nut_half_height + 0.01
+            position = [peg[0] + offset[0], peg[1] + offset[1], height]
+            data.set_joint_qpos(nut.joints[0], np.concatenate([position, [1.0, 0.0, 0.0, 0.0]]))
+        env.sim.forward()
+
+    def act(self, history, env):
+        return hold_still(env), None
+
+
 class HoldStill:
     """Keeps the arm where the reset left it."""
 
@@ -70,11 +101,12 @@ def square_env():
     env.close()
 
 
-def test_square_measures_its_insertion_offset_and_the_other_arm_tasks_nothing():
+def test_the_nut_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_nothing():
     square = get_task("square")
     assert isinstance(square.measure(), InsertionOffset)
     assert square.measure() is not square.measure()  # one per episode
-    for task in ("lift", "can"):
+    assert isinstance(get_task("nut_assembly").measure(), InsertionOffset)
+    for task in ("lift", "can", "stack"):
         assert isinstance(get_task(task).measure(), NoMeasure) and get_task(task).measure().values() == {}
 
 
@@ -140,3 +172,70 @@ def test_the_episodes_table_has_a_column_per_measure_nan_where_an_episode_lacks_
     assert list(table.columns) == EPISODE_COLUMNS + MEASURE_COLUMNS
     assert table["insertion_offset_mm"][0] == 4.0 and math.isnan(table["insertion_offset_mm"][1])
     assert list(episodes_table([EpisodeResult(1, True, 50, 1.0)]).columns) == EPISODE_COLUMNS
+
+
+NUT_ASSEMBLY_MEASURES = [
+    "insertion_offset_mm",
+    "insertion_contact_step",
+    "square_nut_insertion_offset_mm",
+    "square_nut_insertion_contact_step",
+    "round_nut_insertion_offset_mm",
+    "round_nut_insertion_contact_step",
+]
+
+
+@pytest.mark.slow
+def test_nut_assembly_measures_each_nut_on_its_own_peg_at_the_offset_it_falls_with():
+    env = simulation.make_env(simulation.make_env_args("nut_assembly"))
+    try:
+        # The square nut's -x wall lands on its peg's top; the round nut's hole (31.2 mm to its flats) is 15 mm off
+        # the round peg's centre (20 mm radius), so its -y wall lands 3.8 mm over the peg's edge.
+        source = DropBothNuts(((0.010, 0.0), (0.0, 0.015)))
+        result = run_episode(get_task("nut_assembly"), env, source, 0, OBS_KEYS, 2, 10)
+    finally:
+        env.close()
+    assert result.error == ""
+    measures = result.task_measures
+    assert list(measures) == NUT_ASSEMBLY_MEASURES
+    assert measures["square_nut_insertion_offset_mm"] == pytest.approx(10.0, abs=0.2)
+    assert measures["round_nut_insertion_offset_mm"] == pytest.approx(15.0, abs=0.2)
+    assert measures["insertion_offset_mm"] == pytest.approx(12.5, abs=0.2)  # the episode's: the mean of the two
+    steps = [measures[key] for key in NUT_ASSEMBLY_MEASURES if key.endswith("contact_step")]
+    assert steps == [1.0, 1.0, 1.0]
+    assert list(episodes_table([result]).columns) == EPISODE_COLUMNS + NUT_ASSEMBLY_MEASURES
+
+
+class _Contacts:
+    """An env's sim data: bodies at ``body_xpos``, no contacts until a test sets ``ncon`` and ``contact.geom``."""
+
+    def __init__(self, body_xpos: np.ndarray) -> None:
+        self.body_xpos = body_xpos
+        self.ncon = 0
+        self.contact = type("Contact", (), {"geom": np.zeros((0, 2), dtype=np.int64)})()
+
+
+def test_a_pair_untouched_stays_nan_and_the_episode_takes_the_pairs_that_touched():
+    from carp.evaluation.insertion_offset import NUT_ASSEMBLY_PAIRS
+
+    measure = InsertionOffset(NUT_ASSEMBLY_PAIRS)
+    # Geoms 0-1 the square nut, 2 its peg, 3 the round nut, 4 its peg; bodies 1-4 in the same order.
+    measure._nut_geoms = np.array([[1, 1, 0, 0, 0], [0, 0, 0, 1, 0]], dtype=bool)
+    measure._peg_geoms = np.array([[0, 0, 1, 0, 0], [0, 0, 0, 0, 1]], dtype=bool)
+    measure._nut_bodies, measure._peg_bodies = np.array([1, 3]), np.array([2, 4])
+    positions = np.zeros((5, 3))
+    positions[1] = [0.003, 0.004, 0.9]  # 5 mm from the square peg at the origin
+    env = type("Env", (), {})()
+    env.sim = type("Sim", (), {})()
+    env.sim.data = _Contacts(positions)
+    measure.observe(env, 1)  # no contact yet
+    env.sim.data.ncon, env.sim.data.contact.geom = 1, np.array([[2, 1]])  # peg before nut: either order counts
+    measure.observe(env, 2)
+    positions[1] = [0.0, 0.0, 0.9]
+    measure.observe(env, 3)  # only the first contact counts
+    values = measure.values()
+    assert values["square_nut_insertion_offset_mm"] == pytest.approx(5.0)
+    assert values["square_nut_insertion_contact_step"] == 2.0
+    assert math.isnan(values["round_nut_insertion_offset_mm"]) and math.isnan(
+        values["round_nut_insertion_contact_step"]
+    )
+    assert values["insertion_offset_mm"] == pytest.approx(5.0) and values["insertion_contact_step"] == 2.0

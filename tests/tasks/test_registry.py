@@ -10,7 +10,7 @@ from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS, DELTA_ACTIONS
 
 
 def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
-    assert set(TASK_NAMES) == {"lift", "can", "square", "pusht"}
+    assert set(TASK_NAMES) == {"lift", "can", "square", "stack", "nut_assembly", "pusht"}
     for name in TASK_NAMES:
         task = get_task(name)
         assert task.name == name
@@ -19,10 +19,11 @@ def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
 
 
 def test_unknown_tasks_and_envs_are_refused_naming_them():
-    with pytest.raises(ValueError, match=r"unknown task 'stack'; expected one of \['lift', 'can', 'square', 'pusht'\]"):
-        get_task("stack")
-    with pytest.raises(ValueError, match="env_args name env 'Stack', which no task runs"):
-        task_for_env_args({"env_name": "Stack"})
+    known = r"\['lift', 'can', 'square', 'stack', 'nut_assembly', 'pusht'\]"
+    with pytest.raises(ValueError, match=rf"unknown task 'threading'; expected one of {known}"):
+        get_task("threading")
+    with pytest.raises(ValueError, match="env_args name env 'Threading', which no task runs"):
+        task_for_env_args({"env_name": "Threading"})
     with pytest.raises(ValueError, match="pusht: controller 'delta': the agent takes absolute targets only"):
         get_task("pusht").action_format("delta")
 

@@ -305,13 +305,16 @@ class CanExpert(ScriptedExpert):
         return can + np.array([0.0, 0.0, self.grasp_above_center_m]), yaw
 
 
-class SquareExpert(ScriptedExpert):
-    """Grasp the square nut's handle, turn it to a peg-symmetric yaw facing the robot, drop it over the peg."""
+class NutExpert(ScriptedExpert):
+    """Shared by the nut tasks: grasp a nut's handle, turn it to a peg-symmetric yaw facing the robot, drop it on a peg.
 
-    name = "square_scripted"
+    The square nut fits its peg in four yaws 90 degrees apart and the round nut its peg in any yaw, so both nuts take
+    a target handle yaw among the same options.
+    """
+
     max_grasp_attempts = 4
-    # Grasp point along the handle (the handle site is at 0.054 m, the handle ends at 0.079 m) and above the nut's
-    # center, so the fingertips clear the ring and the table.
+    # Grasp point along the square nut's handle (the handle site is at 0.054 m, the handle ends at 0.079 m) and above
+    # the nut's center, so the fingertips clear the ring and the table.
     handle_grasp_offset_m = 0.062
     grasp_above_center_m = 0.012
     carry_nut_height_m = 1.0
@@ -320,12 +323,30 @@ class SquareExpert(ScriptedExpert):
     handle_yaw_options = (math.pi / 2, math.pi, -math.pi / 2)
     target_handle_yaw = math.pi
 
-    def _script(self) -> Iterator[np.ndarray]:
-        env = self.env
-        nut_id = env.obj_body_id[env.obj_to_use]
-        peg = self.body_position(env.peg1_body_id)
+    def place_nut(
+        self,
+        nut_id: int,
+        peg_id: int,
+        handle_grasp_offset_m: float,
+        target_handle_yaw: Callable[[float], float] | None = None,
+    ) -> Iterator[np.ndarray]:
+        """Grasp a nut by its handle and drop it on a peg; ends with the gripper open, risen above the peg.
+
+        Args:
+            nut_id: the nut's body.
+            peg_id: the peg's body.
+            handle_grasp_offset_m: distance of the grasp point from the nut's centre along its handle.
+            target_handle_yaw: the handle's yaw over the peg given its yaw at the grasp; None: the nearest of
+                ``handle_yaw_options``.
+        """
+        peg = self.body_position(peg_id)
+        target = self._nearest_handle_yaw_option if target_handle_yaw is None else target_handle_yaw
+
+        def plan_grasp() -> tuple[np.ndarray, float]:
+            return self._plan_nut_grasp(nut_id, handle_grasp_offset_m, target)
+
         for _ in range(self.max_grasp_attempts):
-            yield from self.grasp_from_above(self._plan_grasp)
+            yield from self.grasp_from_above(plan_grasp)
             if self.grasped:
                 break
             yield from self.release_and_rise(0.08)
@@ -342,14 +363,18 @@ class SquareExpert(ScriptedExpert):
         yield from self.move(lowered, step_m=self.limits.slow_step_m)
         yield from self.release_and_rise(0.08)
 
-    def _plan_grasp(self) -> tuple[np.ndarray, float]:
-        nut_id = self.env.obj_body_id[self.env.obj_to_use]
+    def _nearest_handle_yaw_option(self, handle_yaw: float) -> float:
+        return min(self.handle_yaw_options, key=lambda option: abs(wrap_angle(option - handle_yaw)))
+
+    def _plan_nut_grasp(
+        self, nut_id: int, handle_grasp_offset_m: float, target_handle_yaw: Callable[[float], float]
+    ) -> tuple[np.ndarray, float]:
         nut = self.body_position(nut_id)
         handle_yaw = yaw_of(self.body_quaternion(nut_id))
-        self.target_handle_yaw = min(self.handle_yaw_options, key=lambda option: abs(wrap_angle(option - handle_yaw)))
+        self.target_handle_yaw = target_handle_yaw(handle_yaw)
         yaw = self._grasp_yaw(handle_yaw, wrap_angle(self.target_handle_yaw - handle_yaw))
         handle_direction = np.array([math.cos(handle_yaw), math.sin(handle_yaw), 0.0])
-        grasp = nut + self.handle_grasp_offset_m * handle_direction
+        grasp = nut + handle_grasp_offset_m * handle_direction
         grasp[2] = nut[2] + self.grasp_above_center_m
         return grasp, yaw
 
@@ -366,7 +391,113 @@ class SquareExpert(ScriptedExpert):
         return HOME_YAW_RAD + wrap_angle(best - HOME_YAW_RAD)
 
 
-EXPERTS: dict[str, type[ScriptedExpert]] = {"lift": LiftExpert, "can": CanExpert, "square": SquareExpert}
+class SquareExpert(NutExpert):
+    """NutAssemblySquare: the square nut onto the square peg."""
+
+    name = "square_scripted"
+
+    def _script(self) -> Iterator[np.ndarray]:
+        env = self.env
+        yield from self.place_nut(env.obj_body_id[env.obj_to_use], env.peg1_body_id, self.handle_grasp_offset_m)
+
+
+class NutAssemblyExpert(NutExpert):
+    """NutAssembly: the round nut onto the round peg, then the square nut onto the square peg.
+
+    Each nut starts on its own peg's side of the table (robosuite's sampler), so the first carry never crosses the
+    second nut. Over a peg the arm is nearly stretched, and heading back from there towards the robot can lock its
+    elbow straight (the operational-space controller stalls at that singularity); the round peg, which takes its nut
+    in any yaw, is served first with the handle turned towards the robot, where the arm stays bent, and the square
+    nut, whose peg leaves less choice, goes last, with nothing to reach for afterwards.
+    """
+
+    name = "nut_assembly_scripted"
+    # The round nut's handle reaches 6 mm further out than the square nut's (site at 0.060 m, end at 0.085 m); the
+    # grasp takes its outer part, which keeps the arm as close to the robot as the handle allows over the peg.
+    round_handle_grasp_offset_m = 0.074
+    # Largest angle (radians) between the round nut's handle over its peg and the direction towards the robot (-x).
+    round_handle_spread_rad = math.pi / 4
+
+    def _script(self) -> Iterator[np.ndarray]:
+        env = self.env
+        square, round_ = (env.obj_body_id[nut.name] for nut in env.nuts)
+        yield from self.place_nut(round_, env.peg2_body_id, self.round_handle_grasp_offset_m, self._towards_robot)
+        yield from self.place_nut(square, env.peg1_body_id, self.handle_grasp_offset_m)
+
+    def _towards_robot(self, handle_yaw: float) -> float:
+        """The yaw nearest the handle's own within ``round_handle_spread_rad`` of the direction towards the robot."""
+        away = wrap_angle(handle_yaw - math.pi)
+        return math.pi + float(np.clip(away, -self.round_handle_spread_rad, self.round_handle_spread_rad))
+
+
+class StackExpert(ScriptedExpert):
+    """Stack: grasp the small cube (A), carry it above the large cube (B), lower it until just above B, release, rise.
+
+    The closing axis is taken across the pair of A's faces most nearly facing B, so that the fingers, spread along
+    it, stay clear of B when the cubes lie close together.
+    """
+
+    name = "stack_scripted"
+    max_grasp_attempts = 3
+    # Grasp above the cube's center so the fingertips end above its bottom and never touch the lower cube's top.
+    grasp_above_center_m = 0.008
+    carry_clearance_m = 0.04
+    release_clearance_m = 0.006
+
+    def _script(self) -> Iterator[np.ndarray]:
+        yield from self.stack_cube(self.env.cubeA_body_id, self.env.cubeB_body_id)
+
+    def stack_cube(self, cube_id: int, base_id: int) -> Iterator[np.ndarray]:
+        """Put the cube body ``cube_id`` onto the body ``base_id``; ends with the gripper open, risen above them."""
+        cube_half = self._half_height(cube_id)
+
+        def plan_grasp() -> tuple[np.ndarray, float]:
+            return self._plan_cube_grasp(cube_id, base_id)
+
+        for _ in range(self.max_grasp_attempts):
+            yield from self.grasp_from_above(plan_grasp, clearance_m=0.06)
+            if self.grasped:
+                break
+            yield from self.release_and_rise(0.06)
+        # Where the grip site must be for the cube to sit over the base, from the grasp as it actually is.
+        cube_below_site = self.body_position(cube_id) - self.site_position()
+        base = self.body_position(base_id)
+        base_top = base[2] + self._half_height(base_id)
+        carry = np.array([base[0], base[1], base_top + cube_half + self.carry_clearance_m]) - cube_below_site
+        here = self.site_position()
+        yield from self.move(np.array([here[0], here[1], max(carry[2], here[2])]))
+        yield from self.move(carry)
+        release = np.array([base[0], base[1], base_top + cube_half + self.release_clearance_m]) - cube_below_site
+        yield from self.move(release, step_m=self.limits.slow_step_m)
+        yield from self.release_and_rise(0.06)
+
+    def _half_height(self, body_id: int) -> float:
+        """Half the height of a cube body (its first geom, robosuite's box objects)."""
+        model = self.env.sim.model
+        geom = int(np.flatnonzero(np.asarray(model.geom_bodyid) == body_id)[0])
+        return float(model.geom_size[geom][2])
+
+    def _plan_cube_grasp(self, cube_id: int, base_id: int) -> tuple[np.ndarray, float]:
+        cube = self.body_position(cube_id)
+        towards_base = self.body_position(base_id)[:2] - cube[:2]
+        face_yaw = yaw_of(self.body_quaternion(cube_id))
+        # Closing along a face normal; of the two normals (mod pi), the one most nearly across the line to the base.
+        base_yaw = math.atan2(towards_base[1], towards_base[0])
+        across = min(
+            (face_yaw, face_yaw + math.pi / 2),
+            key=lambda option: abs(math.cos(option - base_yaw)),
+        )
+        yaw = nearest_symmetric_yaw(across, math.pi, HOME_YAW_RAD)
+        return cube + np.array([0.0, 0.0, self.grasp_above_center_m]), yaw
+
+
+EXPERTS: dict[str, type[ScriptedExpert]] = {
+    "lift": LiftExpert,
+    "can": CanExpert,
+    "square": SquareExpert,
+    "stack": StackExpert,
+    "nut_assembly": NutAssemblyExpert,
+}
 
 
 def make_expert(task: str, env, limits: MotionLimits | None = None) -> ScriptedExpert:

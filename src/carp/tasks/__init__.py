@@ -13,6 +13,8 @@ TASK_MODULES: dict[str, str] = {
     "lift": "carp.tasks.robosuite_arms",
     "can": "carp.tasks.robosuite_arms",
     "square": "carp.tasks.robosuite_arms",
+    "stack": "carp.tasks.robosuite_arms",
+    "nut_assembly": "carp.tasks.robosuite_arms",
     "pusht": "carp.tasks.pusht_task",
 }
 """Task name -> module whose ``TASKS`` mapping holds the task under that name."""

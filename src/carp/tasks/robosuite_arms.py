@@ -1,6 +1,7 @@
-"""robosuite's Panda arm tasks (Lift, Can, Square) behind the task seam, on `carp.simulation`'s environments.
+"""robosuite's Panda arm tasks (Lift, Can, Square, Stack, NutAssembly) behind the task seam, on `carp.simulation`.
 
-The three share everything but their env class, their scripted expert and (Square) the insertion-offset measure. An
+They share everything but their env class, their scripted expert and (Square, NutAssembly) the insertion-offset
+measure. An
 action is the OSC controller's 7-D input; with ``data.controller: absolute`` the policy learns its 10-D form with a
 continuous 6-D rotation (`carp.data.rotation`).
 """
@@ -40,6 +41,12 @@ def _insertion_offset() -> EpisodeMeasure:
     from carp.evaluation.insertion_offset import InsertionOffset  # imported on use: the registry stays light
 
     return InsertionOffset()
+
+
+def _nut_assembly_offsets() -> EpisodeMeasure:
+    from carp.evaluation.insertion_offset import NUT_ASSEMBLY_PAIRS, InsertionOffset
+
+    return InsertionOffset(NUT_ASSEMBLY_PAIRS)
 
 
 VIDEO_SIZE = 256
@@ -154,7 +161,7 @@ class RobosuiteArmTask:
         return expert
 
     def measure(self) -> EpisodeMeasure:
-        """Square's insertion offset; nothing for Lift and Can."""
+        """The nut tasks' insertion offsets; nothing for Lift, Can and Stack."""
         return self.measure_factory()
 
     def video(self, env, camera: str) -> _StateFrames:
@@ -182,4 +189,8 @@ TASKS = {
     "lift": RobosuiteArmTask("lift", simulation.TASK_ENV_NAMES["lift"]),
     "can": RobosuiteArmTask("can", simulation.TASK_ENV_NAMES["can"]),
     "square": RobosuiteArmTask("square", simulation.TASK_ENV_NAMES["square"], measure_factory=_insertion_offset),
+    "stack": RobosuiteArmTask("stack", simulation.TASK_ENV_NAMES["stack"]),
+    "nut_assembly": RobosuiteArmTask(
+        "nut_assembly", simulation.TASK_ENV_NAMES["nut_assembly"], measure_factory=_nut_assembly_offsets
+    ),
 }
