@@ -201,10 +201,10 @@ def test_rendering_cost_prints_both_settings_per_task_and_saves_a_frame_grid(tmp
 
 
 def test_rendering_cost_refuses_an_unknown_task_in_one_line():
-    completed = run_benchmark("rendering_cost.py", "--tasks", "stack")
+    completed = run_benchmark("rendering_cost.py", "--tasks", "peg_in_hole")
     assert completed.returncode == 1
     assert completed.stderr.strip().splitlines() == [
-        "error: --tasks ['stack']: unknown; expected some of ['can', 'lift', 'square']"
+        "error: --tasks ['peg_in_hole']: unknown; expected some of ['can', 'lift', 'nut_assembly', 'square', 'stack']"
     ]
 
 
