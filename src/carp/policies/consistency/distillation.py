@@ -9,12 +9,14 @@ jump u -> s, both carried on to sigma_min by the target network:
 
     trajectory = d(G_target(G(x_t, t, s), s, sigma_min), G_target(G_target(x_u, u, s), s, sigma_min))
 
-with d the pseudo-Huber error of `carp.policies.consistency.karras`. The denoising loss asks the student's jump to
-sigma_min to return the clean chunk, at levels drawn half from the upper 70% of the discretization (in rho-space)
-and half log-normally, weighted by EDM's lambda(sigma).
+with d the pseudo-Huber error of `carp.policies.consistency.karras`. The denoising loss asks the student's denoiser
+g(x_sigma, sigma, sigma) to return the clean chunk, at levels drawn half from the upper 70% of the discretization
+(in rho-space) and half log-normally, weighted by EDM's lambda(sigma).
 
-Deviation: the gradient flows through the target network's jump s -> sigma_min into the student's output, as in CTM;
-the official code runs that jump without gradient.
+Deviations, both as in CTM's paper: the gradient flows through the target network's jump s -> sigma_min into the
+student's output (the official code runs that jump without gradient, which leaves the trajectory loss without
+effect); the denoising loss reads g at target level sigma (the official code reads the jump to sigma_min, whose
+regression to the posterior mean at high noise levels undoes the one-step jump to a mode).
 
 The warm start copies the teacher's U-Net into the student, whose FiLM projections read one more step embedding
 (the target level): its columns start at zero, so the warm-started student's jump to any level is the teacher's
@@ -180,6 +182,6 @@ class Distillation(nn.Module):
 
         sigma = self.denoising_levels(count, device)
         noisy = actions + expand_like(sigma, actions) * torch.randn_like(actions)
-        denoised = student.jump(noisy, sigma, floor, features)
+        denoised = student.denoise(noisy, sigma, sigma, features)
         denoising = pseudo_huber(denoised, actions, schedule.loss_weight(sigma))
         return DistillationLosses(trajectory, denoising)

@@ -248,6 +248,19 @@ class ConsistencyPolicy(KarrasPolicy):
         """`1-step` or e.g. `3-step`."""
         return f"{self.model_calls_per_chunk}-step"
 
+    def denoise(
+        self,
+        noisy: torch.Tensor,
+        sigma: torch.Tensor,
+        target_sigma: torch.Tensor,
+        features: torch.Tensor,
+        unet: ConditionalUNet1D | None = None,
+    ) -> torch.Tensor:
+        """g(x, t, s) (B, H, A): the preconditioned U-Net's estimate of the clean chunk; see :meth:`jump`."""
+        scalings = self.schedule.preconditioning(sigma)
+        output = self._network(unet or self.unet, noisy, [sigma, target_sigma], features)
+        return expand_like(scalings.c_skip, noisy) * noisy + expand_like(scalings.c_out, noisy) * output
+
     def jump(
         self,
         noisy: torch.Tensor,
@@ -265,9 +278,7 @@ class ConsistencyPolicy(KarrasPolicy):
             features: (B, To, F) observation features.
             unet: the network to read (the distillation's target network); None reads the student's own.
         """
-        scalings = self.schedule.preconditioning(sigma)
-        output = self._network(unet or self.unet, noisy, [sigma, target_sigma], features)
-        denoised = expand_like(scalings.c_skip, noisy) * noisy + expand_like(scalings.c_out, noisy) * output
+        denoised = self.denoise(noisy, sigma, target_sigma, features, unet)
         ratio = expand_like(target_sigma / sigma, noisy)
         return ratio * noisy + (1 - ratio) * denoised
 
