@@ -25,6 +25,7 @@ from stage_support import (
     setup_logging,
 )
 
+from carp.policies.registry import get_family
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError
@@ -95,13 +96,20 @@ def main() -> None:
             device,
         )  # fmt: skip
     family_config = params.family_config(args.policy)
+    # A distilled family reads its teacher family's checkpoint of the same task and seed, trained by that family's
+    # own train_policy stage (params refuse a pipeline that does not list the teacher family first).
+    teacher = get_family(args.policy).teacher
+    teacher_checkpoint = None if teacher is None else policy_dir(args.task, teacher, args.seed) / "policy.pt"
+    if teacher_checkpoint is not None and not teacher_checkpoint.is_file():
+        fail(f"{teacher_checkpoint}: the {teacher} teacher of {args.policy} is not trained; run train_policy for it")
     training = params.training_for_seed(args.seed)
     checkpoint_dir = CHECKPOINT_DIR / "policy" / args.task / args.policy / seed_name(args.seed)
     try:
         if rank != 0:
             train_task_policy(
-                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device
-            )
+                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device,
+                teacher_checkpoint=teacher_checkpoint,
+            )  # fmt: skip
             return
         tags = {
             "carp.tokenizer": inputs.reference.uri,
@@ -116,7 +124,7 @@ def main() -> None:
         with mlflow_stage(params, f"train_policy@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
             metrics = train_and_write_task_policy(
                 args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device, outputs,
-                run,
+                run, teacher_checkpoint,
             )  # fmt: skip
     finally:
         distributed.stop_process_group()

@@ -93,7 +93,7 @@ def test_defaults_follow_the_design():
         (
             {"inference": {"lstm": {}}},
             "inference.lstm: unknown policy family (known: carp, diffusion_unet, diffusion_transformer, next_token, "
-            "vq_bet)",
+            "vq_bet, edm_unet, consistency_policy)",
         ),
         ({"inference": {"carp": {"top_p": 0.9}}}, "inference.carp.top_p: unknown key (known: top_k, top_k_per_task)"),
         ({"eval": {"seed": 100}, "data": {"num_demos": 50}}, "eval.seed=100: evaluation seeds [100, 150) overlap"),

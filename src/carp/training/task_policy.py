@@ -137,6 +137,7 @@ def train_task_policy(
     device: torch.device,
     tracking_run_id: str | None = None,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    teacher_checkpoint: Path | None = None,
 ) -> Policy:
     """Train a policy of `family` on the task's training windows, resuming from `checkpoint_dir` when it can.
 
@@ -151,6 +152,8 @@ def train_task_policy(
         device: where training runs (a process's own device in a multi-process run).
         tracking_run_id: the tracking run that logs this training, stored in the checkpoint's metadata.
         on_epoch_end: called with (epoch, metrics) after every epoch on the process that reports.
+        teacher_checkpoint: the trained checkpoint of the family's teacher family (a distilled family); None
+            otherwise.
 
     Returns:
         The trained policy in eval mode on the CPU.
@@ -182,6 +185,7 @@ def train_task_policy(
         device=device,
         epochs=training.epochs_for(task, family),
         on_epoch_end=on_epoch_end,
+        teacher_checkpoint=teacher_checkpoint,
     )
 
 
@@ -218,6 +222,7 @@ def train_and_write_task_policy(
     device: torch.device,
     outputs: TaskPolicyOutputs,
     run: "StageRun",
+    teacher_checkpoint: Path | None = None,
 ) -> dict[str, float]:
     """Train as :func:`train_task_policy` does, logging to `run`, then evaluate and write the outputs.
 
@@ -236,6 +241,7 @@ def train_and_write_task_policy(
         device: see :func:`train_task_policy`.
         outputs: where the checkpoint and the reports go.
         run: the tracking run of this training.
+        teacher_checkpoint: see :func:`train_task_policy`.
 
     Returns:
         The metrics written to `metrics.json`: held-out errors (none without held-out windows) and `final_*` values.
@@ -248,8 +254,9 @@ def train_and_write_task_policy(
 
     windows = inputs.windows
     policy = train_task_policy(
-        family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch
-    )
+        family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch,
+        teacher_checkpoint,
+    )  # fmt: skip
     valid_images = None if inputs.valid_images is None else inputs.valid_images.images
     held_out = held_out_action_errors(
         policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps, images=valid_images

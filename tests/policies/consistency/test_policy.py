@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from carp.config import ConfigError, TrainingConfig
-from carp.policies.consistency.family import build_student, build_teacher
 from carp.policies.consistency.distillation import Distillation, warm_start
+from carp.policies.consistency.family import build_student, build_teacher
 from carp.policies.consistency.policy import schedule_of
 from carp.policies.diffusion.unet import ConditionalUNet1D
 from carp.policies.registry import train_policy
@@ -132,3 +132,13 @@ def test_config_errors_name_the_key():
         tiny_student_config(target_decay=1.0)
     with pytest.raises(ConfigError, match="edm_unet.kernel_size=4: must be odd"):
         tiny_teacher_config(kernel_size=4)
+
+
+def test_params_refuse_a_student_whose_teacher_is_not_trained_first_or_differs():
+    from carp.config import Params
+
+    with pytest.raises(ConfigError, match="policies=.*list edm_unet before it"):
+        Params(policies=("consistency_policy", "edm_unet"))
+    with pytest.raises(ConfigError, match=r"consistency_policy.down_dims=\[64, 128, 256\]: must equal the teacher's"):
+        Params(families={"consistency_policy": tiny_student_config(down_dims=(64, 128, 256))})
+    Params(policies=("edm_unet", "consistency_policy"))
