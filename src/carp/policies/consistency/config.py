@@ -150,8 +150,9 @@ class ConsistencyConfig:
         target_decay: EMA decay per optimizer step of the target network the loss compares against; 0 makes it the
             student's current weights without gradient (the official setting); a number in [0, 1).
         trajectory_weight: Weight of the consistency-trajectory loss; a number >= 0.
-        denoising_weight: Weight of the denoising loss (the student at target level sigma_min against the clean
-            chunk); a number >= 0, and not both weights 0.
+        denoising_weight: Weight of the denoising loss (the student's denoiser at its own level against the clean
+            chunk), relative to the trajectory loss: 1 gives both the same gradient norm at the U-Net's output
+            layer (CTM's adaptive weight); a number >= 0, and not both weights 0.
     """
 
     SECTION: ClassVar[str] = STUDENT

@@ -11,9 +11,13 @@ jump u -> s, both carried on to sigma_min by the target network:
 
 with d the pseudo-Huber error of `carp.policies.consistency.karras`. The denoising loss asks the student's denoiser
 g(x_sigma, sigma, sigma) to return the clean chunk, at levels drawn half from the upper 70% of the discretization
-(in rho-space) and half log-normally, weighted by EDM's lambda(sigma).
+(in rho-space) and half log-normally, weighted by EDM's lambda(sigma). The denoising loss enters the total scaled
+by CTM's adaptive weight (`adaptive_scale`): the ratio of the two losses' gradient norms at the U-Net's output
+layer, so that `denoising_weight` is relative to the trajectory loss's pull. Unscaled, the denoising loss is orders
+of magnitude larger than the trajectory loss and pulls the one-step jump to the posterior mean, between the modes
+of a multimodal chunk distribution.
 
-Deviations, both as in CTM's paper: the gradient flows through the target network's jump s -> sigma_min into the
+Deviations from the official code, all three as in CTM's paper (the adaptive weight above is the third): the gradient flows through the target network's jump s -> sigma_min into the
 student's output (the official code runs that jump without gradient, which leaves the trajectory loss without
 effect); the denoising loss reads g at target level sigma (the official code reads the jump to sigma_min, whose
 regression to the posterior mean at high noise levels undoes the one-step jump to a mode).
@@ -35,11 +39,47 @@ DENOISING_RHO_SPAN = 0.7
 """The denoising loss's first half draws its levels from this upper share of the discretization (in rho-space)."""
 
 
+ADAPTIVE_EPSILON = 1e-4
+"""Added to the denoising gradient's norm in the adaptive weight (CTM's constant), against division by zero."""
+
+ADAPTIVE_MAX = 1e4
+"""Cap of the adaptive weight (CTM's), for a denoising gradient that vanishes."""
+
+
 class DistillationLosses(NamedTuple):
-    """The two losses of one batch (scalars)."""
+    """The two losses of one batch and the denoising loss's adaptive scale (scalars; the scale without gradient)."""
 
     trajectory: torch.Tensor
     denoising: torch.Tensor
+    denoising_scale: torch.Tensor
+
+    def total(self, trajectory_weight: float, denoising_weight: float) -> torch.Tensor:
+        """trajectory_weight * trajectory + denoising_weight * denoising_scale * denoising (scalar)."""
+        return trajectory_weight * self.trajectory + denoising_weight * self.denoising_scale * self.denoising
+
+
+def adaptive_scale(trajectory: torch.Tensor, denoising: torch.Tensor, layer: torch.Tensor) -> torch.Tensor:
+    """CTM's adaptive weight of the denoising loss: the ratio of the two losses' gradient norms at `layer`.
+
+    Scaled by it, the denoising loss moves the network's last layer as strongly as the trajectory loss does,
+    whatever the two losses' magnitudes (the denoising loss's is orders larger at the start of distillation).
+
+    Args:
+        trajectory: the trajectory loss (scalar, with gradient).
+        denoising: the denoising loss (scalar, with gradient).
+        layer: a parameter both losses reach (the U-Net's output projection).
+
+    Returns:
+        The weight (scalar, without gradient), in [0, ADAPTIVE_MAX].
+    """
+    if not (trajectory.requires_grad and denoising.requires_grad):
+        return torch.ones((), device=denoising.device)
+    (trajectory_grad,) = torch.autograd.grad(trajectory, layer, retain_graph=True, allow_unused=True)
+    (denoising_grad,) = torch.autograd.grad(denoising, layer, retain_graph=True, allow_unused=True)
+    if trajectory_grad is None or denoising_grad is None:
+        return torch.ones((), device=denoising.device)
+    scale = trajectory_grad.norm() / (denoising_grad.norm() + ADAPTIVE_EPSILON)
+    return scale.clamp(0.0, ADAPTIVE_MAX).detach()
 
 
 def warm_start(student: ConditionalUNet1D, teacher: ConditionalUNet1D) -> None:
@@ -184,4 +224,5 @@ class Distillation(nn.Module):
         noisy = actions + expand_like(sigma, actions) * torch.randn_like(actions)
         denoised = student.denoise(noisy, sigma, sigma, features)
         denoising = pseudo_huber(denoised, actions, schedule.loss_weight(sigma))
-        return DistillationLosses(trajectory, denoising)
+        scale = adaptive_scale(trajectory, denoising, student.unet.final[-1].weight)
+        return DistillationLosses(trajectory, denoising, scale)

@@ -144,12 +144,13 @@ def train_student(config: ConsistencyConfig, run: TrainingRun) -> ConsistencyPol
 
     def training_step(batch) -> TrainingStep:
         losses = policy.distillation(policy, batch)
-        loss = config.trajectory_weight * losses.trajectory + config.denoising_weight * losses.denoising
+        loss = losses.total(config.trajectory_weight, config.denoising_weight)
         count = batch["actions"].shape[0]
         # Batch means times the batch size: the loop reports them as epoch means.
         metric_sums = {
             "trajectory_loss": losses.trajectory.detach() * count,
             "denoising_loss": losses.denoising.detach() * count,
+            "denoising_scale": losses.denoising_scale * count,
         }
         return TrainingStep(loss, metric_sums)
 

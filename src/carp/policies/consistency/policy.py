@@ -304,4 +304,4 @@ class ConsistencyPolicy(KarrasPolicy):
         if self.distillation is None:
             raise RuntimeError("a consistency_policy trains by distillation from its teacher; none is attached")
         losses = self.distillation(self, batch)
-        return self.config.trajectory_weight * losses.trajectory + self.config.denoising_weight * losses.denoising
+        return losses.total(self.config.trajectory_weight, self.config.denoising_weight)
