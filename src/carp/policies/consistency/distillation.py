@@ -17,10 +17,11 @@ layer, so that `denoising_weight` is relative to the trajectory loss's pull. Uns
 of magnitude larger than the trajectory loss and pulls the one-step jump to the posterior mean, between the modes
 of a multimodal chunk distribution.
 
-Deviations from the official code, all three as in CTM's paper (the adaptive weight above is the third): the gradient flows through the target network's jump s -> sigma_min into the
-student's output (the official code runs that jump without gradient, which leaves the trajectory loss without
-effect); the denoising loss reads g at target level sigma (the official code reads the jump to sigma_min, whose
-regression to the posterior mean at high noise levels undoes the one-step jump to a mode).
+Deviations from the official code, all three as in CTM's paper: the gradient flows through the target network's
+jump s -> sigma_min into the student's output (the official code runs that jump without gradient, which leaves the
+trajectory loss without effect); the denoising loss reads g at target level sigma (the official code reads the jump
+to sigma_min, whose regression to the posterior mean at high noise levels undoes the one-step jump to a mode); the
+adaptive weight above (the official code weights the two losses by fixed constants).
 
 The warm start copies the teacher's U-Net into the student, whose FiLM projections read one more step embedding
 (the target level): its columns start at zero, so the warm-started student's jump to any level is the teacher's
