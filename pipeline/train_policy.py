@@ -35,6 +35,7 @@ from carp.training.task_policy import (
     load_task_policy_inputs,
     train_and_write_task_policy,
     train_task_policy,
+    train_task_teacher,
 )
 
 TORCHRUN_VARIABLES = ("RANK", "LOCAL_RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
@@ -96,19 +97,19 @@ def main() -> None:
             device,
         )  # fmt: skip
     family_config = params.family_config(args.policy)
-    # A distilled family reads its teacher family's checkpoint of the same task and seed, trained by that family's
-    # own train_policy stage (params refuse a pipeline that does not list the teacher family first).
+    # A distilled family trains its teacher first, in this stage, from the teacher family's own params section.
     teacher = get_family(args.policy).teacher
-    teacher_checkpoint = None if teacher is None else policy_dir(args.task, teacher, args.seed) / "policy.pt"
-    if teacher_checkpoint is not None and not teacher_checkpoint.is_file():
-        fail(f"{teacher_checkpoint}: the {teacher} teacher of {args.policy} is not trained; run train_policy for it")
+    teacher_config = None if teacher is None else params.family_config(teacher)
     training = params.training_for_seed(args.seed)
     checkpoint_dir = CHECKPOINT_DIR / "policy" / args.task / args.policy / seed_name(args.seed)
     try:
         if rank != 0:
+            teacher_policy = train_task_teacher(
+                args.policy, teacher_config, training, params.data, inputs, args.task, checkpoint_dir, device
+            )
             train_task_policy(
                 args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device,
-                teacher_checkpoint=teacher_checkpoint,
+                teacher=teacher_policy,
             )  # fmt: skip
             return
         tags = {
@@ -124,7 +125,7 @@ def main() -> None:
         with mlflow_stage(params, f"train_policy@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
             metrics = train_and_write_task_policy(
                 args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device, outputs,
-                run, teacher_checkpoint,
+                run, teacher_config,
             )  # fmt: skip
     finally:
         distributed.stop_process_group()

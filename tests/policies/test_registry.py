@@ -87,15 +87,13 @@ def stub_registered():
 def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp_path):
     config = TINY_CONFIGS.get(name) or get_family(name).config_class()
     training = TrainingConfig(epochs=2, batch_size=8, checkpoint_every=1)
-    teacher_checkpoint = None
+    teacher = None
     teacher_family = get_family(name).teacher
     if teacher_family is not None:
-        # A distilled family reads its teacher family's trained checkpoint.
-        teacher_checkpoint = tmp_path / "teacher.pt"
+        # A distilled family is given its teacher family's trained policy.
         teacher = train_policy(
             teacher_family, TINY_CONFIGS[teacher_family], training, tiny_context(), tiny_data(), tmp_path / "teacher"
         )
-        teacher.save(teacher_checkpoint)
     history = []
     policy = train_policy(
         name,
@@ -105,7 +103,7 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
         tiny_data(),
         tmp_path / "state",
         on_epoch_end=lambda e, m: history.append(m),
-        teacher_checkpoint=teacher_checkpoint,
+        teacher=teacher,
     )
     assert len(history) == 2 and all(np.isfinite(epoch["loss"]) and epoch["epoch_seconds"] > 0 for epoch in history)
     untrained = build_policy(name, config, tiny_context())
@@ -140,7 +138,7 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
         tiny_data(),
         tmp_path / "state",
         on_epoch_end=lambda e, m: replayed.append(m),
-        teacher_checkpoint=teacher_checkpoint,
+        teacher=teacher,
     )
     assert replayed == history
 

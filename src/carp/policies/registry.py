@@ -60,9 +60,8 @@ class PolicyFamily:
         train: `train(config, run)` -> the trained policy in eval mode, given a :class:`TrainingRun`: builds the
             policy and runs the resumable loop on it (the shared loop, through :meth:`TrainingRun.train_with_loss`);
             see :func:`train_policy`.
-        teacher: the family whose trained checkpoint this family's training reads (a distilled student's
-            teacher), given to `train` as :attr:`TrainingRun.teacher_checkpoint`; None for a family trained from
-            the data alone.
+        teacher: the family whose trained policy this family's training distils (a distilled student's teacher),
+            given to `train` as :attr:`TrainingRun.teacher`; None for a family trained from the data alone.
     """
 
     name: str
@@ -90,7 +89,7 @@ class TrainingRun:
         epochs: passes over the windows; None takes `training.epochs`.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
             `loss` and `epoch_seconds`.
-        teacher_checkpoint: the trained checkpoint of the family's `teacher` family; None for other families.
+        teacher: the trained policy of the family's `teacher` family; None for other families.
     """
 
     training: Any
@@ -100,7 +99,7 @@ class TrainingRun:
     device: str | torch.device = "cpu"
     epochs: int | None = None
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None
-    teacher_checkpoint: Path | None = None
+    teacher: Policy | None = None
 
     def train_with_loss(
         self,
@@ -197,7 +196,7 @@ def train_policy(
     device: str | torch.device = "cpu",
     epochs: int | None = None,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
-    teacher_checkpoint: Path | None = None,
+    teacher: Policy | None = None,
 ) -> Policy:
     """Train a policy of family `name`, resuming from `checkpoint_dir` when a run of the same setup left a state.
 
@@ -211,15 +210,12 @@ def train_policy(
         device: see :class:`TrainingRun`.
         epochs: see :class:`TrainingRun`.
         on_epoch_end: see :class:`TrainingRun`.
-        teacher_checkpoint: see :class:`TrainingRun`; required by a family that declares a `teacher`.
+        teacher: see :class:`TrainingRun`; required by a family that declares a `teacher`.
 
     Returns:
         The trained policy in eval mode on the CPU.
     """
-    run = TrainingRun(
-        training, context, data, Path(checkpoint_dir), device, epochs, on_epoch_end,
-        None if teacher_checkpoint is None else Path(teacher_checkpoint),
-    )  # fmt: skip
+    run = TrainingRun(training, context, data, Path(checkpoint_dir), device, epochs, on_epoch_end, teacher)
     return get_family(name).train(config, run).to("cpu").train(False)
 
 

@@ -2,15 +2,16 @@
 
 Both train in the shared loop (`carp.training.loop`) with DP's optimizer recipe (AdamW, betas 0.95 and 0.999, linear
 warm-up then cosine decay) and DP's EMA of the weights for evaluation. The student declares its teacher family: its
-training reads the teacher's checkpoint (`TrainingRun.teacher_checkpoint`), starts from the teacher's weights and
-distils it (`carp.policies.consistency.distillation`), with the teacher's sha256 in the run's identity so that a
+training is given the trained teacher (`TrainingRun.teacher`), starts from the teacher's weights and distils it
+(`carp.policies.consistency.distillation`), with a digest of the teacher's weights in the run's identity so that a
 resumed run never mixes two teachers.
 """
 
 import dataclasses
 import functools
 import hashlib
-from pathlib import Path
+
+import torch
 
 from carp.policies.consistency.config import (
     STUDENT,
@@ -27,7 +28,7 @@ from carp.policies.consistency.policy import ConsistencyPolicy, EDMPolicy, Karra
 from carp.policies.context import PolicyContext
 from carp.policies.diffusion.ema import exponential_moving_average
 from carp.policies.diffusion.unet import ConditionalUNet1D
-from carp.policies.registry import PolicyFamily, TrainingRun, load_policy
+from carp.policies.registry import PolicyFamily, TrainingRun
 from carp.training.loop import OptimizerRecipe, TrainingStep
 from carp.training.runtime import seed_everything
 
@@ -96,34 +97,42 @@ def train_teacher(config: EDMConfig, run: TrainingRun) -> EDMPolicy:
     return run.train_with_loss(policy, _recipe(config), identity)
 
 
-def load_teacher(path: Path, config: ConsistencyConfig, context: PolicyContext) -> EDMPolicy:
-    """The teacher checkpoint at `path`, checked against the student's config and the data's shapes.
+def check_teacher(teacher: object, config: ConsistencyConfig, context: PolicyContext) -> EDMPolicy:
+    """`teacher`, checked against the student's config and the data's shapes.
 
     Raises:
         ValueError: not an EDM teacher, or a U-Net or shapes that differ from the student's.
     """
-    teacher = load_policy(path)
     if not isinstance(teacher, EDMPolicy):
-        raise ValueError(f"{path}: the teacher must be an {TEACHER} policy, got {teacher.policy_type}")
+        raise ValueError(f"the teacher must be an {TEACHER} policy, got {getattr(teacher, 'policy_type', teacher)}")
     for name in UNET_FIELDS:
         ours, theirs = getattr(config, name), getattr(teacher.config, name)
         if ours != theirs:
-            raise ValueError(f"{path}: the teacher's {TEACHER}.{name}={theirs} differs from {STUDENT}.{name}={ours}")
+            raise ValueError(f"the teacher's {TEACHER}.{name}={theirs} differs from {STUDENT}.{name}={ours}")
     shapes = teacher.family_checkpoint()["shapes"]
     if shapes != _shapes(context):
-        raise ValueError(f"{path}: the teacher was trained for shapes {shapes}, the data has {_shapes(context)}")
+        raise ValueError(f"the teacher was trained for shapes {shapes}, the data has {_shapes(context)}")
     return teacher
 
 
+def weights_digest(module: torch.nn.Module) -> str:
+    """sha256 over the names and bytes of `module`'s state (its weights and buffers), on the CPU."""
+    digest = hashlib.sha256()
+    for name, value in module.state_dict().items():
+        digest.update(name.encode())
+        digest.update(value.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
 def train_student(config: ConsistencyConfig, run: TrainingRun) -> ConsistencyPolicy:
-    """Warm-start the student from its teacher's checkpoint and distil the teacher in the shared loop.
+    """Warm-start the student from its trained teacher and distil the teacher in the shared loop.
 
     Raises:
-        ValueError: the run has no teacher checkpoint, or one that does not fit (see :func:`load_teacher`).
+        ValueError: the run has no teacher, or one that does not fit (see :func:`check_teacher`).
     """
-    if run.teacher_checkpoint is None:
-        raise ValueError(f"a {STUDENT} policy distils an {TEACHER} teacher; the run names no teacher checkpoint")
-    teacher = load_teacher(run.teacher_checkpoint, config, run.context)
+    if run.teacher is None:
+        raise ValueError(f"a {STUDENT} policy distils an {TEACHER} teacher; the run has no teacher")
+    teacher = check_teacher(run.teacher, config, run.context)
     seed_everything(run.training.seed)
     policy = _build(ConsistencyPolicy, config, run.context, teacher.schedule)
     warm_start(policy.unet, teacher.unet)
@@ -158,7 +167,7 @@ def train_student(config: ConsistencyConfig, run: TrainingRun) -> ConsistencyPol
         "policy_type": STUDENT,
         "config": dataclasses.asdict(config),
         "shapes": _shapes(run.context),
-        "teacher_sha256": hashlib.sha256(Path(run.teacher_checkpoint).read_bytes()).hexdigest(),
+        "teacher_sha256": weights_digest(teacher),
     }
     trained = run.train_with_loss(policy, _recipe(config), identity, training_step=training_step)
     trained.distillation = None
