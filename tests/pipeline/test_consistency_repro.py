@@ -1,4 +1,4 @@
-"""End to end: the consistency_policy stage trains its own edm_unet teacher, and reuses it when only the student changes.
+"""End to end: the consistency_policy stage trains its edm_unet teacher, and reuses it when only the student changes.
 
 The student's train_policy stage writes `teacher.pt` beside `policy.pt`; the teacher's training state stays in the
 stage's checkpoints, so a rerun for a student-only change distils again from the same teacher without retraining it.
