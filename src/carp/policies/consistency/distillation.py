@@ -225,5 +225,6 @@ class Distillation(nn.Module):
         noisy = actions + expand_like(sigma, actions) * torch.randn_like(actions)
         denoised = student.denoise(noisy, sigma, sigma, features)
         denoising = pseudo_huber(denoised, actions, schedule.loss_weight(sigma))
-        scale = adaptive_scale(trajectory, denoising, student.unet.final[-1].weight)
+        output_layer = student.unet.final[-1].weight  # the U-Net's last 1x1 convolution, (A, C, 1)
+        scale = adaptive_scale(trajectory, denoising, output_layer)
         return DistillationLosses(trajectory, denoising, scale)
