@@ -49,8 +49,8 @@ test-fast: setup
 # Style, then the two documentation checks (also run by `make test` as tests): no development-history words in the
 # user-facing files, and docs/params.md documents every param and is what `make docs` generates.
 lint: setup
-	$(BIN)/ruff check src pipeline tests benchmarks tools
-	$(BIN)/ruff format --check src pipeline tests benchmarks tools
+	$(BIN)/ruff check src pipeline tests benchmarks tools examples
+	$(BIN)/ruff format --check src pipeline tests benchmarks tools examples
 	$(BIN)/python tools/check_history_words.py
 	$(BIN)/python tools/params_docs.py --check
 
@@ -64,6 +64,7 @@ benchmark: setup
 	$(BIN)/python benchmarks/policy_families.py
 	$(BIN)/python benchmarks/rendering_cost.py
 	$(BIN)/python benchmarks/image_windows.py
+	$(BIN)/python benchmarks/serving_latency.py
 
 ui: setup
 	$(BIN)/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --port 5000

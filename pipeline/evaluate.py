@@ -4,6 +4,10 @@ With validation episodes (`eval.validation_episodes`) every candidate policy of 
 snapshots) runs on the validation seeds first; `eval.selection` then fixes one, and only that one runs on the test
 seeds. Writes the summary `seed<seed>.json`, the test episodes `seed<seed>_episodes.csv` and the validation episodes
 `seed<seed>_validation.csv` (empty without validation).
+
+With --multitask (the evaluate_multitask stage) it evaluates the family's multi-task policy,
+models/policy/multitask/<policy>/seed<seed>/, on --task, with that task's statistics and task id, and writes
+reports/eval/<task>/<policy>-multitask/seed<seed>*.
 """
 
 import os
@@ -18,10 +22,9 @@ from stage_support import (
     evaluation_report,
     fail,
     mlflow_stage,
-    policy_dir,
-    policy_report_dir,
     policy_stage_args,
     setup_logging,
+    stage_policy_paths,
 )
 
 from carp.data.dataset import load_task_windows
@@ -41,8 +44,8 @@ def main() -> None:
         # Worker processes are spawned after this point and inherit it.
         os.environ.setdefault("MUJOCO_GL", "egl")
     cameras = camera_settings(params)
-    run_dir = policy_dir(args.task, args.policy, args.seed)
-    history = policy_report_dir(args.task, args.policy, args.seed) / "history.csv"
+    run_dir, training_report_dir, label = stage_policy_paths(args)
+    history = training_report_dir / "history.csv"
     try:
         policy = load_policy(run_dir / "policy.pt")
         candidates = find_candidates(run_dir, pd.read_csv(history)["loss"].tolist())
@@ -61,9 +64,11 @@ def main() -> None:
         "carp.policy_run_id": policy.metadata.get("mlflow_run_id", ""),
         "carp.policy_type": args.policy,
         "carp.training_seed": str(args.seed),
+        "carp.multitask": str(args.multitask).lower(),
     }
+    stage = "evaluate_multitask" if args.multitask else "evaluate"
     with (
-        mlflow_stage(params, f"evaluate@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run,
+        mlflow_stage(params, f"{stage}@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run,
         tempfile.TemporaryDirectory(prefix="carp-averaged-") as scratch,
     ):
 
@@ -91,6 +96,7 @@ def main() -> None:
                 video_episodes=config.video_episodes if config.video and seeds == config.test_seeds() else 0,
                 backend=config.backend,
                 cameras=cameras,
+                task=args.task,
             )
 
         evaluated = evaluate_with_selection(
@@ -110,6 +116,7 @@ def main() -> None:
         if "validation_max_success_rate" in summary:
             summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
         policy = load_policy(evaluated.tested)
+        policy.select_task(args.task)
         policy.configure_inference(**inference)
         summary.update(
             buffer_latency(
@@ -122,7 +129,7 @@ def main() -> None:
                 with_images=cameras is not None,
             )
         )
-        report = evaluation_report(args.task, args.policy, args.seed)
+        report = evaluation_report(args.task, label, args.seed)
         report.parent.mkdir(parents=True, exist_ok=True)
         write_json(report, summary)
         episodes = report.with_name(f"{report.stem}_episodes.csv")
@@ -132,10 +139,10 @@ def main() -> None:
         run.log_metrics(summary)
         run.log_artifact(episodes)
         run.log_artifact(validation)
-        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{args.policy}-{args.seed}"):
+        for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{label}-{args.seed}"):
             run.log_artifact(video)
     print(
-        f"{args.task} {args.policy} seed {args.seed} (epoch {summary['selected_epoch']}, {config.selection}, "
+        f"{args.task} {label} seed {args.seed} (epoch {summary['selected_epoch']}, {config.selection}, "
         f"{summary['backend']}): success {summary['successes']}/{summary['episodes']} "
         f"({100 * summary['success_rate']:.1f}%, 95% CI {100 * summary['success_rate_ci_low']:.1f}-"
         f"{100 * summary['success_rate_ci_high']:.1f}%), latency per chunk "

@@ -13,6 +13,7 @@ from stage_support import (
     evaluation_report,
     git_commit,
     load,
+    multitask_label,
     parse_args,
     policy_report_dir,
     setup_logging,
@@ -45,6 +46,16 @@ def main() -> None:
             for task, task_runs in runs.items()
         },
         runs=runs,
+        multitask={
+            task: {
+                policy: pooled_metrics(
+                    {seed: _run_results(task, multitask_label(policy), seed) for seed in params.seeds}
+                )
+                for policy in params.multitask
+            }
+            for task in params.tasks
+            if params.multitask
+        },
         max_steps={task: params.max_steps_for(task) for task in params.tasks},
         demo_notes={task: scripted_demo_note(task) for task in params.tasks if task not in params.data.raw_files},
         margin=params.comparison.margin,
@@ -66,7 +77,7 @@ def main() -> None:
         videos={
             task: [
                 video
-                for policy in params.policies
+                for policy in (*params.policies, *map(multitask_label, params.multitask))
                 for seed in params.seeds
                 for video in episode_videos(EVAL_VIDEO_DIR, f"{task}_{policy}-{seed}")
             ]

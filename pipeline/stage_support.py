@@ -57,26 +57,38 @@ def project_root() -> Path:
     return PROJECT_DIR
 
 
-def parse_args(description: str, per_task: bool = False, per_policy: bool = False) -> argparse.Namespace:
-    """Common command line: ``--params``, ``--task`` for per-task stages, ``--policy --seed`` for per-family stages."""
+def parse_args(description: str, per_task: bool = False) -> argparse.Namespace:
+    """Common command line: ``--params``, and ``--task`` for per-task stages (per-family ones: `policy_stage_args`)."""
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
     if per_task:
         parser.add_argument("--task", required=True)
-    if per_policy:
-        parser.add_argument("--policy", required=True, help="a policy family listed in `policies`")
-        parser.add_argument("--seed", type=int, required=True, help="a training seed listed in `seeds`")
     return parser.parse_args()
 
 
-def policy_stage_args(description: str) -> tuple[argparse.Namespace, Params]:
-    """Command line and params of a per-(task, family, seed) stage; one line and exit 1 when one is not listed."""
-    args = parse_args(description, per_task=True, per_policy=True)
+def policy_stage_args(description: str, task_or_multitask: bool = False) -> tuple[argparse.Namespace, Params]:
+    """Command line and params of a per-(task, family, seed) stage; one line and exit 1 when one is not listed.
+
+    ``--multitask`` names the family's multi-task policy (listed in ``multitask``) instead of its single-task one
+    (listed in ``policies``). With `task_or_multitask` (training) it stands instead of ``--task``: that policy trains
+    on every task; otherwise ``--task`` names the task it is evaluated on.
+    """
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
+    task_options = parser.add_mutually_exclusive_group(required=True) if task_or_multitask else parser
+    task_options.add_argument("--task", required=not task_or_multitask)
+    task_options.add_argument("--multitask", action="store_true", help="the family's multi-task policy")
+    parser.add_argument("--policy", required=True, help="a policy family listed in `policies` (or `multitask`)")
+    parser.add_argument("--seed", type=int, required=True, help="a training seed listed in `seeds`")
+    args = parser.parse_args()
     params = load(args.params)
-    if args.policy not in params.policies:
-        fail(f"{args.params}: policies={list(params.policies)}: --policy {args.policy} is not listed")
+    key, listed = ("multitask", params.multitask) if args.multitask else ("policies", params.policies)
+    if args.policy not in listed:
+        fail(f"{args.params}: {key}={list(listed)}: --policy {args.policy} is not listed")
     if args.seed not in params.seeds:
         fail(f"{args.params}: seeds={list(params.seeds)}: --seed {args.seed} is not listed")
+    if args.task is not None and args.task not in params.tasks:
+        fail(f"{args.params}: tasks={list(params.tasks)}: --task {args.task} is not listed")
     return args, params
 
 
@@ -109,8 +121,39 @@ def policy_report_dir(task: str, policy: str, seed: int) -> Path:
     return POLICY_REPORT_DIR / task / policy / seed_name(seed)
 
 
+MULTITASK_DIRNAME = "multitask"
+"""The part of a multi-task policy's paths that stands for the task: ``models/policy/multitask/<policy>/...``."""
+
+
+def multitask_label(policy: str) -> str:
+    """``<policy>-multitask``: a family's multi-task policy in evaluation paths and the report, beside ``<policy>``."""
+    return f"{policy}-{MULTITASK_DIRNAME}"
+
+
+def stage_policy_paths(args: argparse.Namespace) -> tuple[Path, Path, str]:
+    """The checkpoint directory, training report directory and label of a policy stage's ``--policy --seed``.
+
+    A single-task policy's are ``policy_dir``, ``policy_report_dir`` and the family; a multi-task one's
+    (``--multitask``) sit under ``multitask/`` in place of the task, and its label is ``multitask_label``.
+    """
+    if args.multitask:
+        return (
+            POLICY_DIR / MULTITASK_DIRNAME / args.policy / seed_name(args.seed),
+            POLICY_REPORT_DIR / MULTITASK_DIRNAME / args.policy / seed_name(args.seed),
+            multitask_label(args.policy),
+        )
+    return (
+        policy_dir(args.task, args.policy, args.seed),
+        policy_report_dir(args.task, args.policy, args.seed),
+        args.policy,
+    )
+
+
 def evaluation_report(task: str, policy: str, seed: int) -> Path:
-    """``reports/eval/<task>/<policy>/seed<seed>.json``: evaluation summary of one run (episodes beside it)."""
+    """``reports/eval/<task>/<policy>/seed<seed>.json``: evaluation summary of one run (episodes beside it).
+
+    `policy` is a family, or a family's `multitask_label` for its multi-task policy evaluated on `task`.
+    """
     return EVAL_REPORT_DIR / task / policy / f"{seed_name(seed)}.json"
 
 

@@ -1,9 +1,13 @@
 """train_policy stage: a task's processed data + the tokenizer -> models/policy/<task>/<policy>/seed<seed>/policy.pt.
 
+With --multitask instead of --task (the train_multitask stage) it trains one policy over every task of the run, each
+window labelled with its task: models/policy/multitask/<policy>/seed<seed>/policy.pt.
+
 With `training.num_processes` above 1 the script checks its inputs, then starts itself again as that many processes
 under torchrun (`carp.training.distributed`); rank 0 logs to MLflow and writes the outputs, the others only train.
 """
 
+import functools
 import logging
 import os
 import sys
@@ -12,17 +16,17 @@ from pathlib import Path
 import torch
 from stage_support import (
     CHECKPOINT_DIR,
+    MULTITASK_DIRNAME,
+    POLICY_DIR,
     PROCESSED_DIR,
     TOKENIZER_DIR,
     TOKENIZER_REF,
     fail,
     mlflow_stage,
-    policy_dir,
-    policy_report_dir,
     policy_stage_args,
-    seed_name,
     select_device,
     setup_logging,
+    stage_policy_paths,
 )
 
 from carp.policies.registry import get_family
@@ -32,8 +36,11 @@ from carp.training.checkpoint import CheckpointError
 from carp.training.runtime import precision_name, resolve_precision
 from carp.training.task_policy import (
     TaskPolicyOutputs,
+    load_multitask_policy_inputs,
     load_task_policy_inputs,
+    train_and_write_multitask_policy,
     train_and_write_task_policy,
+    train_multitask_policy,
     train_task_policy,
     train_task_teacher,
 )
@@ -66,7 +73,7 @@ def launch_processes(params_path: Path, num_processes: int, device: torch.device
 
 def main() -> None:
     setup_logging()
-    args, params = policy_stage_args(__doc__)
+    args, params = policy_stage_args(__doc__, task_or_multitask=True)
     num_processes = params.training.num_processes
     launched = torchrun_variables()
     if launched is not None and int(launched["WORLD_SIZE"]) != num_processes:
@@ -76,10 +83,16 @@ def main() -> None:
         )
     try:
         # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
-        inputs = load_task_policy_inputs(
-            PROCESSED_DIR / args.task, TOKENIZER_DIR, TOKENIZER_REF, params.data, params.action_space, params.scales,
-            params.codebook_size, params.policy_image_encoder,
-        )  # fmt: skip
+        if args.multitask:
+            inputs = load_multitask_policy_inputs(
+                {task: PROCESSED_DIR / task for task in params.tasks}, TOKENIZER_DIR, TOKENIZER_REF, params.data,
+                params.action_space, params.scales, params.codebook_size,
+            )  # fmt: skip
+        else:
+            inputs = load_task_policy_inputs(
+                PROCESSED_DIR / args.task, TOKENIZER_DIR, TOKENIZER_REF, params.data, params.action_space,
+                params.scales, params.codebook_size, params.policy_image_encoder,
+            )  # fmt: skip
     except (CheckpointError, TokenizerMismatchError, FileNotFoundError, ValueError) as error:
         fail(str(error))
     device = select_device(params)
@@ -101,9 +114,17 @@ def main() -> None:
     teacher = get_family(args.policy).teacher
     teacher_config = None if teacher is None else params.family_config(teacher)
     training = params.training_for_seed(args.seed)
-    checkpoint_dir = CHECKPOINT_DIR / "policy" / args.task / args.policy / seed_name(args.seed)
-    try:
-        if rank != 0:
+    model_dir, report_dir, _ = stage_policy_paths(args)
+    checkpoint_dir = CHECKPOINT_DIR / "policy" / model_dir.relative_to(POLICY_DIR)
+    # Both kinds take (checkpoint_dir, device, ...) after what names the training.
+    if args.multitask:
+        train = functools.partial(train_multitask_policy, args.policy, family_config, training, params.data, inputs)
+        train_and_write = functools.partial(
+            train_and_write_multitask_policy, args.policy, family_config, training, params.data, inputs
+        )
+    else:
+        # A distilled family's teacher trains first, then the student from it (`train_and_write_task_policy` does both).
+        def train(checkpoint_dir: Path, device: torch.device) -> None:
             teacher_policy = train_task_teacher(
                 args.policy, teacher_config, training, params.data, inputs, args.task, checkpoint_dir, device
             )
@@ -111,6 +132,15 @@ def main() -> None:
                 args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device,
                 teacher=teacher_policy,
             )  # fmt: skip
+
+        train_and_write = functools.partial(
+            train_and_write_task_policy, args.policy, family_config, training, params.data, inputs, args.task,
+            teacher_config=teacher_config,
+        )  # fmt: skip
+    trained = MULTITASK_DIRNAME if args.multitask else args.task
+    try:
+        if rank != 0:
+            train(checkpoint_dir, device)
             return
         tags = {
             "carp.tokenizer": inputs.reference.uri,
@@ -118,21 +148,17 @@ def main() -> None:
             "carp.policy_type": args.policy,
             "carp.training_seed": str(args.seed),
         }
-        outputs = TaskPolicyOutputs(
-            policy_dir(args.task, args.policy, args.seed) / "policy.pt",
-            policy_report_dir(args.task, args.policy, args.seed),
-        )
-        with mlflow_stage(params, f"train_policy@{args.task}-{args.policy}-{args.seed}", args.task, tags) as run:
-            metrics = train_and_write_task_policy(
-                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device, outputs,
-                run, teacher_config,
-            )  # fmt: skip
+        outputs = TaskPolicyOutputs(model_dir / "policy.pt", report_dir)
+        stage = f"train_multitask@{args.policy}-{args.seed}" if args.multitask else (
+            f"train_policy@{args.task}-{args.policy}-{args.seed}"
+        )  # fmt: skip
+        with mlflow_stage(params, stage, trained, tags) as run:
+            metrics = train_and_write(checkpoint_dir, device, outputs, run)
     finally:
         distributed.stop_process_group()
-    print(
-        f"{args.task} {args.policy} seed {args.seed}: final loss {metrics['final_loss']:.4f}, held-out action RMSE "
-        f"{metrics.get('valid_action_rmse', float('nan')):.4f}"
-    )
+    # A multi-task policy's held-out errors are per task (`<task>/valid_action_rmse`).
+    errors = ", ".join(f"{key} {value:.4f}" for key, value in metrics.items() if key.endswith("valid_action_rmse"))
+    print(f"{trained} {args.policy} seed {args.seed}: final loss {metrics['final_loss']:.4f}, held-out {errors or '-'}")
 
 
 if __name__ == "__main__":

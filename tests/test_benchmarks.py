@@ -249,3 +249,33 @@ def test_image_windows_refuses_a_buffer_without_images_in_one_line(tmp_path):
     completed = run_benchmark("image_windows.py", "--buffer", str(tmp_path))
     assert completed.returncode == 1
     assert completed.stderr.strip().splitlines() == [f"error: --buffer={tmp_path}: not a zarr replay buffer"]
+
+
+def test_serving_latency_prints_in_process_and_loopback_rows():
+    completed = run_benchmark("serving_latency.py", "--tiny", "--requests", "6", "--clients", "1", "2")
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    header = completed.stdout.splitlines()[0]
+    assert "random Lift CARP policy (tiny)" in header and "Do=19, (H, A)=(8, 10)" in header
+    assert "batching possible" in header  # the family's default inference is greedy
+    pattern = (
+        rf"^(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}"
+        rf"\s+{NUMBER}$"
+    )
+    rows = re.findall(pattern, completed.stdout, flags=re.MULTILINE)
+    assert [tuple(row[:3]) for row in rows] == [
+        ("in-process prediction", "1", "-"),
+        ("loopback round trip", "1", "off"),
+        ("loopback round trip", "2", "off"),
+        ("loopback round trip", "1", "on"),
+        ("loopback round trip", "2", "on"),
+    ]
+    for *_, batching, p50, p99, throughput, per_call in rows:
+        assert 0 < float(p50) <= float(p99) and float(throughput) > 0
+        assert 1.0 <= float(per_call) <= (8.0 if batching == "on" else 1.0)
+
+
+def test_serving_latency_refuses_a_checkpoint_without_its_protocol_in_one_line(tmp_path):
+    missing = tmp_path / "policy.pt"
+    completed = run_benchmark("serving_latency.py", "--checkpoint", str(missing))
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [f"error: {missing}: no such model file"]

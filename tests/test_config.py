@@ -25,6 +25,7 @@ def test_defaults_follow_the_design():
     assert params.tasks == ("lift",)
     assert (params.data.obs_steps, params.data.action_horizon, params.data.action_steps) == (2, 16, 8)
     assert params.policies == ("carp",)
+    assert params.multitask == ()
     carp = params.family_config("carp")
     assert (carp.depth, carp.width, carp.num_heads) == (8, 64, 8)
     assert params.tokenizer.latent_channels == 8
@@ -89,6 +90,31 @@ def test_defaults_follow_the_design():
         ),
         ({"policies": ["carp", "carp"]}, "policies=('carp', 'carp'): must not repeat a family"),
         ({"policies": []}, "policies=[]: must list at least one policy family"),
+        (
+            {"tasks": ["can", "square"], "multitask": ["carp", "lstm"]},
+            "multitask=['carp', 'lstm']: every family must be one of ['carp', 'diffusion_unet',",
+        ),
+        (
+            {"tasks": ["can", "square"], "multitask": ["carp", "carp"]},
+            "multitask=['carp', 'carp']: must not repeat a family",
+        ),
+        (
+            {"tasks": ["can"], "multitask": ["carp"]},
+            "multitask=['carp']: a multi-task policy needs at least two tasks, tasks=['can']",
+        ),
+        (
+            {"tasks": ["can", "square"], "multitask": ["carp"], "data": {"observations": "image"}},
+            "multitask=['carp']: multi-task policies train on state observations, data.observations='image'",
+        ),
+        (
+            {"tasks": ["can", "square"], "multitask": ["carp", "consistency_policy"]},
+            "multitask=['carp', 'consistency_policy']: consistency_policy distils its edm_unet teacher, which trains "
+            "on one task only",
+        ),
+        (
+            {"tasks": ["lift", "pusht"], "multitask": ["carp"]},
+            "tasks=['lift', 'pusht']: tasks must share one action space",
+        ),
         ({"lstm": {"depth": 3}}, "lstm: unknown key"),
         (
             {"inference": {"lstm": {}}},
@@ -314,3 +340,9 @@ def test_each_task_gets_its_action_format_observation_keys_and_step_limit():
     assert pusht.action_format.stored_dim == pusht.action_format.policy_dim == 2
     assert pusht.obs_keys_for("pusht") == ("block_keypoints", "agent_pos")  # Push-T's observation is fixed
     assert pusht.max_steps_for("pusht") == 300
+
+
+def test_multitask_families_need_not_be_single_task_families():
+    params = params_from_dict({"tasks": ["can", "square"], "policies": ["carp"], "multitask": ["diffusion_unet"]})
+    assert params.multitask == ("diffusion_unet",)
+    assert params.family_config("diffusion_unet") is not None

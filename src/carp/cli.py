@@ -1,8 +1,12 @@
-"""The `carp` console command: `carp serve --model <policy.pt>` serves a trained policy to robots (issue 69).
+"""The `carp` console command: `carp serve` serves a trained policy to robots, `carp register` registers one.
 
-Like a pipeline stage script, this module only parses arguments, loads the params and calls one library function
-(`carp.serving.startup.serve_checkpoint`); it lives in the package because a console script must be importable.
-Start-up errors print one `error: ...` line and exit with status 1.
+`carp serve --model` takes a checkpoint path or a registry URI ``models:/<name>@<alias>``; the checkpoint describes
+what it serves (`carp.serving.protocol`), `--params` only chooses the inference settings (and gives the spec of a
+checkpoint trained before checkpoints recorded it). `carp register --model policy.pt --alias champion` registers a
+checkpoint as ``carp-policy-<task>-<family>`` and points the alias at it; moving the alias later makes a running
+`carp serve` swap versions. Like a pipeline stage script, this module only parses arguments, loads the params and
+calls one library function; it lives in the package because a console script must be importable.
+Errors print one `error: ...` line and exit with status 1.
 """
 
 import argparse
@@ -12,17 +16,26 @@ import sys
 from pathlib import Path
 
 TOKEN_VARIABLE = "CARP_SERVE_TOKEN"
+TRACKING_VARIABLE = "MLFLOW_TRACKING_URI"
+DEFAULT_TRACKING_URI = "sqlite:///mlflow.db"
+DEFAULT_RELOAD_INTERVAL_S = 30.0
 
 
 def _parser() -> argparse.ArgumentParser:
-    from carp.serving.server import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
+    from carp.serving.server import DEFAULT_HOST, DEFAULT_MAX_BATCH_SIZE, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
 
     parser = argparse.ArgumentParser(prog="carp", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     serve = commands.add_parser("serve", help="serve a policy checkpoint over WebSocket (msgpack frames)")
-    serve.add_argument("--model", type=Path, required=True, help="policy checkpoint (models/policy/.../policy.pt)")
     serve.add_argument(
-        "--params", type=Path, default=Path("params.yaml"), help="params the policy was trained with (To, H, Ta, keys)"
+        "--model", required=True, help="policy checkpoint (models/policy/.../policy.pt) or models:/<name>@<alias>"
+    )
+    serve.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        help="params whose inference.<family> settings apply (default: the family's defaults); for a checkpoint that "
+        "does not record its serving protocol, the params it was trained with",
     )
     serve.add_argument("--host", default=DEFAULT_HOST, help="interface to bind (default: loopback only)")
     serve.add_argument("--port", type=int, default=DEFAULT_PORT)
@@ -30,6 +43,25 @@ def _parser() -> argparse.ArgumentParser:
         "--token", default=os.environ.get(TOKEN_VARIABLE), help=f"bearer token clients must send (or ${TOKEN_VARIABLE})"
     )
     serve.add_argument("--max-request-bytes", type=int, default=DEFAULT_MAX_REQUEST_BYTES)
+    serve.add_argument(
+        "--max-batch", type=int, default=DEFAULT_MAX_BATCH_SIZE, help="most requests in one prediction call (1: off)"
+    )
+    serve.add_argument(
+        "--reload-interval",
+        type=float,
+        default=DEFAULT_RELOAD_INTERVAL_S,
+        help="seconds between checks for a moved alias or a changed file (0: only on SIGHUP)",
+    )
+    register = commands.add_parser("register", help="register a policy checkpoint in the MLflow Model Registry")
+    register.add_argument("--model", type=Path, required=True, help="policy checkpoint (policy.pt)")
+    register.add_argument("--alias", default="candidate", help="alias to point at the version (default: candidate)")
+    for command in (serve, register):
+        command.add_argument(
+            "--tracking-uri",
+            default=os.environ.get(TRACKING_VARIABLE, DEFAULT_TRACKING_URI),
+            help=f"MLflow store of the registry (or ${TRACKING_VARIABLE}; default {DEFAULT_TRACKING_URI}, relative "
+            "to the working directory)",
+        )
     return parser
 
 
@@ -38,12 +70,28 @@ def main(argv: list[str] | None = None) -> None:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
     from carp.config import ConfigError, load_params
-    from carp.serving.server import ServerSettings
-    from carp.serving.startup import ServingStartError, serve_checkpoint
+    from carp.serving.startup import ServingStartError
+    from carp.tracking.runs import resolve_tracking_uri
 
+    tracking_uri = resolve_tracking_uri(args.tracking_uri, Path.cwd())
     try:
-        settings = ServerSettings(args.host, args.port, args.token, args.max_request_bytes)
-        serve_checkpoint(args.model, load_params(args.params), settings)
+        if args.command == "register":
+            from carp.tracking.registry import register_policy_checkpoint
+
+            if not args.model.is_file():
+                raise FileNotFoundError(f"{args.model}: no such model file")
+            reference = register_policy_checkpoint(tracking_uri, args.model, args.alias)
+            print(f"{reference.uri} = version {reference.version} (sha256 {reference.sha256[:12]})")
+            return
+        from carp.serving.server import ServerSettings
+        from carp.serving.startup import serve_checkpoint
+
+        interval = args.reload_interval if args.reload_interval > 0 else None
+        settings = ServerSettings(
+            args.host, args.port, args.token, args.max_request_bytes, args.max_batch, reload_interval_s=interval
+        )
+        params = load_params(args.params) if args.params is not None else None
+        serve_checkpoint(args.model, params, settings, tracking_uri)
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)

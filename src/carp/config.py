@@ -707,6 +707,13 @@ class Params:
         seeds: Training seeds: every family is trained and evaluated once per seed on every task (``train_policy``
             and ``evaluate`` fan out over tasks x policies x seeds); integers >= 0, each at most once. The tokenizer
             stays one per pipeline.
+        multitask: Policy families that also train one multi-task policy over all of ``tasks`` (each demo labelled
+            with its task, a learned task embedding in the observation encoder, each task normalized with its own
+            statistics), evaluated on every task beside the single-task policies; registered families, each at most
+            once, not necessarily in ``policies``. Empty (the default) adds no stage. Needs at least two tasks with
+            state observations, and every task's observation keys of the same widths (Lift's ``object`` is 10 wide,
+            Can's and Square's 14: train Lift with them on ``data.obs_keys`` without ``object``); the
+            ``train_multitask`` and ``evaluate_multitask`` stages fan out over multitask x seeds (x tasks).
         device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
             rollouts run on the CPU.
         data: Demonstrations, ingestion and the time convention.
@@ -731,6 +738,7 @@ class Params:
     tasks: tuple[str, ...] = ("lift",)
     policies: tuple[str, ...] = ("carp",)
     seeds: tuple[int, ...] = (0,)
+    multitask: tuple[str, ...] = ()
     device: str = "auto"
     data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
@@ -757,6 +765,7 @@ class Params:
         _require(len(self.seeds) >= 1, "seeds", list(self.seeds), "must list at least one training seed")
         _require(all(seed >= 0 for seed in self.seeds), "seeds", list(self.seeds), "every seed must be >= 0")
         _require(len(set(self.seeds)) == len(self.seeds), "seeds", list(self.seeds), "must not repeat a seed")
+        self._check_multitask(known)
         # Families without a section in the file take their defaults, so every registered family has a config.
         object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
         object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
@@ -823,6 +832,36 @@ class Params:
                 self.data.subset_size,
                 f"must be <= the {self.data.demos_for(task)} demos collected for {task}",
             )
+
+    def _check_multitask(self, known: dict[str, Any]) -> None:
+        """Multi-task families are registered and distinct, over two tasks or more of state observations."""
+        families = list(self.multitask)
+        for name in families:
+            _require(name in known, "multitask", families, f"every family must be one of {list(known)}")
+        _require(len(set(families)) == len(families), "multitask", families, "must not repeat a family")
+        if not families:
+            return
+        from carp.policies.registry import get_family  # see family_sections
+
+        for name in families:
+            _require(
+                get_family(name).teacher is None,
+                "multitask",
+                families,
+                f"{name} distils its {get_family(name).teacher} teacher, which trains on one task only",
+            )
+        _require(
+            len(self.tasks) >= 2,
+            "multitask",
+            families,
+            f"a multi-task policy needs at least two tasks, tasks={list(self.tasks)}",
+        )
+        _require(
+            self.data.observations == "state",
+            "multitask",
+            families,
+            f"multi-task policies train on state observations, data.observations={self.data.observations!r}",
+        )
 
     def _check_tasks_share_actions_and_observations(self) -> None:
         """Every task must take ``data.controller`` and the observation kind, and all must share one action space."""

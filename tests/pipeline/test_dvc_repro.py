@@ -1,4 +1,7 @@
-"""End to end: `dvc repro` on tiny params in a temporary copy of the repository, then a second run is a no-op."""
+"""End to end: `dvc repro` on tiny params in a temporary copy of the repository, then a second run is a no-op.
+
+VQ-BeT trains and evaluates beside CARP here, so the one pipeline run also covers a family that no other end-to-end
+test runs."""
 
 import json
 import sys
@@ -13,7 +16,9 @@ from tests.pipeline.workspace import make_workspace, run, stages_run
 @pytest.mark.slow
 def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     # A task's entry in num_demos_per_task overrides num_demos (3 in the tiny params) for its collection.
-    workspace = make_workspace(tmp_path / "carp", {"data": {"num_demos_per_task": {"lift": 4}}})
+    workspace = make_workspace(
+        tmp_path / "carp", {"data": {"num_demos_per_task": {"lift": 4}}, "policies": ["carp", "vq_bet"]}
+    )
 
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -31,6 +36,9 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         "reports/policy/lift/carp/seed0/metrics.json",
         "reports/eval/lift/carp/seed0.json",
         "reports/eval/lift/carp/seed0_episodes.csv",
+        "models/policy/lift/vq_bet/seed0/policy.pt",
+        "reports/policy/lift/vq_bet/seed0/metrics.json",
+        "reports/eval/lift/vq_bet/seed0.json",
         "reports/report.md",
         "reports/report.html",
     ):
@@ -43,7 +51,10 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())
     assert reference["name"] == "carp-tokenizer-panda-abs10" and reference["alias"] == "default"
     assert (workspace / "mlflow.db").exists()
-    assert "## Success rate" in (workspace / "reports/report.md").read_text()
+    vq_bet = json.loads((workspace / "reports/eval/lift/vq_bet/seed0.json").read_text())
+    assert (vq_bet["policy_type"], vq_bet["episodes"], vq_bet["model_calls_per_chunk"]) == ("vq_bet", 2, 1)
+    report = (workspace / "reports/report.md").read_text()
+    assert "## Success rate" in report and "| vq_bet " in report
 
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert second.returncode == 0, second.stderr[-3000:]
@@ -65,3 +76,9 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
         stale = set(json.loads(status.stdout))
         trained = [stage for stage in stale if stage.startswith("train_")]
         assert "evaluate@lift-carp-0" in stale and not trained, (section, stale)
+    # A family's own section reaches its training alone.
+    params = yaml.safe_load(original)
+    params["vq_bet"]["offset_weight"] = 10.0
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
+    assert set(json.loads(status.stdout)) - {"check_inputs"} == {"train_policy@lift-vq_bet-0"}, status.stdout

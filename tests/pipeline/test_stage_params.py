@@ -16,13 +16,15 @@ from carp.policies.registry import family_names, get_family
 REPO = Path(__file__).resolve().parents[2]
 
 
-def resolved_params(workspace: Path, policies: list[str]) -> dict[str, list[str]]:
-    """Stage name -> the params.yaml keys DVC tracks for it, as DVC resolves dvc.yaml for `policies`."""
+def resolved_params(workspace: Path, policies: list[str], **overrides) -> dict[str, list[str]]:
+    """Stage name -> the params.yaml keys DVC tracks for it, as DVC resolves dvc.yaml for `policies` (and
+    top-level `overrides`)."""
     for name in ("dvc.yaml", "params.yaml"):
         shutil.copy(REPO / name, workspace / name)
     (workspace / ".dvc").mkdir(exist_ok=True)
     params = yaml.safe_load((workspace / "params.yaml").read_text())
     params["policies"] = policies
+    params.update(overrides)
     (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     with Repo(str(workspace), uninitialized=True) as repo:
         return {
@@ -71,6 +73,47 @@ def test_every_default_family_section_is_in_params_yaml():
     for name in family_names():
         assert name in raw and name in raw["inference"], name
         assert params.family_config(name) == get_family(name).config_class(**raw[name])
+
+
+def test_the_default_run_has_no_multi_task_stage(stages):
+    assert [name for name in stages if "multitask" in name] == []
+
+
+def test_multi_task_stages_fan_out_over_multitask_and_seeds_and_track_the_task_list(tmp_path):
+    stages = resolved_params(tmp_path, ["carp"], tasks=["can", "square"], multitask=["next_token"], seeds=[0, 1])
+    assert sorted(name for name in stages if "multitask" in name) == [
+        "evaluate_multitask@can-next_token-0",
+        "evaluate_multitask@can-next_token-1",
+        "evaluate_multitask@square-next_token-0",
+        "evaluate_multitask@square-next_token-1",
+        "train_multitask@next_token-0",
+        "train_multitask@next_token-1",
+    ]
+    # The task list is the policy's task ids; its family section is its model.
+    assert {"tasks", "training", "next_token"} <= set(stages["train_multitask@next_token-0"])
+    assert "inference.next_token" in stages["evaluate_multitask@can-next_token-0"]
+    assert "multitask" in stages["report"]
+    # The single-task stages are those of a run without multi-task.
+    assert "train_policy@can-carp-0" in stages and "train_policy@can-next_token-0" not in stages
+
+
+def test_the_multi_task_stages_refuse_a_family_missing_from_multitask_in_one_line(tmp_path):
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params.update(tasks=["can", "square"], multitask=["carp"])
+    params_path = tmp_path / "params.yaml"
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    for script, task in (("train_policy.py", []), ("evaluate.py", ["--task", "can"])):
+        completed = subprocess.run(
+            [sys.executable, str(REPO / "pipeline" / script), "--params", str(params_path), "--multitask", *task]
+            + ["--policy", "next_token", "--seed", "0"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert completed.returncode == 1
+        assert completed.stderr.strip().splitlines() == [
+            f"error: {params_path}: multitask=['carp']: --policy next_token is not listed"
+        ]
 
 
 @pytest.mark.parametrize("script", ["train_policy.py", "evaluate.py"])

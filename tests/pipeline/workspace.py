@@ -18,6 +18,17 @@ TINY_PARAMS = {
     "tokenizer": {"epochs": 2, "batch_size": 64, "checkpoint_every": 1},
     "training": {"epochs": 2, "batch_size": 64},
     "carp": {"depth": 1, "width": 16, "num_heads": 2, "warmup_steps": 2},
+    "vq_bet": {
+        "vq_training_steps": 20,
+        "vq_batch_size": 32,
+        "latent_width": 16,
+        "encoder_hidden_width": 16,
+        "depth": 1,
+        "num_heads": 2,
+        "width": 16,
+        "output_width": 16,
+        "head_hidden_width": 32,
+    },
     "eval": {"episodes": 2, "workers": 2, "max_steps": {"lift": 40, "can": 40, "square": 40}},
 }
 

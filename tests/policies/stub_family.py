@@ -44,6 +44,10 @@ class StubPolicy(nn.Module):
         self.linear = nn.Linear(obs_steps * self.shape[1], horizon * self.shape[3], bias=config.use_bias)
 
     num_parameters = property(count_parameters)
+    tasks = None
+
+    def select_task(self, task) -> None:
+        pass
 
     def forward(self, obs):  # (B, To, Do) normalized -> (B, H, A) normalized
         return self.linear(obs.flatten(1)).view(-1, self.shape[2], self.shape[3])

@@ -266,3 +266,28 @@ def test_averaging_snapshots_gives_the_mean_weights_and_refuses_other_runs(tmp_p
         average_policies([paths[0], tmp_path / "other.pt"])
     with pytest.raises(ValueError, match="no checkpoint to average"):
         average_policies([])
+
+
+@pytest.mark.parametrize(
+    "name, draws, greedy",
+    [
+        ("carp", {"top_k": 2}, {"top_k": 1}),
+        ("next_token", {"top_k": 3}, {"top_k": 1}),
+        ("vq_bet", {"code_choice": "sample"}, {"code_choice": "greedy"}),
+        ("diffusion_unet", {"sampler": "ddim", "num_inference_steps": 4}, None),
+        ("diffusion_transformer", {"sampler": "ddpm", "num_inference_steps": 10}, None),
+    ],
+)
+def test_draws_random_says_whether_the_generator_changes_the_chunk(name, draws, greedy):
+    policy = build_policy(name, TINY_CONFIGS[name], tiny_context())
+    obs = np.random.default_rng(2).normal(size=(3, OBS_STEPS, OBS_DIM)).astype(np.float32)
+
+    def two_seeds_differ() -> bool:
+        chunks = [policy.predict_action(obs, generator=torch.Generator().manual_seed(seed)) for seed in (0, 1)]
+        return not np.array_equal(*chunks)
+
+    policy.configure_inference(**draws)
+    assert policy.draws_random and two_seeds_differ()
+    if greedy is not None:  # diffusion always starts from drawn noise
+        policy.configure_inference(**greedy)
+        assert not policy.draws_random and not two_seeds_differ()

@@ -11,7 +11,8 @@ from carp.policies.diffusion.config import DiffusionUNetConfig
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.policy import NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
-from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_tokenizer
+from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, TASKS_METADATA_KEY
+from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_tasks, tiny_tokenizer
 
 
 def _normalizer(features: int) -> MinMaxNormalizer:
@@ -20,11 +21,16 @@ def _normalizer(features: int) -> MinMaxNormalizer:
 
 def _next_token_policy(num_tasks: int = 0, action_features: int = 2) -> NextTokenPolicy:
     torch.manual_seed(0)
+    feature_dim = OBS_DIM + (DEFAULT_TASK_EMBEDDING_DIM if num_tasks else 0)
     transformer = NextTokenTransformer(
-        NextTokenConfig(depth=1, width=16, num_heads=2), OBS_DIM, OBS_STEPS, 2, (1, 2), 8, num_tasks
+        NextTokenConfig(depth=1, width=16, num_heads=2), feature_dim, OBS_STEPS, 2, (1, 2), 8
     )
     artifact = tiny_artifact(tiny_tokenizer())
-    return NextTokenPolicy(artifact, transformer, _normalizer(OBS_DIM), _normalizer(action_features))
+    obs_normalizer, action_normalizer = _normalizer(OBS_DIM), _normalizer(action_features)
+    metadata = {}
+    if num_tasks:
+        metadata[TASKS_METADATA_KEY] = tiny_tasks(num_tasks, obs_normalizer, action_normalizer).to_dict()
+    return NextTokenPolicy(artifact, transformer, obs_normalizer, action_normalizer, metadata)
 
 
 def test_next_token_task_indices_are_checked_like_carps():
@@ -35,6 +41,8 @@ def test_next_token_task_indices_are_checked_like_carps():
         policy.predict_action(obs, 3)
     with pytest.raises(ValueError, match="one index or one per sample \\(2\\)"):
         policy.predict_action(obs, [0, 1, 2])
+    with pytest.raises(ValueError, match="trained on one task takes no task index"):
+        _next_token_policy().predict_action(obs, 0)
 
 
 def test_an_action_normalizer_of_another_width_is_refused_by_every_family():

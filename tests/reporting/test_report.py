@@ -19,6 +19,7 @@ from carp.reporting.report import (
     comparison_table,
     inference_budget_lines,
     latency_table,
+    multitask_table,
     success_table,
     write_report,
 )
@@ -325,3 +326,22 @@ def test_a_policy_that_never_succeeds_is_reported_with_its_interval(tmp_path, in
     )
     markdown, _ = write_report(runs, tmp_path)
     assert "0/50" in markdown.read_text() and (tmp_path / "figures" / "success_vs_latency.png").exists()
+
+
+def test_a_multi_task_policy_is_set_next_to_the_single_task_policy_of_its_family(tmp_path, inputs):
+    assert "## Multi-task" not in write_report(inputs, tmp_path / "single")[0].read_text()
+    multi = {"successes": 30, "episodes": 50}
+    table = multitask_table(
+        {"lift": {"carp": multi, "diffusion_unet": multi}, "can": {"carp": {"successes": 0, "episodes": 50}}},
+        inputs.evaluation,
+    )
+    assert table[["task", "policy"]].values.tolist() == [["lift", "carp"], ["lift", "diffusion_unet"], ["can", "carp"]]
+    lift_carp = table.iloc[0]
+    assert lift_carp["multi-task success"] == "30/50 (60.0%)" and lift_carp["multi-task 95% interval"] == "46.2-72.4%"
+    assert lift_carp["single-task success"] == "45/50 (90.0%)" and lift_carp["single-task 95% interval"] == "78.6-95.7%"
+    # No single-task policy of the family on the task: nothing to set beside it.
+    assert table.iloc[1]["single-task success"] == "-" and table.iloc[2]["single-task 95% interval"] == "-"
+    assert table.iloc[2]["multi-task 95% interval"] == "0.0-7.1%"
+    markdown = write_report(dataclasses.replace(inputs, multitask={"lift": {"carp": multi}}), tmp_path / "multi")[0]
+    section = markdown.read_text().split("## Multi-task", 1)[1].split("\n## ", 1)[0]
+    assert "| lift " in section and "30/50 (60.0%)" in section and "45/50 (90.0%)" in section

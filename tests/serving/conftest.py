@@ -29,16 +29,35 @@ SPEC = ServingSpec(
     action_horizon=8,
     action_dim=2,
     action_steps=4,
-    control_period_s=0.05,
+    control_period_s=0.05,  # Lift's 20 Hz
+    obs_widths=(1, 2),
 )
+PROTOCOL = {
+    "format": 1,
+    "observations": "state",
+    "obs_keys": ["object", "robot0_eef_pos"],
+    "obs_widths": [1, 2],
+    "obs_steps": OBS_STEPS,
+    "action_horizon": 8,
+    "action_steps": 4,
+    "cameras": [],
+    "image_size": None,
+}
+"""What training records for :data:`SPEC` (`carp.serving.protocol`)."""
 MAX_REQUEST_BYTES = 4096
+
+
+def save_tiny_checkpoint(path: Path, seed: int = 0, **metadata) -> Path:
+    """The tiny CARP policy of `seed` saved at `path`, trained on lift as far as its metadata says, with `metadata`."""
+    policy = tiny_policy(seed=seed)
+    policy.metadata.update({"task": "lift", "serving": PROTOCOL} | metadata)
+    policy.save(path)
+    return path
 
 
 @pytest.fixture(scope="package")
 def checkpoint(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("serving") / "policy.pt"
-    tiny_policy().save(path)
-    return path
+    return save_tiny_checkpoint(tmp_path_factory.mktemp("serving") / "policy.pt")
 
 
 def served_model(checkpoint: Path) -> ServedModel:

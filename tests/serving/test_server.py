@@ -6,6 +6,7 @@ import urllib.request
 import msgpack
 import numpy as np
 import pytest
+import torch
 from carp_client import PolicyClient, ServerError
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
@@ -54,6 +55,30 @@ def test_served_chunks_equal_in_process_prediction_bit_for_bit(server, reference
     assert any(not np.array_equal(a, b) for a, b in zip(expected[:6], in_process_chunks(reference_policy, first, 5)))
 
 
+def test_per_key_requests_get_the_chunks_of_the_concatenated_obs(server, reference_policy):
+    episode = observations(3, seed=7)
+    with PolicyClient(server.url, timeout=10) as client:
+        client.reset(seed=2)
+        served = [client.infer({"object": obs[:1], "robot0_eef_pos": obs[1:]})["actions"] for obs in episode]
+    for reply, chunk in zip(served, in_process_chunks(reference_policy, episode, 2), strict=True):
+        np.testing.assert_array_equal(reply, chunk)
+
+
+def test_observation_only_requests_fill_the_history_without_drawing_a_prediction(server, reference_policy):
+    episode = observations(5, seed=9)
+    with PolicyClient(server.url, timeout=10) as client:
+        client.reset(seed=1)
+        first = client.infer({"obs": episode[0]})["actions"]
+        replies = [client.observe({"obs": obs}) for obs in episode[1:4]]
+        last = client.infer({"obs": episode[4]})["actions"]
+    assert [reply["step"] for reply in replies] == [1, 2, 3] and all("actions" not in reply for reply in replies)
+    # Two predictions, two draws: the second sees steps 3 and 4, as a rollout executing Ta = 4 actions would.
+    generator = torch.Generator().manual_seed(1)
+    for history, served in (([episode[0]] * 2, first), (episode[3:5], last)):
+        expected = reference_policy.predict_action_timed(np.stack(history)[None], generator=generator).actions[0]
+        np.testing.assert_array_equal(served, expected)
+
+
 def test_the_metadata_frame_and_route_describe_the_policy_and_its_spec(server, checkpoint):
     with PolicyClient(server.url) as client:
         metadata = client.metadata
@@ -64,7 +89,12 @@ def test_the_metadata_frame_and_route_describe_the_policy_and_its_spec(server, c
     assert metadata["model"]["path"] == str(checkpoint) and len(metadata["model"]["sha256"]) == 64
     assert metadata["model"]["name"] is None
     assert metadata["policy_type"] == "carp" and metadata["inference"] == {"top_k": 8}
-    assert metadata["observation"]["obs"] == {"shape": [3], "dtype": "float32", "keys": ["object", "robot0_eef_pos"]}
+    assert metadata["observation"]["obs"] == {
+        "shape": [3], "dtype": "float32", "keys": ["object", "robot0_eef_pos"], "widths": [1, 2]
+    }  # fmt: skip
+    assert metadata["observation_keys"] == {
+        "object": {"shape": [1], "dtype": "float32"}, "robot0_eef_pos": {"shape": [2], "dtype": "float32"}
+    }  # fmt: skip
     assert metadata["action"] == {"shape": [8, 2], "dtype": "float32"}
     assert (metadata["obs_steps"], metadata["executed_offset"], metadata["action_steps"]) == (2, 1, 4)
     assert metadata["control_period_s"] == SPEC.control_period_s

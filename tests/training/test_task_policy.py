@@ -6,12 +6,14 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import zarr
 
 from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
 from carp.data.dataset import TaskWindows
-from carp.data.ingest import ingest_demonstrations
+from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.rendering import RenderSettings
+from carp.data.replay_buffer import ReplayBuffer
 from carp.evaluation.offline import held_out_action_errors
 from carp.policies.carp.config import CarpConfig
 from carp.policies.diffusion.config import DiffusionUNetConfig
@@ -59,7 +61,14 @@ def _inputs() -> TaskPolicyInputs:
         valid_actions=rng.uniform(-1, 1, size=(6, HORIZON, ACTION_DIM)),
         obs_normalizer=MinMaxNormalizer(np.full(OBS_DIM, -3.0), np.full(OBS_DIM, 3.0)),
         action_normalizer=MinMaxNormalizer(np.full(ACTION_DIM, -1.0), np.full(ACTION_DIM, 1.0)),
-        buffer=None,
+        # Only the attributes are read: the obs keys and widths recorded in the checkpoint's serving protocol.
+        buffer=ReplayBuffer(
+            np.zeros((0, OBS_DIM)),
+            np.zeros((0, ACTION_DIM)),
+            np.zeros(0, np.int64),
+            np.zeros(0, bool),
+            attrs={"obs_keys": ["object", "robot0_eef_pos"], "obs_widths": [1, 2]},
+        ),  # fmt: skip
     )
     reference = TokenizerReference("carp-tokenizer-test", "1", "default", "run", artifact.sha256)
     return TaskPolicyInputs(reference, artifact, windows)
@@ -86,6 +95,17 @@ def test_trained_policy_and_its_reports_are_written_and_logged(tmp_path):
     policy = load_policy(outputs.checkpoint)
     assert policy.metadata["task"] == "lift" and policy.metadata["mlflow_run_id"] == "run-123"
     assert policy.metadata["tokenizer"] == asdict(inputs.reference)
+    assert policy.metadata["serving"] == {
+        "format": 1,
+        "observations": "state",
+        "obs_keys": ["object", "robot0_eef_pos"],
+        "obs_widths": [1, 2],
+        "obs_steps": OBS_STEPS,
+        "action_horizon": HORIZON,
+        "action_steps": 4,
+        "cameras": [],
+        "image_size": None,
+    }
     windows = inputs.windows
     again = held_out_action_errors(policy, windows.valid_obs, windows.valid_actions, OBS_STEPS, DATA.action_steps)
     assert again == pytest.approx({key: metrics[key] for key in again}, rel=1e-5)
@@ -164,6 +184,13 @@ def test_an_image_policy_trains_on_the_buffers_camera_windows(image_task, tmp_pa
     policy = load_policy(outputs.checkpoint)
     assert policy.observation_encoder.config == IMAGE_ENCODER
     assert policy.obs_normalizer.num_features == windows.train_obs.shape[-1] == 9  # proprioception only
+    protocol = policy.metadata["serving"]
+    assert (protocol["observations"], protocol["obs_keys"], protocol["obs_widths"]) == (
+        "image",
+        list(PROPRIOCEPTION_KEYS),
+        [3, 4, 2],
+    )
+    assert (protocol["cameras"], protocol["image_size"]) == (list(IMAGE_ENCODER.cameras), 40)
 
 
 def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):
@@ -173,3 +200,15 @@ def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):
         load_task_policy_inputs(
             task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, other
         )
+
+
+def test_inputs_refuse_a_buffer_ingested_before_it_recorded_its_observation_widths(tmp_path):
+    write_synthetic_file(tmp_path / "raw.hdf5", lengths=(30, 25, 40, 20))
+    task_dir = tmp_path / "processed" / "lift"
+    ingest_demonstrations(tmp_path / "raw.hdf5", task_dir, PROPRIOCEPTION_KEYS)
+    reference = _tokenizer_files(tmp_path / "tokenizer-files")
+    store = zarr.open_group(str(task_dir / BUFFER_DIRNAME), mode="r+")
+    del store.attrs["obs_widths"]  # what an ingestion before the serving protocol left
+    with pytest.raises(ValueError, match=r"replay.zarr: attrs lack obs_widths .*run the ingest stage again") as error:
+        load_task_policy_inputs(task_dir, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+    assert str(error.value).startswith(str(task_dir / BUFFER_DIRNAME)) and "\n" not in str(error.value)

@@ -3,7 +3,17 @@
 Depends on numpy, msgpack and websockets only; it never imports torch or carp.
 """
 
-from carp_client.client import PolicyClient, ServerError
+from carp_client.client import PolicyClient, ServerError, SpecChangedError
+from carp_client.scheduler import ChunkScheduler, ensemble_weights
 from carp_client.wire import WireError, decode, encode
 
-__all__ = ["PolicyClient", "ServerError", "WireError", "decode", "encode"]
+__all__ = [
+    "ChunkScheduler",
+    "PolicyClient",
+    "ServerError",
+    "SpecChangedError",
+    "WireError",
+    "decode",
+    "encode",
+    "ensemble_weights",
+]

@@ -16,9 +16,22 @@ from websockets.sync.client import ClientConnection, connect
 
 from carp_client.wire import decode, encode
 
+SPEC_KEYS = (
+    "observation", "observation_keys", "obs_steps", "action", "executed_offset", "action_steps", "control_period_s"
+)  # fmt: skip
+"""The metadata entries that say what a request holds and how to execute a reply."""
+
 
 class ServerError(RuntimeError):
     """The server answered a request with an error line (e.g. ``obs: expected shape (3,), got (4,)``)."""
+
+
+class SpecChangedError(ConnectionError):
+    """The server now serves a policy with another observation or action spec; read `PolicyClient.metadata` again.
+
+    The server closes every connection when a reload changes the spec; the client reconnects, finds the new
+    metadata and raises this instead of sending the old kind of request.
+    """
 
 
 class PolicyClient:
@@ -120,8 +133,10 @@ class PolicyClient:
         """Send one step's observation; return the server's reply.
 
         Args:
-            obs: ``obs`` (Do,) float32 and, for an image policy, ``images`` (cameras, 3, h, w) uint8 (see the
-                metadata's ``observation``); ``step`` and ``timestamp`` are added unless given.
+            obs: ``obs`` (Do,) float32, or one (width,) float32 array per low-dim key under its name (the
+                metadata's ``observation_keys``, when the server lists them), and for an image policy ``images``
+                (cameras, 3, h, w) uint8 (see the metadata's ``observation``); ``step`` and ``timestamp`` are added
+                unless given.
 
         Returns:
             ``actions`` (H, A) float32 (execute rows ``executed_offset`` to ``executed_offset + action_steps``),
@@ -129,6 +144,7 @@ class PolicyClient:
 
         Raises:
             ServerError: the server rejected the request (the connection stays usable).
+            SpecChangedError: the server swapped in a policy with another spec (the metadata is the new one).
             TimeoutError: no reply within `timeout`; the connection is dropped and reopened by the next call.
             ConnectionError, PermissionError: the connection was lost and could not be reopened.
         """
@@ -140,7 +156,13 @@ class PolicyClient:
         frame = encode(request)
         for attempt in range(2):
             if self._connection is None:
+                known = self._metadata
                 self.connect()
+                if known is not None and _spec(known) != _spec(self._metadata):
+                    raise SpecChangedError(
+                        f"{self.url} now serves a policy with another observation or action spec: read the metadata "
+                        "again and build the requests from it"
+                    )
             try:
                 self._connection.send(frame)
                 reply = self._connection.recv(timeout=self.timeout)
@@ -159,6 +181,15 @@ class PolicyClient:
         self._reset_seed = None
         return decode(reply)
 
+    def observe(self, obs: dict[str, Any]) -> dict[str, Any]:
+        """Send one step's observation for the history only (no chunk is predicted); return the server's reply.
+
+        A robot that executes several actions of a chunk sends the steps in between this way, so that the server's
+        history holds the last `To` steps when `infer` asks for the next chunk. Arguments and errors as `infer`;
+        the reply has ``step``, ``timestamp`` and ``model_version``.
+        """
+        return self.infer({**obs, "predict": False})
+
     def close(self) -> None:
         """Close the connection (the next call reopens it)."""
         if self._connection is not None:
@@ -171,3 +202,7 @@ class PolicyClient:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _spec(metadata: dict[str, Any]) -> dict[str, Any]:
+    return {key: metadata.get(key) for key in SPEC_KEYS}

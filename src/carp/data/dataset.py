@@ -1,5 +1,6 @@
 """Loading the processed data of one or more tasks into training windows."""
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,3 +45,87 @@ def load_task_windows(processed_dir: Path, horizon: int, obs_steps: int, action_
     return TaskWindows(
         train_obs, train_actions, valid_obs, valid_actions, normalizers["obs"], normalizers["action"], buffer
     )
+
+
+def check_tasks_agree(windows: Mapping[str, TaskWindows]) -> None:
+    """Refuse tasks whose observations or actions differ in layout: one multi-task policy sees them all alike.
+
+    The first task is the reference; every other must have the same low-dim obs keys in the same order, each of the
+    same width, the same controller, and actions of the same width. Observations of different widths (Lift's 10-wide
+    `object` against Can's and Square's 14) are refused rather than zero-padded: a padded feature would mean
+    different things in different tasks, and evaluation would have to pad every simulator observation the same way.
+    Train such tasks together on obs keys they share (e.g. without `object`).
+
+    Raises:
+        ValueError: naming the task, the key and both values.
+    """
+    names = list(windows)
+    reference_task = names[0]
+    reference = windows[reference_task]
+    for task in names[1:]:
+        own = windows[task]
+        for key in ("obs_keys", "controller"):
+            ours, theirs = reference.buffer.attrs.get(key), own.buffer.attrs.get(key)
+            if ours != theirs:
+                raise ValueError(f"task {task!r}: {key} {theirs!r} differs from task {reference_task!r}'s {ours!r}")
+        widths = zip(
+            reference.buffer.attrs["obs_keys"],
+            reference.buffer.attrs["obs_widths"],
+            own.buffer.attrs["obs_widths"],
+            strict=True,
+        )
+        for key, ours, theirs in widths:
+            if ours != theirs:
+                raise ValueError(
+                    f"task {task!r}: observation key {key!r} has {theirs} features, task {reference_task!r}'s has "
+                    f"{ours}; a multi-task policy needs the same observations in every task (leave {key!r} out of "
+                    "data.obs_keys)"
+                )
+        if own.buffer.action.shape[1] != reference.buffer.action.shape[1]:
+            raise ValueError(
+                f"task {task!r}: actions have {own.buffer.action.shape[1]} dimensions, task {reference_task!r}'s have "
+                f"{reference.buffer.action.shape[1]}"
+            )
+
+
+def load_multitask_windows(
+    processed_dirs: Mapping[str, Path], horizon: int, obs_steps: int, action_steps: int
+) -> dict[str, TaskWindows]:
+    """Windows of every task of a multi-task policy, in task-id order, checked to agree (:func:`check_tasks_agree`).
+
+    Args:
+        processed_dirs: task -> its ``data/processed/<task>/`` directory, in the order of the task ids.
+        horizon: `H`.
+        obs_steps: `To`.
+        action_steps: `Ta`.
+    """
+    windows = {
+        task: load_task_windows(directory, horizon, obs_steps, action_steps)
+        for task, directory in processed_dirs.items()
+    }
+    check_tasks_agree(windows)
+    return windows
+
+
+def stack_task_windows(windows: Mapping[str, TaskWindows], split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One split of several tasks' windows, each normalized with its own task's statistics, and their task ids.
+
+    Every window comes from one episode of one task (`carp.data.windows`), so stacking the tasks' windows never
+    makes one that straddles two demos or two tasks.
+
+    Args:
+        windows: task -> its windows, in task-id order.
+        split: ``train`` or ``valid``.
+
+    Returns:
+        obs (N, To, Do) and actions (N, H, A) float32 normalized, task ids (N,) int64 (the tasks' positions).
+    """
+    if split not in ("train", "valid"):
+        raise ValueError(f"split must be train or valid, got {split!r}")
+    obs, actions, task_ids = [], [], []
+    for task_id, task_windows in enumerate(windows.values()):
+        task_obs = getattr(task_windows, f"{split}_obs")
+        obs.append(task_windows.obs_normalizer.normalize(task_obs).astype(np.float32))
+        actions.append(task_windows.action_normalizer.normalize(getattr(task_windows, f"{split}_actions")))
+        task_ids.append(np.full(len(task_obs), task_id, dtype=np.int64))
+    return np.concatenate(obs), np.concatenate(actions).astype(np.float32), np.concatenate(task_ids)

@@ -42,6 +42,7 @@ def evaluate_policy(
     task_index: int | None = None,
     backend: str = "onnxruntime",
     cameras: "RenderSettings | None" = None,
+    task: str | None = None,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
@@ -62,6 +63,10 @@ def evaluate_policy(
     An image policy gets `cameras`: every step renders them from the simulator state as ingest rendered the demos,
     and the summary adds the rendering time per step (`render_step_ms_*`), apart from the policy's latency.
 
+    `task` names the evaluated task: a policy trained on other tasks is refused (ValueError), and a multi-task policy
+    runs with that task's statistics and task id (a copy of the checkpoint with the task selected, in the temporary
+    directory, is what the workers load). None skips the check.
+
     With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
     calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
@@ -71,6 +76,11 @@ def evaluate_policy(
     policy = load_policy(Path(checkpoint_path))
     policy.configure_inference(**inference)
     with scratch_directory() as scratch:
+        if task is not None:
+            policy.select_task(task)
+            if policy.tasks is not None:
+                checkpoint_path = Path(scratch) / "selected_task.pt"
+                policy.save(checkpoint_path)
         deployment = policy.deployment(Path(checkpoint_path), backend, scratch)
         factory = functools.partial(
             PolicySource,

@@ -71,6 +71,12 @@ class Policy(Protocol):
 
     policy_type: str
     metadata: dict[str, Any]
+    tasks: Any
+    """A multi-task policy's `carp.policies.tasks.PolicyTasks`; None for a single-task policy."""
+
+    def select_task(self, task: str) -> None:
+        """Evaluate `task` from now on; ValueError if the policy was not trained on it (`carp.policies.tasks`)."""
+        ...
 
     def predict_action_timed(
         self,
@@ -82,7 +88,8 @@ class Policy(Protocol):
 
         Args:
             obs: (B, To, Do) raw observations.
-            task_index: None for single-task policies; one index or (B,) otherwise.
+            task_index: None for single-task policies (and a multi-task policy's selected task); one index or (B,)
+                otherwise.
             generator: random source of any sampling (top-k draws, diffusion noise), seeded per episode.
         """
         ...
@@ -113,6 +120,15 @@ class Policy(Protocol):
     @property
     def description(self) -> str:
         """Short human-readable name of the configuration for reports, e.g. `DDIM-10` or `greedy`."""
+        ...
+
+    @property
+    def draws_random(self) -> bool:
+        """Whether predictions at the current inference settings draw from the generator (sampling, noise).
+
+        A policy that draws nothing predicts each row of a batch as it would alone, so a server may batch requests
+        of several episodes; one that draws would give a batched row other draws than its episode's generator.
+        """
         ...
 
     def training_loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:

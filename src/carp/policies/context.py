@@ -6,6 +6,7 @@ from typing import Any
 from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.observations import observation_feature_dim
+from carp.policies.tasks import TASKS_METADATA_KEY, PolicyTasks
 from carp.tokenizer.artifact import TokenizerArtifact
 
 
@@ -14,13 +15,15 @@ class PolicyContext:
     """Everything a policy is sized by that does not come from its own params section.
 
     Attributes:
-        obs_normalizer: min-max statistics of the `Do` low-dim observation features (the proprioception with cameras).
-        action_normalizer: min-max statistics of the `A` action dimensions of the task.
+        obs_normalizer: min-max statistics of the `Do` low-dim observation features (the proprioception with cameras);
+            a multi-task policy's are its selected task's (see `tasks`).
+        action_normalizer: min-max statistics of the `A` action dimensions of the task (likewise).
         obs_steps: `To`.
         action_horizon: `H`.
         tokenizer_artifact: the registered tokenizer, for families that predict its tokens; None otherwise.
-        num_tasks: 0 for a single-task policy, else the number of task indices.
-        metadata: plain values stored in the checkpoint (task, tokenizer reference, tracking run).
+        tasks: the tasks of a multi-task policy (with their statistics and the task embedding's width); None for a
+            single-task policy. Recorded in `metadata`, through which every family's policy receives it.
+        metadata: plain values stored in the checkpoint (task, tokenizer reference, tracking run; the tasks).
         image_encoder: the camera encoder's settings for a policy that sees images; None for state observations.
     """
 
@@ -29,9 +32,25 @@ class PolicyContext:
     obs_steps: int
     action_horizon: int
     tokenizer_artifact: TokenizerArtifact | None = None
-    num_tasks: int = 0
+    tasks: PolicyTasks | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     image_encoder: ImageEncoderConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.tasks is not None:
+            selected = self.tasks.selected
+            ours = (self.obs_normalizer.to_dict(), self.action_normalizer.to_dict())
+            if ours != (
+                self.tasks.obs_normalizers[selected].to_dict(),
+                self.tasks.action_normalizers[selected].to_dict(),
+            ):
+                raise ValueError(f"the context's statistics must be those of the selected task {selected!r}")
+            object.__setattr__(self, "metadata", self.metadata | {TASKS_METADATA_KEY: self.tasks.to_dict()})
+
+    @property
+    def num_tasks(self) -> int:
+        """0 for a single-task policy, else the number of task ids."""
+        return 0 if self.tasks is None else self.tasks.num_tasks
 
     @property
     def obs_dim(self) -> int:
@@ -41,7 +60,8 @@ class PolicyContext:
     @property
     def feature_dim(self) -> int:
         """`F`, the per-step observation features the family's network is conditioned on (`Do` for state)."""
-        return observation_feature_dim(self.obs_dim, self.image_encoder)
+        task_features = 0 if self.tasks is None else self.tasks.embedding_dim
+        return observation_feature_dim(self.obs_dim, self.image_encoder, task_features)
 
     @property
     def action_dim(self) -> int:

@@ -9,6 +9,12 @@ families:
   concatenated with the normalized proprioception (F = cameras * feature_dim + Do), trained end to end with the
   family's network.
 
+A multi-task policy (`carp.policies.tasks`) wraps either kind in :class:`TaskConditionedObservations`: a learned
+embedding of the task id, concatenated to every observation step's features (F grows by its width), as CARP's
+multi-task setting conditions on a learnable task embedding concatenated with the observations. This is the one place
+a policy is conditioned on its task, so every family is multi-task capable; a single-task policy has no embedding, and
+its weights and seeded initialization do not change.
+
 A checkpoint records the kind and the encoder's config and weights (:func:`encoder_checkpoint`), so
 :func:`restore_observation_encoder` rebuilds the same encoder; checkpoints from before observation kinds load as
 ``state``.
@@ -26,6 +32,11 @@ from carp.config import ImageEncoderConfig
 from carp.vision.encoder import ImageEncoder
 
 
+def _refuse_task_ids(task_ids: Tensor | None) -> None:
+    if task_ids is not None:
+        raise ValueError("this policy is single-task but task ids were given")
+
+
 class StateObservations(nn.Module):
     """``state``: the normalized observations are the features (F = Do).
 
@@ -40,12 +51,13 @@ class StateObservations(nn.Module):
         self.obs_dim = obs_dim
         self.output_dim = obs_dim
 
-    def forward(self, obs: Tensor, images: Tensor | None = None) -> Tensor:
+    def forward(self, obs: Tensor, images: Tensor | None = None, task_ids: Tensor | None = None) -> Tensor:
         """(B, To, Do) normalized observations -> the same tensor.
 
         Raises:
-            ValueError: images were given (this policy was trained without cameras).
+            ValueError: images or task ids were given (this policy was trained without cameras, on one task).
         """
+        _refuse_task_ids(task_ids)
         if images is not None:
             raise ValueError("this policy was trained on state observations and takes no images")
         return obs
@@ -72,20 +84,22 @@ class CameraObservations(nn.Module):
         self.encoder = ImageEncoder(config, proprioception_dim=obs_dim)
         self.output_dim = self.encoder.output_dim
 
-    def forward(self, obs: Tensor, images: Tensor | None = None) -> Tensor:
+    def forward(self, obs: Tensor, images: Tensor | None = None, task_ids: Tensor | None = None) -> Tensor:
         """Encode the cameras of every observation step and append the proprioception.
 
         Args:
             obs: (B, To, Do) normalized proprioception.
             images: (B, To, cameras, 3, h, w) uint8 RGB images, cameras in the config's order (the layout of
                 `carp.data.image_windows.ImageWindows.images`).
+            task_ids: must be None (a single-task encoder).
 
         Returns:
             (B, To, F) float features.
 
         Raises:
-            ValueError: no images, or images of another layout, camera count, size or dtype.
+            ValueError: no images, or images of another layout, camera count, size or dtype; task ids.
         """
+        _refuse_task_ids(task_ids)
         if images is None:
             raise ValueError(f"this policy sees cameras {list(self.config.cameras)}; images are required")
         size = self.config.image_size
@@ -106,26 +120,81 @@ class CameraObservations(nn.Module):
         return dataclasses.asdict(self.config)
 
 
-ObservationEncoder = StateObservations | CameraObservations
+class TaskConditionedObservations(nn.Module):
+    """A multi-task policy's encoder: the kind's features, then a learned task embedding at every step.
+
+    Args:
+        observations: the encoder of the observation kind (``state`` or ``image``).
+        num_tasks: task ids the embedding has rows for; >= 2.
+        embedding_dim: `E`, width of the task embedding.
+    """
+
+    def __init__(self, observations: "StateObservations | CameraObservations", num_tasks: int, embedding_dim: int):
+        super().__init__()
+        self.observations = observations
+        self.kind = observations.kind
+        self.obs_dim = observations.obs_dim
+        self.num_tasks = num_tasks
+        # Default N(0, 1) rows: distinct tasks start apart, on the scale of the [-1, 1] normalized observations.
+        self.task_embedding = nn.Embedding(num_tasks, embedding_dim)
+        self.output_dim = observations.output_dim + embedding_dim
+
+    def forward(self, obs: Tensor, images: Tensor | None = None, task_ids: Tensor | None = None) -> Tensor:
+        """The observation kind's (B, To, F - E) features with the task's (E,) embedding appended to every step.
+
+        Args:
+            obs: (B, To, Do) normalized low-dim observations.
+            images: as the observation kind takes them.
+            task_ids: (B,) long task ids in [0, num_tasks) (the policy and the training loop check the range; a
+                value check here would stop the ONNX export, which traces this forward).
+
+        Returns:
+            (B, To, F) float features.
+
+        Raises:
+            ValueError: no task ids, or not one per sample.
+        """
+        if task_ids is None:
+            raise ValueError(f"this policy is multi-task ({self.num_tasks} tasks): pass task ids")
+        if tuple(task_ids.shape) != (obs.shape[0],):
+            raise ValueError(f"task ids must have shape (B,) = ({obs.shape[0]},), got {tuple(task_ids.shape)}")
+        features = self.observations(obs, images)  # (B, To, F - E)
+        embedding = self.task_embedding(task_ids).to(features.dtype)  # (B, E)
+        steps = embedding.unsqueeze(1).expand(-1, features.shape[1], -1)  # (B, To, E)
+        return torch.cat((features, steps), dim=-1)  # (B, To, F)
+
+    def config_dict(self) -> dict[str, Any] | None:
+        """The observation kind's settings (the tasks are recorded in the policy's metadata)."""
+        return self.observations.config_dict()
 
 
-def observation_feature_dim(obs_dim: int, image_encoder: ImageEncoderConfig | None) -> int:
+ObservationEncoder = StateObservations | CameraObservations | TaskConditionedObservations
+
+
+def observation_feature_dim(obs_dim: int, image_encoder: ImageEncoderConfig | None, task_embedding_dim: int = 0) -> int:
     """`F` the family's network is conditioned on, without building the encoder.
 
     Args:
         obs_dim: `Do`, the low-dim features per step (the whole state, or the proprioception with cameras).
         image_encoder: the camera encoder's settings, or None for state observations.
+        task_embedding_dim: width of a multi-task policy's task embedding; 0 for a single-task policy.
     """
     if image_encoder is None:
-        return obs_dim
-    return len(image_encoder.cameras) * image_encoder.feature_dim + obs_dim
+        return obs_dim + task_embedding_dim
+    return len(image_encoder.cameras) * image_encoder.feature_dim + obs_dim + task_embedding_dim
 
 
-def build_observation_encoder(obs_dim: int, image_encoder: ImageEncoderConfig | None) -> ObservationEncoder:
-    """The encoder of the observation kind: ``state`` without an image encoder config, ``image`` with one."""
-    if image_encoder is None:
-        return StateObservations(obs_dim)
-    return CameraObservations(obs_dim, image_encoder)
+def build_observation_encoder(
+    obs_dim: int, image_encoder: ImageEncoderConfig | None, num_tasks: int = 0, task_embedding_dim: int = 0
+) -> ObservationEncoder:
+    """The encoder of the observation kind (``state`` without an image encoder config, ``image`` with one).
+
+    With `num_tasks` > 0 it is wrapped in a :class:`TaskConditionedObservations` of `task_embedding_dim`.
+    """
+    encoder = StateObservations(obs_dim) if image_encoder is None else CameraObservations(obs_dim, image_encoder)
+    if num_tasks == 0:
+        return encoder
+    return TaskConditionedObservations(encoder, num_tasks, task_embedding_dim)
 
 
 def encoder_checkpoint(encoder: ObservationEncoder) -> dict[str, Any]:

@@ -115,14 +115,20 @@ class TrainingRun:
             policy: the freshly built policy.
             recipe: its optimizer (`carp.training.loop.OptimizerRecipe`).
             identity: plain values that must match for a saved state to be resumed (family, config, shapes); the
-                observation kind and camera encoder settings are added here for every family.
+                observation kind and camera encoder settings, and a multi-task policy's tasks, are added here for
+                every family.
             prepare_data: the family's one-time derivation from the windows (e.g. their token targets), or None.
             training_step: the family's loss and metric sums of a batch; None trains on `policy.training_loss`.
         """
-        from carp.training.loop import train_with_loss
+        from carp.training.loop import check_task_ids, train_with_loss
 
+        check_task_ids(self.data, self.context.num_tasks)
         encoder = self.context.image_encoder
         observations = {"image_encoder": None if encoder is None else dataclasses.asdict(encoder)}
+        tasks = self.context.tasks
+        if tasks is not None:
+            # The task order fixes the ids; the statistics are part of the windows' digest already.
+            observations["tasks"] = {"names": list(tasks.names), "embedding_dim": tasks.embedding_dim}
         return train_with_loss(
             policy,
             self.data,

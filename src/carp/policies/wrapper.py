@@ -4,7 +4,7 @@
 the family: a family subclasses it and writes its network, `predict_action_timed`, `training_loss`,
 `configure_inference`, `model_calls_per_chunk`, `description` and its checkpoint entries. :class:`TokenizedPolicy`
 adds what the two token-predicting families (CARP and next-token) share on top: the frozen registered tokenizer,
-the token choice (`top_k`), task indices and the tokenizer's checkpoint entries. The protocol stays the seam: the
+the token choice (`top_k`) and the tokenizer's checkpoint entries. The protocol stays the seam: the
 rest of carp types against `Policy`, never against these classes.
 """
 
@@ -34,6 +34,7 @@ from carp.policies.observations import (
     encoder_checkpoint,
     restore_observation_encoder,
 )
+from carp.policies.tasks import TASKS_METADATA_KEY, PolicyTasks, metadata_tasks
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import atomic_torch_save
@@ -73,13 +74,16 @@ class PolicyModule(nn.Module, abc.ABC):
     Subclasses set `policy_type`, register their networks (trainable parameters are what `num_parameters` counts)
     and implement `family_checkpoint` plus the family-specific protocol methods. Their networks are conditioned on
     the (B, To, F) features of :attr:`observation_encoder` (`carp.policies.observations`): the normalized
-    observations themselves for state policies (F = Do), camera features and proprioception with `image_encoder`.
+    observations themselves for state policies (F = Do), camera features and proprioception with `image_encoder`,
+    and for a multi-task policy (its metadata records :class:`~carp.policies.tasks.PolicyTasks`) the task
+    embedding appended to every step.
 
     Args:
-        obs_normalizer: min-max statistics of the `Do` low-dim observation features.
-        action_normalizer: min-max statistics of the `A` action dimensions.
-        metadata: plain values stored in the checkpoint.
-        feature_dim: `F`, the observation features per step the network expects.
+        obs_normalizer: min-max statistics of the `Do` low-dim observation features (a multi-task policy's: its
+            selected task's).
+        action_normalizer: min-max statistics of the `A` action dimensions (likewise).
+        metadata: plain values stored in the checkpoint; its `tasks` entry makes the policy multi-task.
+        feature_dim: `F`, the observation features per step the network expects (the task embedding included).
         action_dim: `A` the network predicts.
         image_encoder: the camera encoder's settings for an image policy; None for a state policy.
 
@@ -98,9 +102,15 @@ class PolicyModule(nn.Module, abc.ABC):
         action_dim: int,
         image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
-        encoder = build_observation_encoder(obs_normalizer.num_features, image_encoder)
+        tasks = metadata_tasks(metadata)
+        encoder = build_observation_encoder(
+            obs_normalizer.num_features,
+            image_encoder,
+            0 if tasks is None else tasks.num_tasks,
+            0 if tasks is None else tasks.embedding_dim,
+        )
         if encoder.output_dim != feature_dim:
-            cameras = "" if image_encoder is None else f" (with the cameras' features: F = {encoder.output_dim})"
+            cameras = "" if encoder.output_dim == obs_normalizer.num_features else f" (F = {encoder.output_dim})"
             raise ValueError(
                 f"obs normalizer has {obs_normalizer.num_features} features{cameras}, the policy expects "
                 f"{'Do' if image_encoder is None else 'F'} = {feature_dim}"
@@ -114,6 +124,54 @@ class PolicyModule(nn.Module, abc.ABC):
         self.obs_normalizer = obs_normalizer
         self.action_normalizer = action_normalizer
         self.metadata = dict(metadata or {})
+        self.tasks: PolicyTasks | None = tasks
+
+    @property
+    def num_tasks(self) -> int:
+        """0 for a single-task policy, else the number of task ids."""
+        return 0 if self.tasks is None else self.tasks.num_tasks
+
+    def select_task(self, task: str) -> None:
+        """Use `task`'s statistics and task id from now on (a multi-task policy; saving keeps the choice).
+
+        Raises:
+            ValueError: the policy was not trained on `task` (a single-task policy: on another one).
+        """
+        if self.tasks is None:
+            trained = self.metadata.get("task")
+            if trained is not None and trained != task:
+                raise ValueError(f"this policy was trained on task {trained!r}, not on {task!r}")
+            return
+        self.tasks = self.tasks.with_selected(task)
+        self.obs_normalizer = self.tasks.obs_normalizers[task]
+        self.action_normalizer = self.tasks.action_normalizers[task]
+        self.metadata[TASKS_METADATA_KEY] = self.tasks.to_dict()
+
+    def task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
+        """(B,) long task ids on the policy's device, or None for a single-task policy.
+
+        Args:
+            task_index: one index for the whole batch, one per sample, or None: a multi-task policy's selected task.
+            batch_size: `B`.
+
+        Raises:
+            ValueError: a task index for a single-task policy, neither one index nor `batch_size` of them, or an
+                index outside [0, num_tasks).
+        """
+        if self.tasks is None:
+            if task_index is not None:
+                raise ValueError(f"a {self.policy_type} policy trained on one task takes no task index")
+            return None
+        if task_index is None:
+            task_index = self.tasks.index(self.tasks.selected)
+        task_ids = torch.as_tensor(task_index, dtype=torch.long, device=self.device).reshape(-1)
+        if task_ids.numel() == 1:
+            task_ids = task_ids.expand(batch_size)
+        if task_ids.numel() != batch_size:
+            raise ValueError(f"task_index must be one index or one per sample ({batch_size}), got {task_ids.numel()}")
+        if not bool(((task_ids >= 0) & (task_ids < self.num_tasks)).all()):
+            raise ValueError(f"task indices must be in [0, {self.num_tasks}), got {task_ids.tolist()}")
+        return task_ids  # (B,)
 
     @property
     def device(self) -> torch.device:
@@ -126,7 +184,11 @@ class PolicyModule(nn.Module, abc.ABC):
         return count_parameters(self)
 
     def observation_features(
-        self, obs: np.ndarray | torch.Tensor, obs_steps: int, images: np.ndarray | torch.Tensor | None = None
+        self,
+        obs: np.ndarray | torch.Tensor,
+        obs_steps: int,
+        images: np.ndarray | torch.Tensor | None = None,
+        task_index: int | np.ndarray | torch.Tensor | None = None,
     ) -> torch.Tensor:
         """(B, To, F) features the network is conditioned on, from raw observations (and images), on its device.
 
@@ -134,18 +196,23 @@ class PolicyModule(nn.Module, abc.ABC):
             obs: (B, To, Do) raw low-dim observations (numpy or torch).
             obs_steps: `To` the network expects.
             images: (B, To, cameras, 3, h, w) uint8 camera images for an image policy; None for a state policy.
+            task_index: see :meth:`task_ids`. The observations are normalized with the selected task's statistics.
 
         Raises:
-            ValueError: `obs` or `images` has another shape, or images are missing or unexpected.
+            ValueError: `obs` or `images` has another shape, images are missing or unexpected, or a bad task index.
         """
         observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
         check_observation_shape(observations, obs_steps, self.obs_normalizer.num_features, "obs")
         normalized = self.obs_normalizer.normalize(observations)  # (B, To, Do)
-        return self.observation_encoder(normalized, as_image_tensor(images, self.device))
+        task_ids = self.task_ids(task_index, observations.shape[0])
+        return self.observation_encoder(normalized, as_image_tensor(images, self.device), task_ids)
 
     def batch_features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(b, To, F) features of a training batch: its normalized `obs` (b, To, Do) and, if any, its `images`."""
-        return self.observation_encoder(batch["obs"], batch.get("images"))
+        """(b, To, F) features of a training batch: its normalized `obs` (b, To, Do), its `images` and `task_ids`.
+
+        Each window of a multi-task batch was normalized with its own task's statistics before training.
+        """
+        return self.observation_encoder(batch["obs"], batch.get("images"), batch.get("task_ids"))
 
     def predict_action(
         self,
@@ -199,7 +266,6 @@ class TokenizedPolicy(PolicyModule):
         action_normalizer: min-max statistics of the task's `A` action dimensions.
         metadata: plain values stored in the checkpoint.
         feature_dim: `F`, observation features per step the transformer expects.
-        num_tasks: tasks the transformer is conditioned on; 0 for a single-task policy.
         image_encoder: the camera encoder's settings for an image policy; None for a state policy.
     """
 
@@ -211,7 +277,6 @@ class TokenizedPolicy(PolicyModule):
         action_normalizer: MinMaxNormalizer,
         metadata: dict[str, Any] | None,
         feature_dim: int,
-        num_tasks: int,
         image_encoder: ImageEncoderConfig | None = None,
     ) -> None:
         action_dim = tokenizer_artifact.tokenizer.spec.action_dim
@@ -219,7 +284,6 @@ class TokenizedPolicy(PolicyModule):
         self.tokenizer: MultiScaleActionTokenizer = tokenizer_artifact.tokenizer.eval().requires_grad_(False)
         self.tokenizer_artifact = tokenizer_artifact
         self.transformer = transformer.eval()
-        self.num_tasks = num_tasks
         self.top_k = 1
 
     def train(self, mode: bool = True) -> "TokenizedPolicy":
@@ -238,26 +302,10 @@ class TokenizedPolicy(PolicyModule):
         """`greedy` or `top-<k>`, the token choice of predictions."""
         return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
 
-    def task_ids(self, task_index: int | np.ndarray | torch.Tensor | None, batch_size: int) -> torch.Tensor | None:
-        """(B,) long task indices on the policy's device, or None for a single-task call.
-
-        Args:
-            task_index: None, one index for the whole batch, or one per sample.
-            batch_size: `B`.
-
-        Raises:
-            ValueError: neither one index nor `batch_size` of them, or an index outside [0, num_tasks).
-        """
-        if task_index is None:
-            return None
-        task_ids = torch.as_tensor(task_index, dtype=torch.long, device=self.device).reshape(-1)
-        if task_ids.numel() == 1:
-            task_ids = task_ids.expand(batch_size)
-        if task_ids.numel() != batch_size:
-            raise ValueError(f"task_index must be one index or one per sample ({batch_size}), got {task_ids.numel()}")
-        if self.num_tasks > 0 and not bool(((task_ids >= 0) & (task_ids < self.num_tasks)).all()):
-            raise ValueError(f"task indices must be in [0, {self.num_tasks}), got {task_ids.tolist()}")
-        return task_ids  # (B,)
+    @property
+    def draws_random(self) -> bool:
+        """Top-k choice with k > 1 draws; greedy does not."""
+        return self.top_k > 1
 
     @classmethod
     def with_checkpoint_parts(cls, transformer: nn.Module, checkpoint: dict[str, Any]) -> "TokenizedPolicy":

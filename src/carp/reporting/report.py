@@ -57,6 +57,10 @@ class ReportInputs:
             (`carp.reporting.comparison.RunResults`); with it the report adds the per-seed tables, the paired
             comparisons with their verdicts, the steps-to-success curves and the paper's claims. `evaluation` then
             holds each family's figures pooled over its seeds (`carp.reporting.comparison.pooled_metrics`).
+        multitask: task -> policy family -> the evaluation metrics of that family's multi-task policy (one policy
+            trained over every task of the run) on the task, pooled over its seeds like `evaluation`
+            (``reports/eval/<task>/<policy>-multitask/``); the report sets it next to the single-task policy of the
+            same family where `evaluation` has one.
         max_steps: task -> episode step limit (the curves' horizon).
         demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
             demos where the paper trained on human ones); shown under the task's policies.
@@ -76,6 +80,7 @@ class ReportInputs:
     camera_frames: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict)
     videos: Mapping[str, Sequence[Path]] = field(default_factory=dict)
     runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
+    multitask: Mapping[str, Mapping[str, Mapping]] = field(default_factory=dict)
     max_steps: Mapping[str, int] = field(default_factory=dict)
     demo_notes: Mapping[str, str] = field(default_factory=dict)
     margin: float = 0.05
@@ -155,6 +160,43 @@ def success_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFra
                 }
             )
     return pd.DataFrame(rows)
+
+
+def multitask_table(
+    multitask: Mapping[str, Mapping[str, Mapping]], evaluation: Mapping[str, Mapping[str, Mapping]]
+) -> pd.DataFrame:
+    """One row per (task, family) of a multi-task policy: its success and that of the family's single-task policy.
+
+    Each success is given as successes/episodes and rate with its 95% Wilson interval; "-" where the run has no
+    single-task policy of that family on the task.
+
+    Args:
+        multitask: task -> family -> the multi-task policy's evaluation metrics on the task.
+        evaluation: task -> family -> the single-task policies' evaluation metrics.
+    """
+    rows = []
+    for task, families in multitask.items():
+        for policy, metrics in families.items():
+            single = evaluation.get(task, {}).get(policy)
+            multi_success, multi_interval = _success_and_interval(metrics)
+            single_success, single_interval = ("-", "-") if single is None else _success_and_interval(single)
+            rows.append(
+                {
+                    "task": task,
+                    "policy": policy,
+                    "multi-task success": multi_success,
+                    "multi-task 95% interval": multi_interval,
+                    "single-task success": single_success,
+                    "single-task 95% interval": single_interval,
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def _success_and_interval(metrics: Mapping) -> tuple[str, str]:
+    successes, episodes = int(metrics["successes"]), int(metrics["episodes"])
+    lower, upper = wilson_interval(successes, episodes)
+    return f"{successes}/{episodes} ({100 * successes / episodes:.1f}%)", f"{100 * lower:.1f}-{100 * upper:.1f}%"
 
 
 def token_choice(top_k: float | None) -> str:
@@ -334,6 +376,19 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         )
         for task, policies in inputs.evaluation.items()
     ]
+    if inputs.multitask:
+        sections.append(
+            Section(
+                "Multi-task",
+                paragraphs=[
+                    "One policy per family trained over every task of the run, told the task by a learned task "
+                    "embedding, evaluated on each task on the same episode seeds as the single-task policies; next "
+                    "to it the single-task policy of the same family on that task. Successes are pooled over the "
+                    "training seeds, with their 95% Wilson intervals."
+                ],
+                tables=[multitask_table(inputs.multitask, inputs.evaluation)],
+            )
+        )
     if inputs.runs:
         sections += comparison_sections(inputs, figures_dir)
     sections += [

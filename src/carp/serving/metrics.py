@@ -1,6 +1,6 @@
 """The server's counters and latency histogram, rendered in the Prometheus text exposition format (version 0.0.4).
 
-Written by hand rather than through `prometheus_client`: three series do not justify a dependency. All updates happen
+Written by hand rather than through `prometheus_client`: a few series do not justify a dependency. All updates happen
 on the server's event loop thread, so no lock is needed.
 """
 
@@ -25,6 +25,9 @@ class ServerMetrics:
             at most this one (not cumulative; rendering accumulates).
         slower: answered requests slower than the last bound.
         latency_sum_s: total seconds of the answered requests, from frame received to reply sent.
+        model_calls: prediction calls; below `predicted_chunks` when requests were batched.
+        predicted_chunks: chunks predicted (one per request that asked for one and got it).
+        reloads: models swapped in after the first one.
     """
 
     requests: int = 0
@@ -33,6 +36,9 @@ class ServerMetrics:
     bucket_counts: list[int] = field(default_factory=lambda: [0] * len(LATENCY_BUCKETS_S))
     slower: int = 0
     latency_sum_s: float = 0.0
+    model_calls: int = 0
+    predicted_chunks: int = 0
+    reloads: int = 0
 
     def observe_latency(self, seconds: float) -> None:
         """Add one answered request's latency to the histogram."""
@@ -55,6 +61,15 @@ class ServerMetrics:
             "# HELP carp_serving_connections WebSocket connections open.",
             "# TYPE carp_serving_connections gauge",
             f"carp_serving_connections {self.connections}",
+            "# HELP carp_serving_model_calls_total Prediction calls (one call answers a whole batch).",
+            "# TYPE carp_serving_model_calls_total counter",
+            f"carp_serving_model_calls_total {self.model_calls}",
+            "# HELP carp_serving_predicted_chunks_total Action chunks predicted.",
+            "# TYPE carp_serving_predicted_chunks_total counter",
+            f"carp_serving_predicted_chunks_total {self.predicted_chunks}",
+            "# HELP carp_serving_reloads_total Models swapped in after the first.",
+            "# TYPE carp_serving_reloads_total counter",
+            f"carp_serving_reloads_total {self.reloads}",
             "# HELP carp_serving_request_seconds Seconds from a request frame received to its reply sent.",
             "# TYPE carp_serving_request_seconds histogram",
         ]

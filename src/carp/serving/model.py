@@ -1,26 +1,18 @@
 """The served policy: where it came from, one lock around it, and its warm-up check against the serving spec."""
 
-import hashlib
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from carp.data.sources import file_sha256
 from carp.policies.base import Policy, TimedPrediction
 from carp.serving.session import IMAGES_KEY, Observed, ServingSpec
 
-
-def file_sha256(path: Path) -> str:
-    """Hex sha256 of the file at `path`, read in chunks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+__all__ = ["ModelSource", "ServedModel", "file_sha256"]
 
 
 @dataclass(frozen=True)
@@ -28,8 +20,8 @@ class ModelSource:
     """Where the served checkpoint came from.
 
     Attributes:
-        path: the checkpoint file.
-        sha256: hex sha256 of its bytes.
+        path: the checkpoint file, or the registry URI (``models:/<name>@<alias>``) it was resolved from.
+        sha256: hex sha256 of the checkpoint's bytes.
         name: registered model name when loaded from a model registry; None for a file.
         version: registered model version; None for a file.
         alias: registry alias the version was resolved from; None for a file.
@@ -51,8 +43,8 @@ class ModelSource:
 class ServedModel:
     """A loaded policy shared by every connection; predictions take turns under one lock.
 
-    One lock because a policy's modules are not written for concurrent calls; the server runs predictions on a thread
-    pool, so the lock is what serializes them (batching across robots is left for later).
+    One lock because a policy's modules are not written for concurrent calls (the server predicts on one thread; the
+    lock keeps any other caller, such as a warm-up, out of its way).
 
     Attributes:
         policy: the policy, with its inference settings applied.
@@ -80,6 +72,33 @@ class ServedModel:
         with self.lock:
             waited = time.perf_counter() - waiting
             timed = self.policy.predict_action_timed(observed.obs_history[None], generator=observed.generator, **seen)
+        return timed, waited
+
+    @property
+    def batches(self) -> bool:
+        """Whether requests of several episodes may share one call: only when the policy draws nothing random."""
+        return not self.policy.draws_random
+
+    def predict_batch(self, batch: list[Observed]) -> tuple[TimedPrediction, float]:
+        """Predict one chunk per observation history of `batch` in one call (a policy that draws nothing, `batches`).
+
+        Each row is what the policy predicts for that history alone, up to the last bits of float arithmetic (a
+        batched matrix product may sum in another order than a single row's).
+
+        Args:
+            batch: B observations, each (To, Do) float32 and (To, cameras, 3, h, w) uint8 images or None.
+
+        Returns:
+            The prediction, whose `actions` are (B, H, A) float32, and the lock wait in seconds.
+        """
+        obs = np.stack([observed.obs_history for observed in batch])  # (B, To, Do)
+        seen = {}
+        if batch[0].image_history is not None:
+            seen[IMAGES_KEY] = np.stack([observed.image_history for observed in batch])  # (B, To, cameras, 3, h, w)
+        waiting = time.perf_counter()
+        with self.lock:
+            waited = time.perf_counter() - waiting
+            timed = self.policy.predict_action_timed(obs, **seen)
         return timed, waited
 
     def warm_up(self, spec: ServingSpec) -> None:

@@ -3,22 +3,32 @@
 Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
 
 1. On connect the server sends one metadata frame (:meth:`PolicyServer.metadata`): protocol, model, policy family,
-   observation and action specs, control period, the executed-action offset `To - 1` and `Ta`.
+   observation and action specs (``observation_keys``: each low-dim key's shape, when a request may send them one
+   by one), control period, the executed-action offset `To - 1` and `Ta`.
 2. Then each request (`carp.serving.session`) gets exactly one reply, in order: a binary frame
-   ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "timing_ms": {"queue", "inference",
-   "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape (3,), got (4,)``).
-   A bad request changes nothing and the connection stays open. Text for errors is openpi's convention too: its
-   client raises on a text frame.
+   ``{"actions": (H, A) float32, "step", "timestamp", "model_version", "batch_size", "timing_ms": {"queue",
+   "inference", "encoding"}}``, or a text frame with one line naming the offending key (``obs: expected shape
+   (3,), got (4,)``). A request with ``predict: false`` gets the same reply without ``actions``, ``batch_size`` and
+   ``timing_ms`` (it only adds its observation to the history). A bad request changes nothing and the connection
+   stays open. Text for errors is openpi's convention too: its client raises on a text frame.
 
 The same port answers HTTP GET ``/healthz`` (the process is up), ``/readyz`` (200 once the model is warmed up,
 503 before), ``/metadata`` (JSON) and ``/metrics`` (Prometheus text) through websockets' `process_request` hook.
 With a token every route but ``/healthz``, and the WebSocket upgrade, need ``Authorization: Bearer <token>``;
 others get 401 before any WebSocket frame is exchanged.
 
-Predictions run on a thread pool, off the event loop, so a slow chunk does not stall other robots' frames; the model
-lock (`ServedModel`) serializes them. Frames larger than `max_request_bytes` get an error reply; frames beyond four
-times that are refused by websockets itself (`max_size`), which closes the connection with code 1009 rather than
-buffer them.
+Predictions run on one thread, off the event loop, so a slow chunk does not stall other robots' frames; requests
+that wait for it together share the next call when the policy draws nothing random (`carp.serving.batching`).
+Frames larger than `max_request_bytes` get an error reply; frames beyond four times that are refused by websockets
+itself (`max_size`), which closes the connection with code 1009 rather than buffer them.
+
+Reload: with a `reloader` (`carp.serving.startup.model_reloader`: the registry alias moved, or the checkpoint file
+changed), :meth:`PolicyServer.reload` loads and warms the new model up beside the served one, then swaps it in
+between requests: a request already waiting is answered by the model it arrived under, every later one by the new
+one, and none fails. It runs every `reload_interval_s` and on SIGHUP (`serve_forever`). When the new model's spec
+differs (other observation keys or widths, `To`, `H`, `A`, `Ta`), every open connection is closed with code 1012
+(service restart) and a reason saying so: its history no longer fits, and the robot must reconnect and read the
+metadata again (`carp_client` raises `SpecChangedError`).
 """
 
 import asyncio
@@ -28,6 +38,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -36,9 +47,10 @@ from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from carp.serving.batching import PredictionQueue
 from carp.serving.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from carp.serving.metrics import ServerMetrics
-from carp.serving.model import ServedModel
+from carp.serving.model import ModelSource, ServedModel
 from carp.serving.session import RequestError, ServingSpec, Session
 from carp.serving.wire import WireError, decode, encode
 
@@ -51,6 +63,9 @@ DEFAULT_PORT = 8000
 DEFAULT_MAX_REQUEST_BYTES = 1 << 20
 """1 MiB: two 84 x 84 cameras take 42 kB a step; a larger image policy raises it."""
 OPEN_ROUTES = ("/healthz",)
+DEFAULT_MAX_BATCH_SIZE = 8
+SPEC_CHANGED_CLOSE_CODE = 1012
+SPEC_CHANGED_REASON = "the policy's observation or action spec changed: reconnect and read the metadata again"
 
 
 @dataclass(frozen=True)
@@ -62,38 +77,58 @@ class ServerSettings:
         port: TCP port; 0 picks a free one (tests).
         token: bearer token required on every route but `/healthz`; None serves without one.
         max_request_bytes: largest request frame answered; larger ones get an error reply.
+        max_batch_size: most requests predicted in one call (`carp.serving.batching`); 1 turns batching off.
+        reload_interval_s: seconds between two checks for a new model (the registry alias moved, the file changed);
+            None checks only when asked (SIGHUP).
     """
 
     host: str = DEFAULT_HOST
     port: int = DEFAULT_PORT
     token: str | None = None
     max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+    max_batch_size: int = DEFAULT_MAX_BATCH_SIZE
+    reload_interval_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.token is not None and not self.token:
             raise ValueError("the token must not be empty (leave it unset to serve without one)")
         if self.max_request_bytes < 1:
             raise ValueError(f"max_request_bytes must be positive, got {self.max_request_bytes}")
+        if self.max_batch_size < 1:
+            raise ValueError(f"max_batch_size must be >= 1, got {self.max_batch_size}")
+        if self.reload_interval_s is not None and not self.reload_interval_s > 0:
+            raise ValueError(f"reload_interval_s must be positive, got {self.reload_interval_s}")
 
 
 class PolicyServer:
-    """Serves one `ServedModel` to any number of WebSocket clients, one `Session` each.
+    """Serves one `ServedModel` at a time to any number of WebSocket clients, one `Session` each.
 
     Args:
         model: the loaded policy.
         spec: what its requests and replies look like.
-        settings: bind address, token, frame limit.
+        settings: bind address, token, frame limit, batching, reload interval.
+        reloader: given the served model's source, loads the model to serve now, or returns None when it is still
+            the served one (`carp.serving.startup.model_reloader`); None serves `model` for good.
     """
 
-    def __init__(self, model: ServedModel, spec: ServingSpec, settings: ServerSettings = ServerSettings()) -> None:
+    def __init__(
+        self,
+        model: ServedModel,
+        spec: ServingSpec,
+        settings: ServerSettings = ServerSettings(),
+        reloader: Callable[[ModelSource], tuple[ServedModel, ServingSpec] | None] | None = None,
+    ) -> None:
         self.model = model
         self.spec = spec
         self.settings = settings
+        self.reloader = reloader
         self.metrics = ServerMetrics()
         self.ready = False
-        # Two threads: the lock serializes predictions anyway; the second lets a request queue on the lock, which
-        # the reply reports as queue time, instead of in the executor's hidden queue.
-        self._executor = ThreadPoolExecutor(max_workers=2, thread_name_prefix="carp-serving")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carp-serving")
+        self._queue = PredictionQueue(self._executor, settings.max_batch_size, self._count_call)
+        self._sessions: dict[ServerConnection, Session] = {}
+        self._reload_lock: asyncio.Lock | None = None
+        self._poller: asyncio.Task | None = None
 
     def metadata(self) -> dict[str, Any]:
         """The frame sent on connect and served at `/metadata`: plain values only (JSON and msgpack alike)."""
@@ -107,6 +142,7 @@ class PolicyServer:
             "policy_description": self.model.policy.description,
             "inference": dict(self.model.inference),
             "observation": spec.observation_spec(),
+            "observation_keys": spec.key_spec(),
             "obs_steps": spec.obs_steps,
             "action": {"shape": [spec.action_horizon, spec.action_dim], "dtype": "float32"},
             "control_period_s": spec.control_period_s,
@@ -137,13 +173,78 @@ class PolicyServer:
             server.close()
             await server.wait_closed()
             raise
+        self._queue.start()
+        self._reload_lock = asyncio.Lock()
+        if self.reloader is not None and self.settings.reload_interval_s is not None:
+            self._poller = asyncio.get_running_loop().create_task(self._poll())
         self.ready = True
         logger.info("serving %s on %s", self.model.source.path, ", ".join(_addresses(server)))
         return server
 
+    async def stop(self) -> None:
+        """Stop polling for new models and the prediction worker (after the WebSocket server has closed)."""
+        if self._poller is not None:
+            self._poller.cancel()
+            try:
+                await self._poller
+            except asyncio.CancelledError:
+                pass
+        await self._queue.stop()
+
     def close(self) -> None:
-        """Release the prediction threads (after the WebSocket server has closed)."""
+        """Release the prediction thread (after :meth:`stop`)."""
         self._executor.shutdown(wait=True)
+
+    async def reload(self) -> bool:
+        """Ask the reloader for the model to serve now; swap it in if it is another one.
+
+        The new model is loaded and warmed up off the event loop while the served one goes on answering. A reloader
+        that fails (registry unreachable, a checkpoint that does not load or fit its spec) is logged and the served
+        model stays. Reloads run one at a time.
+
+        Returns:
+            Whether a new model was swapped in.
+        """
+        if self.reloader is None:
+            return False
+        async with self._reload_lock:
+            try:
+                loaded = await asyncio.to_thread(self._load_next)
+            except Exception:  # noqa: BLE001 - the served model stays; the log says why the new one did not come
+                logger.exception("reloading the model failed; still serving %s", self.model.source.model_version)
+                return False
+            if loaded is None:
+                return False
+            self._swap(*loaded)
+            return True
+
+    def _load_next(self) -> tuple[ServedModel, ServingSpec] | None:
+        loaded = self.reloader(self.model.source)
+        if loaded is not None:
+            model, spec = loaded
+            model.warm_up(spec)
+        return loaded
+
+    def _swap(self, model: ServedModel, spec: ServingSpec) -> None:
+        """Serve `model` from the next request on (runs on the event loop, so no request sees half of it)."""
+        previous = self.model.source.model_version
+        spec_changed = spec != self.spec
+        self.model, self.spec = model, spec
+        self.metrics.reloads += 1
+        logger.info("now serving %s (was %s)", model.source.model_version, previous)
+        if spec_changed:
+            logger.info("the spec changed; closing %d connections so that they reconnect", len(self._sessions))
+            for connection in list(self._sessions):
+                asyncio.get_running_loop().create_task(connection.close(SPEC_CHANGED_CLOSE_CODE, SPEC_CHANGED_REASON))
+
+    async def _poll(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.reload_interval_s)
+            await self.reload()
+
+    def _count_call(self, size: int) -> None:
+        self.metrics.model_calls += 1
+        self.metrics.predicted_chunks += size
 
     def _authorized(self, request: Request) -> bool:
         if self.settings.token is None:
@@ -177,6 +278,7 @@ class PolicyServer:
     async def _handle(self, connection: ServerConnection) -> None:
         self.metrics.connections += 1
         session = Session(self.spec)
+        self._sessions[connection] = session
         try:
             await connection.send(encode(self.metadata()))
             async for frame in connection:
@@ -184,6 +286,7 @@ class PolicyServer:
         except ConnectionClosed:
             pass
         finally:
+            del self._sessions[connection]
             self.metrics.connections -= 1
 
     def _parse(self, frame: str | bytes) -> Any:
@@ -196,13 +299,10 @@ class PolicyServer:
         except WireError as error:
             raise RequestError(f"frame: {error}") from None
 
-    def _predict(self, observed) -> tuple[Any, float, float]:
-        started = time.perf_counter()
-        timed, waited = self.model.predict(observed)
-        return timed, started + waited, time.perf_counter()
-
     async def _answer(self, connection: ServerConnection, session: Session, frame: str | bytes) -> None:
         received = time.perf_counter()
+        # The model this request arrived under answers it, even if a reload swaps another one in meanwhile.
+        model = self.model
         self.metrics.requests += 1
         try:
             observed = session.observe(self._parse(frame))
@@ -210,22 +310,25 @@ class PolicyServer:
             self.metrics.errors += 1
             await connection.send(str(error))
             return
-        loop = asyncio.get_running_loop()
+        if not observed.predict:
+            await connection.send(encode({**observed.echo, "model_version": model.source.model_version}))
+            return
         try:
-            timed, predicting, predicted = await loop.run_in_executor(self._executor, self._predict, observed)
+            prediction = await self._queue.predict(model, observed)
         except Exception:  # noqa: BLE001 - logged here; the client gets one line, never the traceback
             logger.exception("prediction failed")
             self.metrics.errors += 1
             await connection.send("prediction: failed on the server (see its log)")
             return
         reply = {
-            "actions": timed.actions[0],  # (H, A) float32
+            "actions": prediction.actions,  # (H, A) float32
             **observed.echo,
-            "model_version": self.model.source.model_version,
+            "model_version": model.source.model_version,
+            "batch_size": prediction.batch_size,
             "timing_ms": {
-                "queue": 1e3 * (predicting - received),
-                "inference": 1e3 * (predicted - predicting),
-                "encoding": 1e3 * timed.encoding_seconds,
+                "queue": 1e3 * (prediction.started - received),
+                "inference": 1e3 * (prediction.finished - prediction.started),
+                "encoding": 1e3 * prediction.encoding_seconds,
             },
         }
         await connection.send(encode(reply))
@@ -255,11 +358,12 @@ async def _serve_until(policy_server: PolicyServer, stop: asyncio.Event, on_star
     finally:
         server.close()
         await server.wait_closed()
+        await policy_server.stop()
         policy_server.close()
 
 
 def serve_forever(policy_server: PolicyServer) -> None:
-    """Serve in this thread until interrupted (Ctrl-C or SIGTERM).
+    """Serve in this thread until interrupted (Ctrl-C or SIGTERM); SIGHUP checks for a new model at once.
 
     Raises:
         OSError: the address cannot be bound.
@@ -269,7 +373,9 @@ def serve_forever(policy_server: PolicyServer) -> None:
 
     async def main() -> None:
         stop = asyncio.Event()
-        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        loop = asyncio.get_running_loop()
+        loop.add_signal_handler(signal.SIGTERM, stop.set)
+        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(policy_server.reload()))
         await _serve_until(policy_server, stop, lambda port: None)
 
     try:
@@ -329,6 +435,10 @@ class ServerThread:
         if self._failure is not None:
             raise self._failure
         return self
+
+    def reload(self, timeout_s: float = 60.0) -> bool:
+        """Run :meth:`PolicyServer.reload` on the server's loop and wait for it; returns whether it swapped."""
+        return asyncio.run_coroutine_threadsafe(self.policy_server.reload(), self._loop).result(timeout_s)
 
     def stop(self, timeout_s: float = 30.0) -> None:
         """Close the server and its connections, and wait for the thread."""

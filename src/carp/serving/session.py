@@ -9,8 +9,14 @@ with the same observations and seed predicts.
 A request is a map:
 
 - ``obs``: (Do,) float32, the low-dim observation features of the current step (the spec's `obs_keys`
-  concatenated in this order).
+  concatenated in this order); or, when the spec knows each key's width (a checkpoint that records its protocol,
+  `carp.serving.protocol`), one (width,) float32 array per key under the key's own name, e.g.
+  ``{"object": (10,), "robot0_eef_pos": (3,), ...}``, which the server concatenates in the spec's order. A request
+  sends one form or the other, not both.
 - ``images``: (cameras, 3, h, w) uint8 camera images of the current step; only for an image policy.
+- ``predict`` (optional bool, default true): false only adds the observation to the history and gets a reply
+  without ``actions``. A robot that executes ``Ta`` actions per chunk sends the steps in between this way, so that
+  the history holds the last ``To`` steps when it asks for the next chunk, as in the rollout loop.
 - ``reset`` (optional bool): this observation starts a new episode; ``seed`` (optional int, default 0) seeds its
   draws. A new connection starts an episode with seed 0.
 - ``step`` and ``timestamp`` (optional): echoed in the reply, so the robot can match replies and measure latency.
@@ -40,7 +46,7 @@ class ServingSpec:
 
     Attributes:
         obs_keys: names of the low-dim observation keys concatenated, in this order, into the `Do` features of
-            ``obs`` (documentation for the robot side; the server checks only the width).
+            ``obs``.
         obs_steps: `To`, observation steps the policy conditions on.
         obs_dim: `Do`, low-dim observation features per step.
         action_horizon: `H`, actions per predicted chunk.
@@ -49,6 +55,9 @@ class ServingSpec:
             (`carp.evaluation.sources.executed_actions`).
         control_period_s: seconds between two control steps (1 / the task's control frequency).
         image_shape: (cameras, 3, h, w) of one step's camera images for an image policy; None for a state policy.
+        obs_widths: features of each of `obs_keys`, summing to `Do`; None when unknown (a spec derived from params
+            for a checkpoint that does not record its protocol), in which case requests must send ``obs``.
+        cameras: names of the cameras of ``images``, in order; empty when unknown or for a state policy.
     """
 
     obs_keys: tuple[str, ...]
@@ -59,9 +68,21 @@ class ServingSpec:
     action_steps: int
     control_period_s: float
     image_shape: tuple[int, ...] | None = None
+    obs_widths: tuple[int, ...] | None = None
+    cameras: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "obs_keys", tuple(self.obs_keys))
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        if self.obs_widths is not None:
+            object.__setattr__(self, "obs_widths", tuple(self.obs_widths))
+            if len(self.obs_widths) != len(self.obs_keys) or sum(self.obs_widths) != self.obs_dim:
+                raise ValueError(
+                    f"ServingSpec: obs_widths {list(self.obs_widths)} of keys {list(self.obs_keys)} do not add up to "
+                    f"Do = {self.obs_dim}"
+                )
+            if {OBS_KEY, IMAGES_KEY} & set(self.obs_keys):
+                raise ValueError(f"ServingSpec: an observation key may not be named {OBS_KEY} or {IMAGES_KEY}")
         if self.image_shape is not None:
             object.__setattr__(self, "image_shape", tuple(self.image_shape))
         for name in ("obs_steps", "obs_dim", "action_horizon", "action_dim", "action_steps"):
@@ -84,12 +105,22 @@ class ServingSpec:
 
     def observation_spec(self) -> dict[str, dict[str, Any]]:
         """Per request key: its shape, dtype and meaning, as the metadata frame lists them."""
-        spec = {
+        spec: dict[str, dict[str, Any]] = {
             OBS_KEY: {"shape": [self.obs_dim], "dtype": "float32", "keys": list(self.obs_keys)},
         }
+        if self.obs_widths is not None:
+            spec[OBS_KEY]["widths"] = list(self.obs_widths)
         if self.image_shape is not None:
             spec[IMAGES_KEY] = {"shape": list(self.image_shape), "dtype": "uint8", "layout": "cameras, 3, h, w"}
+            if self.cameras:
+                spec[IMAGES_KEY]["cameras"] = list(self.cameras)
         return spec
+
+    def key_spec(self) -> dict[str, dict[str, Any]]:
+        """Per low-dim observation key, in order: its shape and dtype; empty when the widths are unknown."""
+        if self.obs_widths is None:
+            return {}
+        return {key: {"shape": [width], "dtype": "float32"} for key, width in zip(self.obs_keys, self.obs_widths)}
 
 
 def _array(request: Mapping[str, Any], key: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
@@ -126,12 +157,14 @@ class Observed:
         generator: the episode's random source; used by one prediction at a time (a connection's requests are
             answered in order).
         echo: the request's ``step`` and ``timestamp`` (None where it sent none), for the reply.
+        predict: whether the request asks for a chunk (false: observation only).
     """
 
     obs_history: np.ndarray
     image_history: np.ndarray | None
     generator: torch.Generator
     echo: dict[str, Any] = field(default_factory=dict)
+    predict: bool = True
 
 
 class Session:
@@ -150,24 +183,39 @@ class Session:
         self._history.clear()
         self._images.clear()
 
+    def _observation(self, request: Mapping[str, Any]) -> np.ndarray:
+        """(Do,) float32 features of `request`: its ``obs``, or its per-key arrays concatenated in the spec's order."""
+        spec, float32 = self.spec, np.dtype(np.float32)
+        sent_keys = [key for key in spec.obs_keys if key in request] if spec.obs_widths is not None else []
+        if OBS_KEY in request:
+            if sent_keys:
+                raise RequestError(f"{sent_keys[0]}: send either obs or the per-key observations, not both")
+            return _array(request, OBS_KEY, (spec.obs_dim,), float32)
+        if not sent_keys:
+            per_key = f" or each of {', '.join(spec.obs_keys)}" if spec.obs_widths is not None else ""
+            raise RequestError(f"{OBS_KEY}: missing (send obs ({spec.obs_dim},) float32{per_key})")
+        parts = [_array(request, key, (width,), float32) for key, width in zip(spec.obs_keys, spec.obs_widths)]
+        return np.concatenate(parts)  # (Do,)
+
     def observe(self, request: Mapping[str, Any]) -> Observed:
         """Validate `request` (see the module docstring), then add its observation to the history.
 
         A request that fails validation leaves the session as it was.
 
         Raises:
-            RequestError: a missing key, a wrong shape or dtype, a non-finite value, a malformed `reset`, `seed`,
-                `step` or `timestamp`.
+            RequestError: a missing key (``obs``, or one of the per-key observations), both forms at once, a wrong
+                shape or dtype, a non-finite value, a malformed `predict`, `reset`, `seed`, `step` or `timestamp`.
         """
         if not isinstance(request, Mapping):
             raise RequestError(f"request: expected a map, got {type(request).__name__}")
-        obs = _array(request, OBS_KEY, (self.spec.obs_dim,), np.dtype(np.float32))
+        obs = self._observation(request)
         images = None
         if self.spec.image_shape is not None:
             images = _array(request, IMAGES_KEY, self.spec.image_shape, np.dtype(np.uint8))
-        reset = request.get("reset", False)
-        if not isinstance(reset, bool):
-            raise RequestError(f"reset: expected true or false, got {type(reset).__name__}")
+        reset, predict = request.get("reset", False), request.get("predict", True)
+        for key, flag in (("reset", reset), ("predict", predict)):
+            if not isinstance(flag, bool):
+                raise RequestError(f"{key}: expected true or false, got {type(flag).__name__}")
         seed = _optional_number(request, "seed", 0, (int,))
         echo = {
             "step": _optional_number(request, "step", None, (int,)),
@@ -189,4 +237,5 @@ class Session:
             image_history=np.stack(self._images) if images is not None else None,  # (To, cameras, 3, h, w)
             generator=self.generator,
             echo=echo,
+            predict=predict,
         )

@@ -1,25 +1,52 @@
-"""From a checkpoint file and the project's params to a running server: what `carp serve` calls.
+"""From a checkpoint file or a registered version to a running server: what `carp serve` calls.
 
-The spec comes from where evaluation takes it (`carp.evaluation.runner`): `To`, `H`, `Ta`, the observation keys and
-the cameras from the params' `data` section, the inference settings from `inference.<family>` for the checkpoint's
-task, the control period from the task. `Do` and `A` come from the policy's normalizers, which every PyTorch family
-keeps (`carp.policies.wrapper.PolicyModule`); the warm-up then checks the predicted (H, A) against the spec.
+`--model` is a `policy.pt` path or a registry URI ``models:/<name>@<alias>`` (`carp.tracking.registry`: one
+registered model per task and family, an alias the user moves). The served version, its sha256 and the alias it came
+from are in the metadata; :func:`model_reloader` tells the server when the alias has moved (or the file changed).
+
+The spec comes from the checkpoint itself: training records the serving protocol (`carp.serving.protocol`: the
+observation keys and widths, `To`, `H`, `Ta`, the cameras) in its metadata, `Do` and `A` come from the policy's
+normalizers, which every PyTorch family keeps (`carp.policies.wrapper.PolicyModule`), and the control period from the
+checkpoint's task. The inference settings are not recorded (they are evaluation params, changing them must not
+retrain): they come from the params when given (`inference.<family>` for the checkpoint's task, as evaluation takes
+them), otherwise from the family's defaults.
+
+A checkpoint trained before the protocol was recorded is served only with the params it was trained with: the spec
+then comes from their `data` section, as evaluation takes it (`carp.evaluation.runner`), and requests must send the
+concatenated ``obs`` (the per-key widths are unknown). The warm-up checks the predicted (H, A) against the spec.
 """
 
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from carp.policies.base import Policy
 from carp.serving.model import ModelSource, ServedModel, file_sha256
+from carp.serving.protocol import recorded_protocol, spec_from_protocol
 from carp.serving.server import PolicyServer, ServerSettings, serve_forever
 from carp.serving.session import ServingSpec
+
+REGISTRY_PREFIX = "models:/"
 
 
 class ServingStartError(RuntimeError):
     """The server cannot start; the message is one line that names the file or setting at fault."""
 
 
+def _policy_dims(policy: Policy) -> tuple[int, int]:
+    try:
+        return policy.obs_normalizer.num_features, policy.action_normalizer.num_features
+    except AttributeError:
+        raise ServingStartError(
+            f"a {policy.policy_type} policy does not expose obs_normalizer and action_normalizer, so Do and A "
+            "are unknown"
+        ) from None
+
+
 def serving_spec(policy: Policy, params, task: str) -> ServingSpec:
-    """The spec of `policy`, trained on `task` with `params` (a `carp.config.Params`).
+    """The spec of `policy`, trained on `task` with `params` (a `carp.config.Params`), without a recorded protocol.
+
+    For a checkpoint trained before checkpoints recorded it; the key widths stay unknown.
 
     Raises:
         ServingStartError: the policy does not expose its normalizers.
@@ -27,13 +54,7 @@ def serving_spec(policy: Policy, params, task: str) -> ServingSpec:
     from carp.tasks import get_task
 
     data = params.data
-    try:
-        obs_dim, action_dim = policy.obs_normalizer.num_features, policy.action_normalizer.num_features
-    except AttributeError:
-        raise ServingStartError(
-            f"a {policy.policy_type} policy does not expose obs_normalizer and action_normalizer, so Do and A "
-            "are unknown"
-        ) from None
+    obs_dim, action_dim = _policy_dims(policy)
     image_shape = None
     if data.observations == "image":
         image_shape = (len(data.cameras), 3, data.image_size, data.image_size)
@@ -46,48 +67,152 @@ def serving_spec(policy: Policy, params, task: str) -> ServingSpec:
         action_steps=data.action_steps,
         control_period_s=1.0 / get_task(task).control_frequency_hz,
         image_shape=image_shape,
+        cameras=data.cameras if image_shape is not None else (),
     )
 
 
-def load_served_model(model_path: Path, params) -> tuple[ServedModel, ServingSpec]:
-    """Load the checkpoint at `model_path`, apply its inference settings and derive its spec.
+def recorded_spec(policy: Policy, task: str) -> ServingSpec | None:
+    """The spec the checkpoint of `policy`, trained on `task`, records; None when it records none.
 
     Raises:
-        ServingStartError: no such file, an unreadable checkpoint, or one without the task it was trained on.
+        ServingStartError: the policy does not expose its normalizers.
+        ProtocolError: the recorded protocol is of another format or does not fit the policy.
     """
+    from carp.tasks import get_task
+
+    protocol = recorded_protocol(policy.metadata)
+    if protocol is None:
+        return None
+    obs_dim, action_dim = _policy_dims(policy)
+    return spec_from_protocol(protocol, obs_dim, action_dim, 1.0 / get_task(task).control_frequency_hz)
+
+
+def default_inference(family: str, task: str) -> dict:
+    """The inference settings of `family` on `task` when no params are given: its `inference.<family>` defaults."""
+    from carp.policies.registry import get_sections
+
+    return get_sections(family)[1]().settings_for(task)
+
+
+def is_registry_uri(model: str | Path) -> bool:
+    """Whether `model` names a registered version (``models:/<name>@<alias>``) rather than a file."""
+    return isinstance(model, str) and model.startswith(REGISTRY_PREFIX)
+
+
+def load_served_model(
+    model: str | Path, params=None, tracking_uri: str | None = None
+) -> tuple[ServedModel, ServingSpec]:
+    """Load the policy `model` names, apply its inference settings and derive its spec.
+
+    Args:
+        model: a policy checkpoint (`policy.pt`), or a registry URI ``models:/<name>@<alias>`` whose version is
+            downloaded (and checked against its sha256 tag) into a temporary directory, loaded, and removed.
+        params: a `carp.config.Params` whose `inference.<family>` settings apply (and whose `data` section gives
+            the spec of a checkpoint that does not record it); None for the family's default settings.
+        tracking_uri: the MLflow store holding the registry; needed for a registry URI only.
+
+    Raises:
+        ServingStartError: no such file, model or alias, an unreadable checkpoint, one without the task it was
+            trained on, or one without a recorded protocol and no params.
+    """
+    if not is_registry_uri(model):
+        return _load_checkpoint(Path(model), params)
+    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri)
+
+
+def _resolve(uri: str, tracking_uri: str | None):
+    from carp.tracking.registry import resolve_alias
+
+    if tracking_uri is None:
+        raise ServingStartError(f"{uri}: a registry URI needs the tracking URI of the registry (--tracking-uri)")
+    try:
+        return resolve_alias(tracking_uri, uri)
+    except (LookupError, ValueError) as error:
+        raise ServingStartError(str(error)) from None
+
+
+def _load_registered(uri: str, reference, params, tracking_uri: str) -> tuple[ServedModel, ServingSpec]:
+    from carp.tracking.registry import fetch_registered_policy
+
+    with tempfile.TemporaryDirectory(prefix="carp-serve-") as folder:
+        try:
+            checkpoint = fetch_registered_policy(tracking_uri, reference, Path(folder))
+        except LookupError as error:
+            raise ServingStartError(str(error)) from None
+        source = ModelSource(uri, file_sha256(checkpoint), reference.name, reference.version, reference.alias)
+        return _load_checkpoint(checkpoint, params, source)
+
+
+def _load_checkpoint(model_path: Path, params, source: ModelSource | None = None) -> tuple[ServedModel, ServingSpec]:
+    """Load the checkpoint file at `model_path`; `source` names it (default: the path and its sha256)."""
     from carp.policies.registry import load_policy
     from carp.training.checkpoint import CheckpointError
 
-    model_path = Path(model_path)
+    label = model_path if source is None else source.path
     if not model_path.is_file():
-        raise ServingStartError(f"{model_path}: no such model file")
+        raise ServingStartError(f"{label}: no such model file")
     try:
         policy = load_policy(model_path)
     except (CheckpointError, OSError) as error:
-        raise ServingStartError(str(error)) from None
+        raise ServingStartError(str(error) if source is None else f"{label}: {error}") from None
     task = policy.metadata.get("task")
     if not task:
-        raise ServingStartError(f"{model_path}: the checkpoint does not name the task it was trained on")
+        raise ServingStartError(f"{label}: the checkpoint does not name the task it was trained on")
     try:
-        inference = params.inference_settings(policy.policy_type, task)
+        spec = recorded_spec(policy, task)
+        if spec is None and params is None:
+            raise ServingStartError(
+                f"{label}: the checkpoint does not record its serving protocol (trained before carp recorded "
+                "it); train it again, or pass --params with the params it was trained with"
+            )
+        if spec is None:
+            spec = serving_spec(policy, params, task)
+        if params is not None:
+            inference = params.inference_settings(policy.policy_type, task)
+        else:
+            inference = default_inference(policy.policy_type, task)
         policy.configure_inference(**inference)
-        spec = serving_spec(policy, params, task)
     except (KeyError, TypeError, ValueError) as error:
-        raise ServingStartError(f"{model_path}: {error}") from None
-    source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
+        raise ServingStartError(f"{label}: {error}") from None
+    if source is None:
+        source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
     return ServedModel(policy, source, inference), spec
 
 
-def serve_checkpoint(model_path: Path, params, settings: ServerSettings) -> None:
-    """Serve the checkpoint at `model_path` with `settings` until interrupted.
+def model_reloader(
+    model: str | Path, params=None, tracking_uri: str | None = None
+) -> Callable[[ModelSource], tuple[ServedModel, ServingSpec] | None]:
+    """What `PolicyServer` calls to find out whether to serve another model, for `model` as `load_served_model`.
+
+    For a registry URI the alias is resolved again: a version other than the served one is loaded. For a file, its
+    bytes are hashed again: other bytes are loaded. Otherwise it returns None (nothing is downloaded or loaded).
+    """
+
+    def reload(served: ModelSource) -> tuple[ServedModel, ServingSpec] | None:
+        if is_registry_uri(model):
+            reference = _resolve(str(model), tracking_uri)
+            if reference.version == served.version:
+                return None
+            return _load_registered(str(model), reference, params, tracking_uri)
+        path = Path(model)
+        if path.is_file() and file_sha256(path) == served.sha256:
+            return None
+        return _load_checkpoint(path, params)
+
+    return reload
+
+
+def serve_checkpoint(model: str | Path, params, settings: ServerSettings, tracking_uri: str | None = None) -> None:
+    """Serve `model` (as `load_served_model`) with `settings` until interrupted, following it as it moves.
 
     Raises:
         ServingStartError: the model cannot be loaded, the address cannot be bound, or the warm-up prediction does
             not fit the spec.
     """
-    model, spec = load_served_model(model_path, params)
+    served, spec = load_served_model(model, params, tracking_uri)
+    reloader = model_reloader(model, params, tracking_uri)
     try:
-        serve_forever(PolicyServer(model, spec, settings))
+        serve_forever(PolicyServer(served, spec, settings, reloader))
     except OSError as error:
         address = f"{settings.host}:{settings.port}"
         raise ServingStartError(f"cannot listen on {address}: {error.strerror or error}") from None

@@ -1,9 +1,13 @@
-"""MLflow Model Registry for tokenizers: register once per weights hash, resolve ``models:/<name>@<alias>``.
+"""MLflow Model Registry for tokenizers and trained policies: register once per hash, resolve ``models:/name@alias``.
 
 A tokenizer is logged as an MLflow pyfunc model whose artifact is the tokenizer directory, so
 ``mlflow.pyfunc.load_model(uri).unwrap_python_model().artifact.tokenizer`` is the real module (not a traced graph),
-and ``predict`` turns raw action chunks into token sequences. Versions carry the weights' sha256 as a tag; registering
-identical weights again returns the existing version.
+and ``predict`` turns raw action chunks into token sequences. A trained policy is logged the same way with its
+checkpoint file (`policy.pt`) as the artifact; ``predict`` turns raw observation histories into action chunks. Both
+go through one registration and one download: versions carry the sha256 (the tokenizer's weights, the policy's
+checkpoint bytes) as a tag, registering the same hash again returns the existing version, and a download is checked
+against the tag. Policies are named per task and family (:func:`policy_model_name`); the user moves an alias (e.g.
+``champion``) to the version to serve, and `carp serve` follows it.
 """
 
 import json
@@ -12,7 +16,7 @@ import os
 import tempfile
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import mlflow
@@ -22,20 +26,23 @@ from mlflow import MlflowClient
 from mlflow.models import ModelSignature
 from mlflow.types import ParamSchema, ParamSpec
 
+from carp.data.sources import file_sha256
 from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact
 
 logger = logging.getLogger(__name__)
 
 SHA_TAG = "carp.sha256"
 ARTIFACT_KEY = "tokenizer"
+POLICY_ARTIFACT_KEY = "policy"
+POLICY_FILENAME = "policy.pt"
 # Setting an alias is a read-then-insert on the server; writers that insert the same new alias at the same moment
 # collide on its primary key, and a repeat (which then updates) settles it.
 ALIAS_ATTEMPTS = 6
 
 
 @dataclass(frozen=True)
-class TokenizerReference:
-    """What ``models/tokenizer_ref.json`` holds."""
+class ModelReference:
+    """One registered version, as an alias resolved to it (``models/tokenizer_ref.json`` holds the tokenizer's)."""
 
     name: str
     version: str
@@ -55,9 +62,13 @@ class TokenizerReference:
         os.replace(temporary, path)
 
     @classmethod
-    def load(cls, path: Path) -> "TokenizerReference":
+    def load(cls, path: Path) -> "ModelReference":
         """Read a reference file."""
         return cls(**json.loads(Path(path).read_text()))
+
+
+TokenizerReference = ModelReference
+"""The tokenizer's reference is a `ModelReference`; the name stays for the code that reads tokenizer references."""
 
 
 class TokenizerModel(mlflow.pyfunc.PythonModel):
@@ -88,7 +99,7 @@ def registered_model_name(action_space: str) -> str:
 
 def register_tokenizer(
     tracking_uri: str, directory: Path, name: str, alias: str, run_id: str, sha256: str
-) -> TokenizerReference:
+) -> ModelReference:
     """Log and register the tokenizer in ``directory`` under ``name`` and point ``alias`` at it.
 
     Idempotent: if a version of ``name`` already carries ``sha256``, that version is reused (alias moved to it).
@@ -107,30 +118,48 @@ def register_tokenizer(
         carp.tokenizer.artifact.NonFiniteTokenizerError: the artifact holds a value that is not finite.
     """
     load_tokenizer_artifact(directory)
+    return _register_version(
+        tracking_uri,
+        name,
+        alias,
+        sha256,
+        artifact_path="tokenizer",
+        python_model=TokenizerModel(),
+        artifacts={ARTIFACT_KEY: str(directory)},
+        # Declares the `task` inference parameter; MLflow drops parameters a signature does not name.
+        signature=ModelSignature(inputs=None, params=ParamSchema([ParamSpec("task", "string", "")])),
+    )
+
+
+def _register_version(
+    tracking_uri: str, name: str, alias: str, sha256: str, artifact_path: str, python_model, artifacts, signature=None
+) -> ModelReference:
+    """Register `python_model` with `artifacts` under `name` once per `sha256`, and point `alias` at that version.
+
+    The model is logged in the active run unless a version of `name` already carries `sha256`, in which case the
+    oldest such version is reused.
+    """
     client = MlflowClient(tracking_uri=tracking_uri)
     existing = [v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256]
     if existing:
         version = min(existing, key=lambda v: int(v.version))
-        logger.info("tokenizer with sha256 %s is already %s version %s", sha256[:12], name, version.version)
+        logger.info("sha256 %s is already %s version %s", sha256[:12], name, version.version)
     else:
         mlflow.set_tracking_uri(tracking_uri)
         info = mlflow.pyfunc.log_model(
-            name="tokenizer",
-            python_model=TokenizerModel(),
-            artifacts={ARTIFACT_KEY: str(directory)},
+            name=artifact_path,
+            python_model=python_model,
+            artifacts=artifacts,
             pip_requirements=["torch", "numpy", "carp"],
-            # Declares the `task` inference parameter; MLflow drops parameters a signature does not name.
-            signature=ModelSignature(inputs=None, params=ParamSchema([ParamSpec("task", "string", "")])),
+            signature=signature,
         )
         mlflow.register_model(info.model_uri, name, tags={SHA_TAG: sha256})
-        # Writers registering the same weights at once each add a version; all of them settle on the oldest.
+        # Writers registering the same hash at once each add a version; all of them settle on the oldest.
         version = min(
             (v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256), key=lambda v: int(v.version)
         )
     aliased = point_alias(client, name, alias, str(version.version), sha256)
-    return TokenizerReference(
-        name=name, version=str(aliased.version), alias=alias, run_id=aliased.run_id, sha256=sha256
-    )
+    return ModelReference(name=name, version=str(aliased.version), alias=alias, run_id=aliased.run_id, sha256=sha256)
 
 
 def point_alias(client: MlflowClient, name: str, alias: str, version: str, sha256: str):
@@ -170,13 +199,39 @@ def parse_registry_uri(uri: str) -> tuple[str, str]:
     body = uri.removeprefix("models:/")
     name, _, alias = body.partition("@")
     if not uri.startswith("models:/") or not name or not alias:
-        raise ValueError(f"tokenizer source {uri!r} is not of the form models:/<name>@<alias>")
+        raise ValueError(f"{uri!r} is not a registry URI of the form models:/<name>@<alias>")
     return name, alias
+
+
+def resolve_alias(tracking_uri: str, uri: str) -> ModelReference:
+    """The version ``models:/<name>@<alias>`` points at now (nothing is downloaded).
+
+    Raises:
+        ValueError: `uri` is not of that form.
+        LookupError: no such registered model or alias.
+    """
+    name, alias = parse_registry_uri(uri)
+    client = MlflowClient(tracking_uri=tracking_uri)
+    try:
+        version = client.get_model_version_by_alias(name, alias)
+    except mlflow.exceptions.MlflowException as error:
+        raise LookupError(f"{uri}: not found in the registry at {tracking_uri} ({error.message})") from None
+    return ModelReference(name, str(version.version), alias, version.run_id, version.tags.get(SHA_TAG, ""))
+
+
+def _download_version(tracking_uri: str, reference: ModelReference, destination: Path) -> Path:
+    """Download the artifacts of `reference`'s version into `destination`; returns the local model directory."""
+    mlflow.set_tracking_uri(tracking_uri)
+    return Path(
+        mlflow.artifacts.download_artifacts(
+            artifact_uri=f"models:/{reference.name}/{reference.version}", dst_path=str(destination)
+        )
+    )
 
 
 def fetch_registered_tokenizer(
     tracking_uri: str, uri: str, destination: Path | None = None
-) -> tuple[TokenizerArtifact, TokenizerReference]:
+) -> tuple[TokenizerArtifact, ModelReference]:
     """Resolve ``models:/<name>@<alias>``, download its tokenizer and check the weights' hash against the version tag.
 
     The download goes to ``destination`` when given (kept), else to a temporary directory that is removed on return.
@@ -187,22 +242,109 @@ def fetch_registered_tokenizer(
         carp.tokenizer.artifact.NonFiniteTokenizerError: the version holds a value that is not finite (registered
             before the registry refused such tokenizers).
     """
-    name, alias = parse_registry_uri(uri)
-    client = MlflowClient(tracking_uri=tracking_uri)
     try:
-        version = client.get_model_version_by_alias(name, alias)
-    except mlflow.exceptions.MlflowException as error:
-        raise LookupError(f"tokenizer {uri}: not found in the registry at {tracking_uri} ({error.message})") from None
-    mlflow.set_tracking_uri(tracking_uri)
+        reference = resolve_alias(tracking_uri, uri)
+    except LookupError as error:
+        raise LookupError(f"tokenizer {error}") from None
     with (
         tempfile.TemporaryDirectory(prefix="carp-tokenizer-") if destination is None else nullcontext(destination)
     ) as download_directory:
-        local = mlflow.artifacts.download_artifacts(
-            artifact_uri=f"models:/{name}/{version.version}", dst_path=str(download_directory)
-        )
-        directories = [p.parent for p in Path(local).rglob("tokenizer.pt")]
+        local = _download_version(tracking_uri, reference, Path(download_directory))
+        directories = [p.parent for p in local.rglob("tokenizer.pt")]
         if not directories:
-            raise LookupError(f"tokenizer {uri}: version {version.version} has no tokenizer.pt artifact")
-        artifact = load_tokenizer_artifact(directories[0], expected_sha256=version.tags.get(SHA_TAG))
-    reference = TokenizerReference(name, str(version.version), alias, version.run_id, artifact.sha256)
-    return artifact, reference
+            raise LookupError(f"tokenizer {uri}: version {reference.version} has no tokenizer.pt artifact")
+        artifact = load_tokenizer_artifact(directories[0], expected_sha256=reference.sha256 or None)
+    return artifact, replace(reference, sha256=artifact.sha256)
+
+
+def policy_model_name(task: str, family: str) -> str:
+    """``carp-policy-<task>-<family>``, e.g. ``carp-policy-lift-carp``: one registered model per task and family."""
+    return f"carp-policy-{task}-{family}"
+
+
+class PolicyModel(mlflow.pyfunc.PythonModel):
+    """pyfunc wrapper: ``predict`` maps raw observation histories (B, To, Do) to raw action chunks (B, H, A).
+
+    Greedy or the family's default inference settings, one draw per call; `carp serve` is the way to run a policy
+    for a robot (per-episode draws and histories), this face is for inspecting a registered version.
+    """
+
+    def load_context(self, context) -> None:
+        """Load the checkpoint shipped with the model."""
+        from carp.policies.registry import load_policy
+
+        self.policy = load_policy(Path(context.artifacts[POLICY_ARTIFACT_KEY]))
+
+    def predict(self, context, model_input: np.ndarray, params: dict | None = None) -> np.ndarray:
+        """Raw observations (B, To, Do) float32 -> raw actions (B, H, A) float32."""
+        return self.policy.predict_action(np.asarray(model_input, dtype=np.float32))
+
+
+def register_policy(tracking_uri: str, checkpoint: Path, name: str, alias: str, sha256: str) -> ModelReference:
+    """Log and register the policy checkpoint at `checkpoint` (in the active run) under `name`; point `alias` at it.
+
+    Idempotent like :func:`register_tokenizer`: a version already carrying `sha256` is reused.
+
+    Args:
+        tracking_uri: absolute MLflow tracking URI.
+        checkpoint: the `policy.pt` file.
+        name: registered model name (:func:`policy_model_name`).
+        alias: alias to point at the version.
+        sha256: hex sha256 of the checkpoint's bytes (tag of the version).
+    """
+    return _register_version(
+        tracking_uri,
+        name,
+        alias,
+        sha256,
+        artifact_path="policy",
+        python_model=PolicyModel(),
+        artifacts={POLICY_ARTIFACT_KEY: str(checkpoint)},
+    )
+
+
+def fetch_registered_policy(tracking_uri: str, reference: ModelReference, destination: Path) -> Path:
+    """Download the checkpoint of the resolved `reference` (:func:`resolve_alias`) into `destination`.
+
+    Returns:
+        The local `policy.pt`, whose bytes hash to the version's sha256 tag.
+
+    Raises:
+        LookupError: the version holds no `policy.pt`, or one whose bytes do not hash to its tag.
+    """
+    local = _download_version(tracking_uri, reference, Path(destination))
+    found = sorted(local.rglob(POLICY_FILENAME))
+    if not found:
+        raise LookupError(f"{reference.uri}: version {reference.version} has no {POLICY_FILENAME} artifact")
+    digest = file_sha256(found[0])
+    if reference.sha256 and digest != reference.sha256:
+        raise LookupError(
+            f"{reference.uri}: version {reference.version}'s {POLICY_FILENAME} has sha256 {digest[:12]}..., not the "
+            f"{reference.sha256[:12]}... its tag records"
+        )
+    return found[0]
+
+
+def register_policy_checkpoint(tracking_uri: str, checkpoint: Path, alias: str) -> ModelReference:
+    """Register the trained policy at `checkpoint` as :func:`policy_model_name` of its task and family.
+
+    Opens its own tracking run (experiment ``carp-<task>``, run ``register_policy@<task>-<family>``) that logs the
+    checkpoint as the version's artifact, unless the same bytes are registered already.
+
+    Raises:
+        ValueError: the checkpoint does not name its task, or `alias` is reserved by the registry.
+        carp.training.checkpoint.CheckpointError: the file is not a readable policy checkpoint.
+    """
+    from carp.policies.registry import load_policy
+    from carp.tracking.runs import stage_run
+
+    if not alias.strip() or alias.lower() == "latest" or alias[:1].isdigit():
+        raise ValueError(f"alias {alias!r}: empty, 'latest' and names starting with a digit are reserved")
+    policy = load_policy(checkpoint)
+    task = policy.metadata.get("task")
+    if not task:
+        raise ValueError(f"{checkpoint}: the checkpoint does not name the task it was trained on")
+    name = policy_model_name(task, policy.policy_type)
+    tags = {"carp.policy_type": policy.policy_type, "carp.source_run": str(policy.metadata.get("mlflow_run_id"))}
+    with stage_run(tracking_uri, f"carp-{task}", f"register_policy@{task}-{policy.policy_type}", {}, tags):
+        return register_policy(tracking_uri, checkpoint, name, alias, file_sha256(checkpoint))

@@ -105,6 +105,24 @@ class PolicyTrainingData:
         )
 
 
+def check_task_ids(data: PolicyTrainingData, num_tasks: int) -> None:
+    """Raise ValueError unless `data` has one task id in [0, num_tasks) per window, or none for a single-task policy.
+
+    Args:
+        data: the training windows.
+        num_tasks: the policy's task count; 0 for a single-task policy.
+    """
+    count = data.obs.shape[0]
+    if num_tasks == 0:
+        if data.task_ids is not None:
+            raise ValueError("task_ids were given but the policy is single-task")
+        return
+    if data.task_ids is None or tuple(data.task_ids.shape) != (count,):
+        raise ValueError(f"a multi-task policy needs task_ids of shape (N,) = ({count},)")
+    if count and (int(data.task_ids.min()) < 0 or int(data.task_ids.max()) >= num_tasks):
+        raise ValueError(f"task_ids must be in [0, {num_tasks})")
+
+
 @dataclass(frozen=True)
 class TrainingStep:
     """What a family's training step returns for one batch.

@@ -1,4 +1,6 @@
-"""One task's policy of one family, trained on the task's processed windows with the referenced tokenizer.
+"""A policy of one family trained with the referenced tokenizer, on one task's windows or on several tasks'.
+
+A multi-task policy trains on every task's windows, each labelled with its task.
 
 The work of the `train_policy` stage: `load_task_policy_inputs` reads and checks what it trains from,
 `train_task_policy` trains (every process of a multi-process run calls it), and `train_and_write_task_policy` trains
@@ -7,7 +9,8 @@ process that writes outputs). A distilled family (one that declares a teacher fa
 trains its teacher first, in the same stage (`train_task_teacher`): the teacher's resumable state lives in
 `<checkpoint_dir>/teacher`, so a rerun whose teacher is unchanged (its params section, the loop's settings and the
 data) finds the teacher's training finished and only distils, and the teacher is written beside the policy as
-`teacher.pt`.
+`teacher.pt`. `load_multitask_policy_inputs`, `train_multitask_policy` and `train_and_write_multitask_policy` do the
+same for a multi-task policy (of a family without a teacher).
 """
 
 import logging
@@ -20,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
-from carp.data.dataset import TaskWindows, load_task_windows
+from carp.data.dataset import TaskWindows, load_multitask_windows, load_task_windows, stack_task_windows
 from carp.data.image_windows import ImageWindowReader
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.offline import held_out_action_errors
@@ -28,6 +31,8 @@ from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import get_family, train_policy
+from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
+from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import CHECKPOINT_NAME, SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
@@ -115,12 +120,20 @@ def load_task_policy_inputs(
         FileNotFoundError: a file is missing.
         CheckpointError: the tokenizer is corrupt or not the referenced one.
         TokenizerMismatchError: the tokenizer does not fit the params.
-        ValueError: the buffer holds no images, or other cameras or another image size than `image_encoder`.
+        ValueError: the buffer does not record its observation keys and widths (ingested before they were
+            recorded: the message names the buffer and the missing attribute), holds no images, or other cameras or
+            another image size than `image_encoder`.
     """
     reference = TokenizerReference.load(reference_path)
     artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
     check_compatible(artifact, action_space, scales, codebook_size)
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
+    try:
+        # Checked before any training: the trained checkpoint records this protocol, and an old buffer that cannot
+        # give it should stop the stage at its start with one line, not after the epochs.
+        training_protocol(data, windows.buffer.attrs, image_encoder)
+    except ProtocolError as error:
+        raise ValueError(f"{Path(task_dir) / BUFFER_DIRNAME}: {error}") from None
     if image_encoder is None:
         return TaskPolicyInputs(reference, artifact, windows)
     store = Path(task_dir) / BUFFER_DIRNAME
@@ -158,7 +171,8 @@ def train_task_policy(
         family: registered policy family.
         family_config: the family's params section.
         training: the shared training loop's settings (its epochs for `task`).
-        data: `To` and `H`.
+        data: `To` and `H`; with the windows' replay buffer, the serving protocol stored in the checkpoint's metadata
+            (`carp.serving.protocol`).
         inputs: see :func:`load_task_policy_inputs`.
         task: the task's name, stored in the checkpoint's metadata.
         checkpoint_dir: resumable training states of this (task, family) pair.
@@ -260,7 +274,13 @@ def _training_inputs(
         obs_steps=data.obs_steps,
         action_horizon=data.action_horizon,
         tokenizer_artifact=inputs.artifact,
-        metadata={"task": task, "tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+        metadata={
+            "task": task,
+            "tokenizer": asdict(inputs.reference),
+            "mlflow_run_id": tracking_run_id,
+            # What a robot sends and executes, so that `carp serve` needs only the checkpoint.
+            SERVING_METADATA_KEY: training_protocol(data, windows.buffer.attrs, inputs.image_encoder),
+        },
         image_encoder=inputs.image_encoder,
     )
     return train_data, context
@@ -359,6 +379,179 @@ def train_and_write_task_policy(
     last = history[-1]
     final = {f"final_{key}": last[key] for key in FINAL_METRICS if key in last}
     metrics = {**held_out, **final}
+    write_json(outputs.report_dir / "metrics.json", metrics)
+    run.log_artifact(outputs.checkpoint, "checkpoint")
+    return metrics
+
+
+@dataclass(frozen=True)
+class MultiTaskPolicyInputs:
+    """What a multi-task policy is trained from: the tokenizer reference and artifact and every task's windows.
+
+    Attributes:
+        reference: the tokenizer reference file's content.
+        artifact: the referenced tokenizer (shared by the tasks).
+        windows: task -> its low-dim windows, in task-id order, checked to agree (`carp.data.dataset`).
+    """
+
+    reference: TokenizerReference
+    artifact: TokenizerArtifact
+    windows: dict[str, TaskWindows]
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """Task names in task-id order."""
+        return tuple(self.windows)
+
+
+def load_multitask_policy_inputs(
+    task_dirs: dict[str, Path],
+    tokenizer_dir: Path,
+    reference_path: Path,
+    data: DataConfig,
+    action_space: str,
+    scales: tuple[int, ...],
+    codebook_size: int,
+) -> MultiTaskPolicyInputs:
+    """Read the referenced tokenizer and every task's windows, as :func:`load_task_policy_inputs` does for one.
+
+    Args:
+        task_dirs: task -> its processed data, in task-id order (at least two tasks).
+        tokenizer_dir: see :func:`load_task_policy_inputs`.
+        reference_path: see :func:`load_task_policy_inputs`.
+        data: see :func:`load_task_policy_inputs`.
+        action_space: see :func:`load_task_policy_inputs`.
+        scales: see :func:`load_task_policy_inputs`.
+        codebook_size: see :func:`load_task_policy_inputs`.
+
+    Raises:
+        ValueError: fewer than two tasks, or tasks whose observations or actions differ (naming task and key).
+        FileNotFoundError, CheckpointError, TokenizerMismatchError: as :func:`load_task_policy_inputs`.
+    """
+    if len(task_dirs) < 2:
+        raise ValueError(f"a multi-task policy needs at least two tasks, got {list(task_dirs)}")
+    reference = TokenizerReference.load(reference_path)
+    artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
+    check_compatible(artifact, action_space, scales, codebook_size)
+    windows = load_multitask_windows(task_dirs, data.action_horizon, data.obs_steps, data.action_steps)
+    return MultiTaskPolicyInputs(reference, artifact, windows)
+
+
+def multitask_epochs(training: TrainingConfig, tasks: Sequence[str], family: str) -> int:
+    """Epochs of a multi-task policy: the most that any of its tasks would get alone (`TrainingConfig.epochs_for`)."""
+    return max(training.epochs_for(task, family) for task in tasks)
+
+
+def train_multitask_policy(
+    family: str,
+    family_config: Any,
+    training: TrainingConfig,
+    data: DataConfig,
+    inputs: MultiTaskPolicyInputs,
+    checkpoint_dir: Path,
+    device: torch.device,
+    tracking_run_id: str | None = None,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    task_embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM,
+) -> Policy:
+    """Train one policy of `family` over every task's training windows, each labelled with its task id.
+
+    Each task's windows are normalized with that task's own statistics (`carp.policies.tasks`); the policy is
+    conditioned on the task through the observation encoder's task embedding. The policy's selected task is the
+    first; see :func:`train_task_policy` for the other arguments.
+
+    Returns:
+        The trained policy in eval mode on the CPU.
+    """
+    windows = inputs.windows
+    obs, actions, task_ids = stack_task_windows(windows, "train")
+    train_data = PolicyTrainingData(
+        obs=torch.as_tensor(obs), actions=torch.as_tensor(actions), task_ids=torch.as_tensor(task_ids)
+    )
+    tasks = PolicyTasks(
+        inputs.tasks,
+        {task: task_windows.obs_normalizer for task, task_windows in windows.items()},
+        {task: task_windows.action_normalizer for task, task_windows in windows.items()},
+        task_embedding_dim,
+    )
+    first = windows[inputs.tasks[0]]
+    context = PolicyContext(
+        obs_normalizer=first.obs_normalizer,
+        action_normalizer=first.action_normalizer,
+        obs_steps=data.obs_steps,
+        action_horizon=data.action_horizon,
+        tokenizer_artifact=inputs.artifact,
+        tasks=tasks,
+        metadata={"tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+    )
+    return train_policy(
+        family,
+        family_config,
+        training,
+        context,
+        train_data,
+        checkpoint_dir,
+        device=device,
+        epochs=multitask_epochs(training, inputs.tasks, family),
+        on_epoch_end=on_epoch_end,
+    )
+
+
+def train_and_write_multitask_policy(
+    family: str,
+    family_config: Any,
+    training: TrainingConfig,
+    data: DataConfig,
+    inputs: MultiTaskPolicyInputs,
+    checkpoint_dir: Path,
+    device: torch.device,
+    outputs: TaskPolicyOutputs,
+    run: "StageRun",
+    task_embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM,
+) -> dict[str, float]:
+    """Train as :func:`train_multitask_policy` does, then write the outputs as :func:`train_and_write_task_policy`.
+
+    The held-out action errors are measured per task, on that task's held-out windows with its own statistics, and
+    reported as `<task>/<error>`.
+    """
+    history: list[dict] = []
+
+    def log_epoch(epoch: int, metrics: dict[str, float]) -> None:
+        history.append({"epoch": epoch + 1, **metrics})
+        run.log_metrics(metrics, step=epoch + 1)
+
+    policy = train_multitask_policy(
+        family,
+        family_config,
+        training,
+        data,
+        inputs,
+        checkpoint_dir,
+        device,
+        run.run_id,
+        log_epoch,
+        task_embedding_dim,
+    )
+    held_out: dict[str, float] = {}
+    for task, windows in inputs.windows.items():
+        policy.select_task(task)
+        errors = held_out_action_errors(
+            policy, windows.valid_obs, windows.valid_actions, data.obs_steps, data.action_steps
+        )
+        held_out |= {f"{task}/{name}": value for name, value in errors.items()}
+    policy.select_task(inputs.tasks[0])
+    run.log_metrics(held_out)
+    outputs.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    policy.save(outputs.checkpoint)
+    publish_snapshots(
+        Path(checkpoint_dir) / SNAPSHOT_DIRNAME,
+        outputs.checkpoint.parent / SNAPSHOT_DIRNAME,
+        training.snapshot_epochs(multitask_epochs(training, inputs.tasks, family)),
+        final_epoch=len(history),
+    )
+    write_history(outputs.report_dir / "history.csv", history)
+    last = history[-1]
+    metrics = {**held_out, **{f"final_{key}": last[key] for key in FINAL_METRICS if key in last}}
     write_json(outputs.report_dir / "metrics.json", metrics)
     run.log_artifact(outputs.checkpoint, "checkpoint")
     return metrics

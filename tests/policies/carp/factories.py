@@ -14,6 +14,7 @@ from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
 from carp.policies.registry import TrainingRun
+from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, TASKS_METADATA_KEY, PolicyTasks
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -68,30 +69,56 @@ def scrambled_transformer(spec: PolicySpec, seed: int = 0) -> CoarseToFineTransf
     return transformer.eval()
 
 
-def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, **overrides) -> CarpPolicy:
-    """Scrambled transformer + random tokenizer + normalizers (the second action feature is constant)."""
+def tiny_tasks(num_tasks: int, obs_normalizer: MinMaxNormalizer, action_normalizer: MinMaxNormalizer) -> PolicyTasks:
+    """Tasks `task0`, `task1`, ...; task i's statistics are the given ones shifted by i (task0 selected)."""
+    names = tuple(f"task{index}" for index in range(num_tasks))
+
+    def shifted(normalizer: MinMaxNormalizer, shift: float) -> MinMaxNormalizer:
+        return MinMaxNormalizer(normalizer.minimum + shift, normalizer.maximum + shift)
+
+    return PolicyTasks(
+        names,
+        {name: shifted(obs_normalizer, index) for index, name in enumerate(names)},
+        {name: shifted(action_normalizer, index) for index, name in enumerate(names)},
+    )
+
+
+def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, num_tasks: int = 0, **overrides) -> CarpPolicy:
+    """Scrambled transformer + random tokenizer + normalizers (the second action feature is constant).
+
+    With `num_tasks`, a multi-task policy over :func:`tiny_tasks` (its features F = Do + the task embedding).
+    """
     rng = np.random.default_rng(seed)
     obs_min = rng.normal(size=OBS_DIM)
     action_min = np.array([-2.0, 0.5])
+    obs_normalizer = MinMaxNormalizer(obs_min, obs_min + rng.uniform(0.5, 2.0, size=OBS_DIM))
+    action_normalizer = MinMaxNormalizer(action_min, np.array([3.0, 0.5]))
+    metadata = {"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}}
+    if num_tasks:
+        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer)
+        metadata[TASKS_METADATA_KEY] = tasks.to_dict()
+        overrides = {"obs_dim": OBS_DIM + DEFAULT_TASK_EMBEDDING_DIM} | overrides
     return CarpPolicy(
         tiny_artifact(tiny_tokenizer(scales, seed)),
         scrambled_transformer(tiny_policy_spec(scales, **overrides), seed),
-        MinMaxNormalizer(obs_min, obs_min + rng.uniform(0.5, 2.0, size=OBS_DIM)),
-        MinMaxNormalizer(action_min, np.array([3.0, 0.5])),
-        metadata={"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}},
+        obs_normalizer,
+        action_normalizer,
+        metadata=metadata,
     )
 
 
 def tiny_context(tokenizer: MultiScaleActionTokenizer, num_tasks: int = 0) -> PolicyContext:
     """Do = 3, To = 2, observations and actions in [-1, 1], and `tokenizer` (A = 2) as the registered one."""
     action_dim = tokenizer.spec.action_dim
+    obs_normalizer = MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0))
+    action_normalizer = MinMaxNormalizer(np.full(action_dim, -1.0), np.full(action_dim, 1.0))
     return PolicyContext(
-        obs_normalizer=MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0)),
-        action_normalizer=MinMaxNormalizer(np.full(action_dim, -1.0), np.full(action_dim, 1.0)),
+        obs_normalizer=obs_normalizer,
+        action_normalizer=action_normalizer,
         obs_steps=OBS_STEPS,
         action_horizon=tokenizer.spec.action_horizon,
         tokenizer_artifact=tiny_artifact(tokenizer),
-        num_tasks=num_tasks,
+        tasks=tiny_tasks(num_tasks, obs_normalizer, action_normalizer) if num_tasks else None,
     )
 
 

@@ -97,7 +97,7 @@ def test_kernels_are_timed_in_turn_and_each_gets_its_median(monkeypatch):
 
 
 def test_measuring_the_kernels_leaves_the_model_and_the_random_streams_alone():
-    transformer = scrambled_transformer(tiny_policy_spec((1, 2), num_tasks=2)).train()
+    transformer = scrambled_transformer(tiny_policy_spec((1, 2))).train()
     before = {name: value.clone() for name, value in transformer.state_dict().items()}
     torch.manual_seed(3)
     seconds = trainer.measure_attention_kernels(transformer, 8, torch.device("cpu"), torch.float32, repeats=2)

@@ -23,9 +23,8 @@ def torch_tokens(
     """The token sequence (1, L) of the PyTorch path (greedy, or top-k with a generator seeded with `seed`)."""
     generator = None if seed is None else torch.Generator().manual_seed(seed)
     with torch.inference_mode():
-        observations = policy.obs_normalizer.normalize(torch.as_tensor(obs, dtype=torch.float32))
-        task_ids = None if task_index is None else torch.tensor([task_index])
-        chunk = generate_chunk(policy.transformer, policy.tokenizer, observations, task_ids, top_k, generator)
+        features = policy.observation_features(obs, OBS_STEPS, task_index=task_index)
+        chunk = generate_chunk(policy.transformer, policy.tokenizer, features, top_k, generator)
         return policy.tokenizer.ids_to_sequence(chunk.token_ids).numpy()
 
 
@@ -78,8 +77,13 @@ def test_multi_task_graph_takes_the_task_index(tmp_path):
     for task_index in (0, 2):
         expected = torch_tokens(policy, obs, task_index)
         np.testing.assert_array_equal(onnx_policy.predict_tokens(obs, task_index), expected)
-    with pytest.raises(ValueError, match="needs a task index"):
-        onnx_policy.predict_action_timed(obs)
+    # Without an index the graph runs the task the policy had selected when it was exported.
+    np.testing.assert_array_equal(onnx_policy.predict_tokens(obs), torch_tokens(policy, obs, 0))
+    policy.select_task("task2")
+    selected = OnnxPolicy(export_policy_graphs(policy, tmp_path / "task2"))
+    np.testing.assert_array_equal(selected.predict_tokens(obs), torch_tokens(policy, obs))
+    np.testing.assert_allclose(selected.predict_action(obs), policy.predict_action(obs), rtol=1e-4, atol=1e-4)
+    policy.select_task("task0")
     sampling = OnnxPolicy(export_policy_graphs(policy, tmp_path / "top2", top_k=2))
     for task_index in (0, 2):
         drawn = sampling.predict_tokens(obs, task_index, generator=torch.Generator().manual_seed(task_index))

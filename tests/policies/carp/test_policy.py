@@ -59,7 +59,9 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path):
     loaded = CarpPolicy.load(path)
     assert loaded.spec == policy.spec
     assert loaded.tokenizer.spec == policy.tokenizer.spec
-    assert loaded.metadata == {"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}}
+    assert loaded.metadata == policy.metadata
+    assert loaded.metadata["tokenizer_ref"] == {"name": "carp-tokenizer-test", "version": 1}
+    assert loaded.tasks.to_dict() == policy.tasks.to_dict() and loaded.tasks.names == ("task0", "task1")
     np.testing.assert_array_equal(loaded.obs_normalizer.minimum, policy.obs_normalizer.minimum)
     for task in (0, 1):
         np.testing.assert_array_equal(loaded.predict_action(obs, task), policy.predict_action(obs, task))
@@ -165,6 +167,28 @@ def test_a_damaged_checkpoint_is_one_clear_error_naming_the_file(tmp_path, damag
         CarpPolicy.load(path)
     message = str(raised.value)
     assert message.startswith(f"{path}: ") and expected in message and "\n" not in message, message
+
+
+def test_a_multi_task_checkpoint_keeps_the_selected_task_and_refuses_others(tmp_path):
+    policy = tiny_policy(num_tasks=2)
+    obs = _raw_obs(policy, 2)
+    first = policy.predict_action(obs)
+    np.testing.assert_array_equal(first, policy.predict_action(obs, 0))
+    policy.select_task("task1")
+    # Task 1's statistics are task 0's shifted by one: its own observations give its own actions.
+    np.testing.assert_allclose(policy.obs_normalizer.minimum, policy.tasks.obs_normalizers["task0"].minimum + 1)
+    np.testing.assert_array_equal(policy.predict_action(obs), policy.predict_action(obs, 1))
+    policy.save(tmp_path / "policy.pt")
+    loaded = CarpPolicy.load(tmp_path / "policy.pt")
+    assert loaded.tasks.selected == "task1"
+    np.testing.assert_array_equal(loaded.predict_action(obs), policy.predict_action(obs))
+    with pytest.raises(ValueError, match="trained on tasks \\['task0', 'task1'\\], not on 'square'"):
+        loaded.select_task("square")
+    single = tiny_policy()
+    single.metadata["task"] = "lift"
+    single.select_task("lift")
+    with pytest.raises(ValueError, match="trained on task 'lift', not on 'can'"):
+        single.select_task("can")
 
 
 def test_task_index_broadcasts_and_is_checked():

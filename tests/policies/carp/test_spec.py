@@ -15,12 +15,16 @@ def test_derived_sizes_of_default_config():
     assert spec.config == CarpConfig()  # the architecture is the params section's, defaults included
 
 
-def test_task_embedding_widens_condition():
-    assert tiny_policy_spec(num_tasks=3).condition_features == 2 * 3 + 3
+def test_specs_of_earlier_checkpoints_load_single_task_and_refuse_an_internal_task_embedding():
+    values = tiny_policy_spec().to_dict()
+    assert "num_tasks" not in values
+    assert PolicySpec.from_dict(values | {"num_tasks": 0}) == tiny_policy_spec()
+    with pytest.raises(ValueError, match="num_tasks > 0: a multi-task transformer of an earlier format"):
+        PolicySpec.from_dict(values | {"num_tasks": 2})
 
 
 def test_dict_round_trip_and_unknown_keys():
-    spec = tiny_policy_spec(num_tasks=2)
+    spec = tiny_policy_spec()
     assert PolicySpec.from_dict(spec.to_dict()) == spec
     assert spec.to_dict()["config"]["width"] == 16 and spec.to_dict()["scales"] == [1, 2]
     with pytest.raises(ValueError, match="unknown PolicySpec keys: \\['heads'\\]"):
@@ -49,7 +53,6 @@ def test_a_flat_spec_of_an_older_checkpoint_reads_its_architecture_into_the_conf
         ({"codebook_size": 1}, "codebook_size must be an integer >= 2"),
         ({"depth": 0}, "carp.depth=0: must be an integer >= 1"),
         ({"obs_steps": True}, "obs_steps must be a positive integer"),
-        ({"num_tasks": -1}, "num_tasks must be a non-negative integer"),
         ({"dropout": 1.0}, "carp.dropout=1.0: must be in"),
         ({"mlp_ratio": 0}, "carp.mlp_ratio=0: must be > 0"),
     ],

@@ -189,8 +189,10 @@ def test_multi_task_data_needs_task_ids(tmp_path):
         train_carp(tiny_tokenizer(), _data(8, task_ids=torch.arange(8) % 2), SETTINGS, tmp_path)
     history = []
     data = _data(8, task_ids=torch.arange(8) % 2)
-    train_carp(tiny_tokenizer(), data, SETTINGS, tmp_path, lambda e, m: history.append(m), num_tasks=2)
+    policy = train_carp(tiny_tokenizer(), data, SETTINGS, tmp_path, lambda e, m: history.append(m), num_tasks=2)
     assert len(history) == 4
+    # The task embedding is trained with the network.
+    assert policy.observation_encoder.task_embedding.weight.requires_grad
 
 
 def test_windows_of_another_shape_are_refused(tmp_path):

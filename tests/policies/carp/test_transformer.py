@@ -105,29 +105,17 @@ def test_later_scales_require_inputs():
             transformer.next_scale_logits(state)
 
 
-def test_task_embedding_conditions_the_logits():
-    transformer = scrambled_transformer(tiny_policy_spec(SCALES, num_tasks=3))
-    obs, teacher = _inputs(2)
-    first = transformer(obs, teacher, torch.tensor([0, 0]))
-    second = transformer(obs, teacher, torch.tensor([2, 2]))
-    assert (first - second).abs().max() > 1e-2
-    with pytest.raises(ValueError, match="multi-task \\(3 tasks\\): pass task ids"):
-        transformer(obs, teacher)
-
-
 def test_bad_condition_inputs_are_rejected():
     transformer = scrambled_transformer(tiny_policy_spec(SCALES))
     obs, teacher = _inputs(2)
-    with pytest.raises(ValueError, match="single-task"):
-        transformer(obs, teacher, torch.tensor([0, 1]))
     with pytest.raises(ValueError, match="expected To \\* Do = 2 \\* 3 = 6"):
         transformer(obs[:, :1], teacher)
 
 
 def test_gradients_reach_every_parameter():
-    transformer = scrambled_transformer(tiny_policy_spec(SCALES, num_tasks=2)).train()
+    transformer = scrambled_transformer(tiny_policy_spec(SCALES)).train()
     obs, teacher = _inputs(2)
-    transformer(obs, teacher, torch.tensor([0, 1])).logsumexp(-1).sum().backward()
+    transformer(obs, teacher).logsumexp(-1).sum().backward()
     missing = [name for name, parameter in transformer.named_parameters() if parameter.grad is None]
     assert missing == []
 

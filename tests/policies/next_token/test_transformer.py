@@ -17,9 +17,9 @@ L = A * sum(SCALES)
 TINY = NextTokenConfig(depth=2, width=16, num_heads=2)
 
 
-def _model(num_tasks: int = 0, scrambled: bool = True, seed: int = 0) -> NextTokenTransformer:
+def _model(scrambled: bool = True, seed: int = 0) -> NextTokenTransformer:
     torch.manual_seed(seed)
-    model = NextTokenTransformer(TINY, OBS_DIM, OBS_STEPS, A, SCALES, V, num_tasks)
+    model = NextTokenTransformer(TINY, OBS_DIM, OBS_STEPS, A, SCALES, V)
     if scrambled:  # the default initialization is near-identity with near-uniform logits: equivalences would be trivial
         with torch.no_grad():
             for parameter in model.parameters():
@@ -95,17 +95,6 @@ def test_top_k_generation_is_seeded_and_stays_within_the_k_best_tokens():
     assert (top_three == first.unsqueeze(-1)).any(dim=-1).all()
     greedy = generate_tokens(model, obs)
     assert not torch.equal(first, greedy)
-
-
-def test_multi_task_models_need_task_ids():
-    model = _model(num_tasks=3)
-    obs = _obs(2)
-    with pytest.raises(ValueError, match="multi-task"):
-        generate_tokens(model, obs)
-    with_tasks = generate_tokens(model, obs, task_ids=torch.tensor([0, 2]))
-    assert with_tasks.shape == (2, L)
-    with pytest.raises(ValueError, match="single-task"):
-        generate_tokens(_model(), obs, task_ids=torch.tensor([0, 1]))
 
 
 def test_generation_past_the_last_token_is_refused():

@@ -65,7 +65,7 @@ def test_greedy_actions_are_decoded_codes_plus_their_offset():
 
 def test_bad_inputs_are_refused():
     policy = built_policy()
-    with pytest.raises(ValueError, match="single-task"):
+    with pytest.raises(ValueError, match="trained on one task takes no task index"):
         policy.predict_action(raw_obs(), task_index=0)
     with pytest.raises(ValueError, match="code_choice"):
         policy.configure_inference(code_choice="top-3")

@@ -26,7 +26,6 @@ def policy_spec(config: CarpConfig, context: PolicyContext) -> PolicySpec:
         scales=tokenizer_spec.scales,
         latent_channels=tokenizer_spec.latent_channels,
         codebook_size=tokenizer_spec.codebook_size,
-        num_tasks=context.num_tasks,
         config=config,
     )
 

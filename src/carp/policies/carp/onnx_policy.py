@@ -8,7 +8,8 @@ dispatch). ONNX Runtime runs the same computation as one static graph with a few
 Two graphs are exported, so that prediction and decoding stay separately timed:
 
 - prediction: raw observations (1, To, Do) [and the task index (1,)] [and, for top-k sampling, the chunk's
-  uniforms (1, L, k)] -> f_hat (1, A, C, l) and the chosen token sequence (1, L). Normalization, the condition, then
+  uniforms (1, L, k)] -> f_hat (1, A, C, l) and the chosen token sequence (1, L). Normalization, the observation
+  encoder (a multi-task policy's task embedding), the condition, then
   K next-scale steps with a key/value cache that grows by concatenation (every scale's shapes are static), each
   step's tokens chosen (argmax, or the Gumbel-max draw of `carp.policies.carp.sampling.gumbel_top_k` from the
   uniforms the caller drew) and embedded by the tokenizer's quantizer.
@@ -71,7 +72,8 @@ class PredictionGraph(nn.Module):
         super().__init__()
         check_top_k(top_k, policy.spec.codebook_size)
         self.top_k = top_k
-        self.multi_task = policy.spec.num_tasks > 0
+        self.multi_task = policy.num_tasks > 0
+        self.observation_encoder = policy.observation_encoder
         self.transformer = policy.transformer
         # Channels-last kernels only matter to oneDNN; the exported graph is plain NCHW.
         self.tokenizer = copy.deepcopy(policy.tokenizer).to(memory_format=torch.contiguous_format)
@@ -96,7 +98,8 @@ class PredictionGraph(nn.Module):
         spec, layout = transformer.spec, transformer.layout
         width, heads, depth = spec.config.width, spec.config.num_heads, spec.config.depth
         head_width = width // heads
-        condition = transformer.encode_condition(obs * self.obs_scale + self.obs_offset, task_ids)  # (1, D)
+        features = self.observation_encoder(obs * self.obs_scale + self.obs_offset, None, task_ids)  # (1, To, F)
+        condition = transformer.encode_condition(features)  # (1, D)
         # One Split of the flat vector: M (D,) outputs, where unbinding (1, M, 1, D) adds a Squeeze and a Reshape each.
         modulations = transformer.modulation_vector(condition).reshape(-1).split(width)  # M x (D,)
         positions = transformer.position_and_level()[0]  # (L, D)
@@ -205,8 +208,8 @@ def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) ->
     policy = policy.to("cpu").eval()
     spec = policy.spec
     prediction = PredictionGraph(policy, top_k)
-    inputs, names = [torch.zeros(1, spec.obs_steps, spec.obs_dim)], ["obs"]
-    if spec.num_tasks > 0:
+    inputs, names = [torch.zeros(1, spec.obs_steps, policy.obs_normalizer.num_features)], ["obs"]
+    if policy.num_tasks > 0:
         inputs.append(torch.zeros(1, dtype=torch.long))
         names.append("task_ids")
     if top_k > 1:
@@ -220,6 +223,8 @@ def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) ->
         "model_calls_per_chunk": policy.model_calls_per_chunk,
         "num_parameters": policy.num_parameters,
         "metadata": policy.metadata,
+        # A multi-task policy's graphs bake in its selected task's statistics; that task is the default task index.
+        "task_index": None if policy.tasks is None else policy.tasks.index(policy.tasks.selected),
     }
     (directory / SUMMARY_FILE).write_text(json.dumps(summary))
     return directory
@@ -257,6 +262,7 @@ class OnnxPolicy:
         self._model_calls = int(summary["model_calls_per_chunk"])
         self._num_parameters = int(summary["num_parameters"])
         self.metadata = summary["metadata"]
+        self._default_task = summary.get("task_index")
         self._directory = directory
 
     policy_type = POLICY_TYPE
@@ -280,6 +286,11 @@ class OnnxPolicy:
     def description(self) -> str:
         """`greedy` or `top-<k>`."""
         return "greedy" if self.top_k == 1 else f"top-{self.top_k}"
+
+    @property
+    def draws_random(self) -> bool:
+        """A graph exported with top_k > 1 takes drawn uniforms."""
+        return self.top_k > 1
 
     @property
     def top_k(self) -> int:
@@ -314,6 +325,8 @@ class OnnxPolicy:
         expected = tuple(self._prediction.get_inputs()[0].shape)
         if obs.shape != expected:
             raise ValueError(f"obs must have shape {expected} (one environment), got {obs.shape}")
+        if self._takes_task and task_index is None:
+            task_index = self._default_task
         if self._takes_task != (task_index is not None):
             needed = "needs a task index" if self._takes_task else "is single-task but a task index was given"
             raise ValueError(f"this policy {needed}")

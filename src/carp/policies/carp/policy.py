@@ -84,7 +84,6 @@ class CarpPolicy(TokenizedPolicy):
             action_normalizer,
             metadata,
             spec.obs_dim,
-            spec.num_tasks,
             image_encoder,
         )
 
@@ -110,7 +109,7 @@ class CarpPolicy(TokenizedPolicy):
 
         Args:
             obs: (B, To, Do) raw low-dim observations (numpy or torch).
-            task_index: None for single-task policies; otherwise one task index for the whole batch or (B,).
+            task_index: see `PolicyModule.task_ids` (None: a multi-task policy's selected task).
             generator: random source for top-k sampling, on the policy's device.
             top_k: token choice of this call; None uses :meth:`configure_inference`'s (greedy by default). See
                 `carp.policies.carp.sampling.select_tokens`.
@@ -122,10 +121,9 @@ class CarpPolicy(TokenizedPolicy):
         top_k = self.top_k if top_k is None else top_k
         with torch.inference_mode():
             started = time.perf_counter()
-            observations = self.observation_features(obs, self.spec.obs_steps, images)  # (B, To, F)
+            observations = self.observation_features(obs, self.spec.obs_steps, images, task_index)  # (B, To, F)
             encoded = time.perf_counter()
-            task_ids = self.task_ids(task_index, observations.shape[0])
-            chunk = generate_chunk(self.transformer, self.tokenizer, observations, task_ids, top_k, generator)
+            chunk = generate_chunk(self.transformer, self.tokenizer, observations, top_k, generator)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_latent(chunk.latent)  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()

@@ -99,7 +99,6 @@ def generate_chunk(
     transformer: CoarseToFineTransformer,
     tokenizer: MultiScaleActionTokenizer,
     obs_features: torch.Tensor,
-    task_ids: torch.Tensor | None = None,
     top_k: int = 1,
     generator: torch.Generator | None = None,
 ) -> GeneratedChunk:
@@ -111,8 +110,7 @@ def generate_chunk(
     Args:
         transformer: the coarse-to-fine transformer, in eval mode.
         tokenizer: the frozen tokenizer whose codebooks the transformer was trained on.
-        obs_features: (B, To, Do) normalized observations.
-        task_ids: (B,) long task indices, for multi-task policies.
+        obs_features: (B, To, F) observation features (`CarpPolicy.observation_features`).
         top_k: see :func:`select_tokens`.
         generator: see :func:`select_tokens`.
 
@@ -126,7 +124,7 @@ def generate_chunk(
         if top_k > 1
         else None
     )  # (B, L, k)
-    state = transformer.start_inference(obs_features, task_ids)
+    state = transformer.start_inference(obs_features)
     latent = tokenizer.empty_latent(obs_features.shape[0], device=obs_features.device)  # (B, A, C, l)
     scale_inputs = None
     token_ids = []

@@ -5,9 +5,6 @@ from typing import Any
 
 from carp.policies.carp.config import CarpConfig
 
-TASK_EMBEDDING_DIM = 3
-"""Width of the learned per-task embedding concatenated to the observation features (CARP's multi-task setting)."""
-
 ARCHITECTURE_FIELDS = ("depth", "width", "num_heads", "mlp_ratio", "dropout")
 """`CarpConfig` fields that checkpoints written before the spec held the whole section stored beside the shapes."""
 
@@ -27,15 +24,13 @@ class PolicySpec:
 
     Attributes:
         obs_dim: `F`, observation features per step the transformer is conditioned on (not the flattened `To * F`):
-            `Do` for state observations, camera features and proprioception for images
-            (`carp.policies.observations`).
+            `Do` for state observations, camera features and proprioception for images, plus a multi-task policy's
+            task embedding (`carp.policies.observations`).
         obs_steps: `To`, observation steps the policy conditions on.
         action_dim: `A`, action dimensions (one tokenizer and one vocabulary each).
         scales: `(s_1, ..., s_K)`, tokens per dimension at each scale, strictly increasing.
         latent_channels: `C`, channels of the tokenizer latent (input width of scales k > 1).
         codebook_size: `V`, vocabulary size per dimension.
-        num_tasks: 0 for a single-task policy; otherwise the number of task indices, each with a learned
-            `TASK_EMBEDDING_DIM`-wide embedding concatenated to the observation features.
         config: CARP's params section: depth, width `D`, heads, feed-forward ratio and dropout of the transformer
             (and the optimizer settings it was trained with).
     """
@@ -46,7 +41,6 @@ class PolicySpec:
     scales: tuple[int, ...]
     latent_channels: int
     codebook_size: int
-    num_tasks: int = 0
     config: CarpConfig = field(default_factory=CarpConfig)
 
     def __post_init__(self) -> None:
@@ -54,8 +48,6 @@ class PolicySpec:
         object.__setattr__(self, "scales", tuple(self.scales))
         for name in ("obs_dim", "obs_steps", "action_dim", "latent_channels"):
             _require_positive_int(name, getattr(self, name))
-        if isinstance(self.num_tasks, bool) or not isinstance(self.num_tasks, int) or self.num_tasks < 0:
-            raise ValueError(f"PolicySpec.num_tasks must be a non-negative integer, got {self.num_tasks!r}")
         if isinstance(self.codebook_size, bool) or not isinstance(self.codebook_size, int) or self.codebook_size < 2:
             raise ValueError(f"PolicySpec.codebook_size must be an integer >= 2, got {self.codebook_size!r}")
         if not self.scales:
@@ -79,9 +71,8 @@ class PolicySpec:
 
     @property
     def condition_features(self) -> int:
-        """Input width of the conditioning projection: `To * Do` plus the task embedding if multi-task."""
-        task_features = TASK_EMBEDDING_DIM if self.num_tasks > 0 else 0
-        return self.obs_steps * self.obs_dim + task_features
+        """Input width of the conditioning projection: `To * F`."""
+        return self.obs_steps * self.obs_dim
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-types view for checkpoints and tracking (scales as a list, the config as a dict)."""
@@ -94,9 +85,18 @@ class PolicySpec:
         """Inverse of :meth:`to_dict`; unknown keys are errors.
 
         Also reads the flat form of older checkpoints, whose architecture fields sat beside the shapes without the
-        rest of the section; their optimizer settings are then the section's defaults.
+        rest of the section; their optimizer settings are then the section's defaults. Older specs also held
+        `num_tasks` (0 for every single-task policy; the task embedding now lives in the observation encoder).
+
+        Raises:
+            ValueError: unknown keys, or a spec whose transformer embedded the task itself (num_tasks > 0).
         """
         values = dict(values)
+        if values.pop("num_tasks", 0) != 0:
+            raise ValueError(
+                "PolicySpec.num_tasks > 0: a multi-task transformer of an earlier format, which this code no longer "
+                "reads (the task embedding is the observation encoder's now); train it again"
+            )
         legacy = {name: values.pop(name) for name in ARCHITECTURE_FIELDS if name in values}
         unknown = set(values) - set(cls.__dataclass_fields__)
         if unknown:

@@ -40,7 +40,13 @@ from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError, read_training_state
 from carp.training.cross_entropy import blockwise_cross_entropy
-from carp.training.loop import CHECKPOINT_NAME, OptimizerRecipe, PolicyTrainingData, TrainingStep, matrix_decay_groups
+from carp.training.loop import (
+    CHECKPOINT_NAME,
+    OptimizerRecipe,
+    PolicyTrainingData,
+    TrainingStep,
+    matrix_decay_groups,
+)
 from carp.training.runtime import autocast_to, resolve_device, resolve_precision
 
 if TYPE_CHECKING:
@@ -88,8 +94,7 @@ def teacher_forced_step(transformer: CoarseToFineTransformer, batch: dict[str, t
     Args:
         transformer: the model being trained.
         batch: `obs` (b, To, F) observation features (`CarpPolicy.batch_features`), `teacher_inputs`
-            (b, L - s_1 * A, C), `token_sequence` (b, L) long ground-truth ids, and `task_ids` (b,) long for
-            multi-task policies.
+            (b, L - s_1 * A, C) and `token_sequence` (b, L) long ground-truth ids.
 
     Returns:
         The scalar float32 loss, and as metric sums over the batch's windows the fraction of each window's tokens
@@ -97,9 +102,7 @@ def teacher_forced_step(transformer: CoarseToFineTransformer, batch: dict[str, t
         over the tokens of scale k = 1..K.
     """
     token_sequence = batch["token_sequence"]
-    grouped_logits = transformer(
-        batch["obs"], batch["teacher_inputs"], batch.get("task_ids"), grouped_by_dimension=True
-    )  # (A, b * L / A, V)
+    grouped_logits = transformer(batch["obs"], batch["teacher_inputs"], grouped_by_dimension=True)  # (A, b * L / A, V)
     head = transformer.head
     grouped_targets = head.group(token_sequence)  # (A, b * L / A)
     # Loss in float32 whatever the forward precision; the logits stay in the head's layout and dtype.
@@ -118,7 +121,7 @@ def with_token_targets(policy: CarpPolicy, data: PolicyTrainingData) -> PolicyTr
     """`data` with its token targets as extras `token_sequence` and `teacher_inputs`, once checked against `policy`.
 
     Raises:
-        ValueError: windows of another shape than the policy's, or task ids that do not fit its tasks.
+        ValueError: windows of another shape than the policy's.
     """
     spec = policy.spec
     count = data.obs.shape[0]
@@ -130,13 +133,6 @@ def with_token_targets(policy: CarpPolicy, data: PolicyTrainingData) -> PolicyTr
     expected_actions = (count, policy.tokenizer.spec.action_horizon, spec.action_dim)
     if tuple(data.actions.shape) != expected_actions:
         raise ValueError(f"actions must have shape (N, H, A) = {expected_actions}, got {tuple(data.actions.shape)}")
-    if spec.num_tasks > 0:
-        if data.task_ids is None or tuple(data.task_ids.shape) != (count,):
-            raise ValueError(f"a multi-task policy needs task_ids of shape (N,) = ({count},)")
-        if int(data.task_ids.min()) < 0 or int(data.task_ids.max()) >= spec.num_tasks:
-            raise ValueError(f"task_ids must be in [0, {spec.num_tasks})")
-    elif data.task_ids is not None:
-        raise ValueError("task_ids were given but the policy is single-task (num_tasks = 0)")
     targets = compute_token_targets(policy.tokenizer, data.actions)
     extras = {"token_sequence": targets.token_sequence, "teacher_inputs": targets.teacher_inputs}
     return dataclasses.replace(data, extras=data.extras | extras)
@@ -184,8 +180,6 @@ def measure_attention_kernels(
         "teacher_inputs": torch.randn(batch_size, teacher_length, spec.latent_channels, generator=generator),
         "token_sequence": torch.randint(spec.codebook_size, (batch_size, spec.sequence_length), generator=generator),
     }
-    if spec.num_tasks > 0:
-        batch["task_ids"] = torch.randint(spec.num_tasks, (batch_size,), generator=generator)
     batch = {name: value.to(device) for name, value in batch.items()}
     copies = {}
     for kernel in ATTENTION_KERNELS:

@@ -6,10 +6,11 @@ start embedding; scale k > 1 reads a linear projection of the tokenizer latent a
 area-downsampled to `s_k`. A learned per-token position embedding and a per-scale level embedding are added.
 Training is teacher-forced under a block-causal mask; inference runs K steps with a kv-cache.
 
-Deviations from those sources: the condition comes from flattened low-dim observations (+ a task embedding) rather
-than a class label, so there is no classifier-free guidance; all AdaLN modulations (every block's and the head's)
-come from one projection of SiLU(cond) that inference computes once per chunk instead of once per block and scale;
-the head has one vocabulary per action dimension (see :class:`~carp.policies.carp.blocks.PerDimensionHead`).
+Deviations from those sources: the condition comes from the flattened observation features (a multi-task policy's
+task embedding included) rather than a class label, so there is no classifier-free guidance; all AdaLN modulations
+(every block's and the head's) come from one projection of SiLU(cond) that inference computes once per chunk instead
+of once per block and scale; the head has one vocabulary per action dimension (see
+:class:`~carp.policies.carp.blocks.PerDimensionHead`).
 """
 
 import math
@@ -30,7 +31,7 @@ from carp.policies.carp.blocks import (
     modulate,
 )
 from carp.policies.carp.layout import TokenLayout
-from carp.policies.carp.spec import TASK_EMBEDDING_DIM, PolicySpec
+from carp.policies.carp.spec import PolicySpec
 
 EMBEDDING_INIT_STD = 0.02
 GATE_INIT_GAIN = 1e-5
@@ -61,27 +62,24 @@ class InferenceState:
 class AdaptiveTransformer(nn.Module):
     """The parts CARP's transformer and the next-token transformer share.
 
-    Those are the AdaLN conditioning on the observations (and task), the learned position and level embeddings, the
+    Those are the AdaLN conditioning on the observation features, the learned position and level embeddings, the
     block stack and the modulated input of the head. A subclass builds itself in this order:
     :meth:`_build_condition`, its own token inputs, :meth:`_build_trunk`, then :meth:`_initialize_weights`. The
     order fixes the registration order of the parameters, hence the seeded initial weights and the names of the
     checkpoint's entries.
     """
 
-    def _build_condition(self, obs_steps: int, obs_dim: int, num_tasks: int, width: int, start_length: int) -> None:
-        """The condition: an optional task embedding, the projection to `D` and the first tokens' start embedding.
+    def _build_condition(self, obs_steps: int, obs_dim: int, width: int, start_length: int) -> None:
+        """The condition: the projection of the observation features to `D` and the first tokens' start embedding.
 
         Args:
             obs_steps: `To`.
-            obs_dim: `Do`.
-            num_tasks: 0 for a single-task model, else the number of task indices.
+            obs_dim: `F`, features per step (a multi-task policy's task embedding included).
             width: `D`.
             start_length: tokens of the first step (CARP: `s_1 * A`; next-token: 1).
         """
-        self.obs_steps, self.obs_dim, self.num_tasks = obs_steps, obs_dim, num_tasks
-        self.task_embedding = nn.Embedding(num_tasks, TASK_EMBEDDING_DIM) if num_tasks > 0 else None
-        condition_features = obs_steps * obs_dim + (TASK_EMBEDDING_DIM if num_tasks > 0 else 0)
-        self.condition_projection = nn.Linear(condition_features, width)
+        self.obs_steps, self.obs_dim = obs_steps, obs_dim
+        self.condition_projection = nn.Linear(obs_steps * obs_dim, width)
         self.start_embedding = nn.Parameter(torch.empty(1, start_length, width))
 
     def _build_trunk(self, layout: TokenLayout, architecture: Any, codebook_size: int) -> None:
@@ -115,29 +113,22 @@ class AdaptiveTransformer(nn.Module):
     def _initialize_weights(self) -> None:
         initialize_adaptive_transformer(self, self.depth, self.width)
 
-    def encode_condition(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> torch.Tensor:
-        """Project observations (and task) to the condition vector.
+    def encode_condition(self, obs_features: torch.Tensor) -> torch.Tensor:
+        """Project the observation features to the condition vector.
 
         Args:
-            obs_features: (B, To, Do) normalized observations (or already flattened (B, To * Do)).
-            task_ids: (B,) long task indices; required exactly when `num_tasks > 0`.
+            obs_features: (B, To, F) observation features (or already flattened (B, To * F)).
 
         Returns:
             (B, D) condition.
         """
-        features = obs_features.reshape(obs_features.shape[0], -1)  # (B, To * Do)
+        features = obs_features.reshape(obs_features.shape[0], -1)  # (B, To * F)
         expected = self.obs_steps * self.obs_dim
         if features.shape[1] != expected:
             raise ValueError(
                 f"observations have {features.shape[1]} features per sample ({tuple(obs_features.shape)}), "
                 f"expected To * Do = {self.obs_steps} * {self.obs_dim} = {expected}"
             )
-        if self.task_embedding is not None:
-            if task_ids is None:
-                raise ValueError(f"this policy is multi-task ({self.num_tasks} tasks): pass task ids")
-            features = torch.cat((features, self.task_embedding(task_ids)), dim=1)  # (B, To * Do + 3)
-        elif task_ids is not None:
-            raise ValueError("this policy is single-task (num_tasks = 0) but task ids were given")
         return self.condition_projection(features)  # (B, D)
 
     def modulation_vector(self, condition: torch.Tensor) -> torch.Tensor:
@@ -157,17 +148,16 @@ class AdaptiveTransformer(nn.Module):
         """A kv-cache for one chunk: every block's keys and values of up to L tokens."""
         return KeyValueCache(self.depth, self.position_embedding.shape[1])
 
-    def start_inference(self, obs_features: torch.Tensor, task_ids: torch.Tensor | None = None) -> InferenceState:
+    def start_inference(self, obs_features: torch.Tensor) -> InferenceState:
         """Encode the condition, its modulations and the position embeddings once, and open an empty kv-cache.
 
         Args:
-            obs_features: (B, To, Do) normalized observations.
-            task_ids: (B,) long, for multi-task policies.
+            obs_features: (B, To, F) observation features.
 
         Returns:
             State to pass to the subclass's step method once per sequential call.
         """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        condition = self.encode_condition(obs_features)  # (B, D)
         return InferenceState(condition, self.modulations(condition), self.position_and_level(), self.empty_cache())
 
     def run_blocks(
@@ -208,7 +198,7 @@ class CoarseToFineTransformer(AdaptiveTransformer):
         self.spec = spec
         self.layout = TokenLayout(spec.action_dim, spec.scales)
         width = spec.config.width
-        self._build_condition(spec.obs_steps, spec.obs_dim, spec.num_tasks, width, self.layout.scale_lengths[0])
+        self._build_condition(spec.obs_steps, spec.obs_dim, width, self.layout.scale_lengths[0])
         self.token_projection = nn.Linear(spec.latent_channels, width)
         self._build_trunk(self.layout, spec.config, spec.codebook_size)
         self.register_buffer("attention_mask", self.layout.attention_mask(), persistent=False)
@@ -228,16 +218,14 @@ class CoarseToFineTransformer(AdaptiveTransformer):
         self,
         obs_features: torch.Tensor,
         teacher_inputs: torch.Tensor,
-        task_ids: torch.Tensor | None = None,
         grouped_by_dimension: bool = False,
     ) -> torch.Tensor:
         """Teacher-forced logits of all L tokens.
 
         Args:
-            obs_features: (B, To, Do) normalized observations.
+            obs_features: (B, To, F) observation features.
             teacher_inputs: (B, L - s_1 * A, C) float, the tokenizer's teacher-forcing inputs of scales 2..K in
                 sequence order (area-downsampled accumulated latent of the ground-truth tokens of coarser scales).
-            task_ids: (B,) long, for multi-task policies.
             grouped_by_dimension: return the logits in the head's layout (see
                 :meth:`~carp.policies.carp.blocks.PerDimensionHead.grouped_logits`), as training uses them.
 
@@ -245,7 +233,7 @@ class CoarseToFineTransformer(AdaptiveTransformer):
             (B, L, V) logits; token `i` is scored against dimension `i % A`'s vocabulary. With
             `grouped_by_dimension`: (A, B * L / A, V).
         """
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        condition = self.encode_condition(obs_features)  # (B, D)
         modulations = self.modulations(condition)
         tokens = torch.cat(
             (self._first_scale_tokens(condition), self.token_projection(teacher_inputs)), dim=1

@@ -44,8 +44,6 @@ def make_transformer(
 def build(policy_type: str, make_denoiser: DenoiserFactory, config: DenoisingConfig, context: PolicyContext):
     """An untrained policy of `policy_type` sized for the data of `context` (the tokenizer is not used)."""
     denoiser = make_denoiser(config, context.action_dim, context.feature_dim, context.obs_steps, context.action_horizon)
-    if context.num_tasks > 0:
-        raise ValueError(f"a {policy_type} policy is single-task; got num_tasks = {context.num_tasks}")
     return DiffusionPolicy(
         policy_type,
         config,

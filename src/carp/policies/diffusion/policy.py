@@ -81,6 +81,11 @@ class DiffusionPolicy(PolicyModule):
         """The sampler, e.g. `DDPM-100` or `DDIM-10`."""
         return self.sampler.description
 
+    @property
+    def draws_random(self) -> bool:
+        """Always: every chunk starts from drawn noise (DDIM's later steps are deterministic, its start is not)."""
+        return True
+
     def predict_action_timed(
         self,
         obs: np.ndarray | torch.Tensor,
@@ -92,19 +97,17 @@ class DiffusionPolicy(PolicyModule):
 
         Args:
             obs: (B, To, Do) raw low-dim observations.
-            task_index: must be None (the Diffusion Policy families are single-task here).
+            task_index: see `PolicyModule.task_ids` (None: a multi-task policy's selected task).
             generator: random source of the initial noise (and of DDPM's per-step noise); seeded per episode.
             images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
         Returns:
             Actions (B, H, A) raw float32, the two durations in seconds and the N denoiser calls.
         """
-        if task_index is not None:
-            raise ValueError(f"a {self.policy_type} policy is single-task; got a task index")
         with torch.inference_mode():
             started = time.perf_counter()
             denoiser = self.denoiser
-            observations = self.observation_features(obs, denoiser.obs_steps, images)  # (B, To, F)
+            observations = self.observation_features(obs, denoiser.obs_steps, images, task_index)  # (B, To, F)
             encoded = time.perf_counter()
             normalized_actions = self.sampler.sample(denoiser, observations, self.action_horizon, generator)
             predicted = time.perf_counter()
@@ -119,7 +122,7 @@ class DiffusionPolicy(PolicyModule):
 
         Args:
             batch: `obs` (b, To, Do) and `actions` (b, H, A) normalized; `images` (b, To, cameras, 3, h, w) uint8
-                for an image policy.
+                for an image policy; `task_ids` (b,) long for a multi-task policy.
         """
         return self.sampler.training_loss(self.denoiser, batch["actions"], self.batch_features(batch))
 

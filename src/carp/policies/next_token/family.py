@@ -33,7 +33,6 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
         context.action_dim,
         tuple(spec.scales),
         spec.codebook_size,
-        context.num_tasks,
     )
     return NextTokenPolicy(
         context.tokenizer_artifact,

@@ -17,7 +17,6 @@ from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 def generate_tokens(
     transformer: NextTokenTransformer,
     obs_features: torch.Tensor,
-    task_ids: torch.Tensor | None = None,
     top_k: int = 1,
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
@@ -25,8 +24,7 @@ def generate_tokens(
 
     Args:
         transformer: the trained transformer, in eval mode.
-        obs_features: (B, To, Do) normalized observations.
-        task_ids: (B,) long task indices, for multi-task policies.
+        obs_features: (B, To, F) observation features.
         top_k: 1 takes the argmax; k > 1 draws among the k most likely tokens.
         generator: random source of the draws (seeded for reproducible chunks); unused for top_k = 1.
 
@@ -38,7 +36,7 @@ def generate_tokens(
     uniforms = (
         sampling_uniforms(batch, length, top_k, generator, obs_features.device) if top_k > 1 else None
     )  # (B, L, k)
-    state = transformer.start_inference(obs_features, task_ids)
+    state = transformer.start_inference(obs_features)
     token_ids = torch.empty(batch, length, dtype=torch.long, device=obs_features.device)
     previous = None
     for position in range(length):

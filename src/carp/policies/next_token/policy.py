@@ -57,7 +57,6 @@ class NextTokenPolicy(TokenizedPolicy):
             action_normalizer,
             metadata,
             transformer.obs_dim,
-            transformer.num_tasks,
             image_encoder,
         )
 
@@ -77,7 +76,7 @@ class NextTokenPolicy(TokenizedPolicy):
 
         Args:
             obs: (B, To, Do) raw low-dim observations.
-            task_index: None for single-task policies; one index or (B,) otherwise.
+            task_index: see `PolicyModule.task_ids` (None: a multi-task policy's selected task).
             generator: random source of top-k draws, seeded per episode.
             images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
@@ -87,10 +86,9 @@ class NextTokenPolicy(TokenizedPolicy):
         with torch.inference_mode():
             started = time.perf_counter()
             transformer = self.transformer
-            features = self.observation_features(obs, transformer.obs_steps, images)  # (B, To, F)
+            features = self.observation_features(obs, transformer.obs_steps, images, task_index)  # (B, To, F)
             encoded = time.perf_counter()
-            task_ids = self.task_ids(task_index, features.shape[0])
-            token_ids = generate_tokens(transformer, features, task_ids, self.top_k, generator)  # (B, L)
+            token_ids = generate_tokens(transformer, features, self.top_k, generator)  # (B, L)
             predicted = time.perf_counter()
             normalized_actions = self.tokenizer.decode_ids(self.tokenizer.sequence_to_ids(token_ids))  # (B, H, A)
             actions = self.action_normalizer.unnormalize(normalized_actions).float().cpu().numpy()
@@ -110,7 +108,7 @@ class NextTokenPolicy(TokenizedPolicy):
         # The frozen tokenizer encodes in float32 whatever the loop's autocast: its ids must not depend on it.
         with torch.no_grad(), torch.autocast(actions.device.type, enabled=False):
             token_ids = self.tokenizer.ids_to_sequence(self.tokenizer.encode_to_ids(actions.float()))  # (b, L)
-        logits = self.transformer(self.batch_features(batch), token_ids, batch.get("task_ids"))  # (b, L, V)
+        logits = self.transformer(self.batch_features(batch), token_ids)  # (b, L, V)
         return F.cross_entropy(logits.flatten(0, 1).float(), token_ids.flatten())
 
     def family_checkpoint(self) -> dict[str, Any]:
@@ -124,7 +122,6 @@ class NextTokenPolicy(TokenizedPolicy):
                 "action_dim": transformer.action_dim,
                 "scales": list(transformer.layout.scales),
                 "codebook_size": transformer.codebook_size,
-                "num_tasks": transformer.num_tasks,
             },
             "transformer_state": transformer.state_dict(),
             **self.tokenizer_checkpoint(),
@@ -132,9 +129,19 @@ class NextTokenPolicy(TokenizedPolicy):
 
     @classmethod
     def from_checkpoint(cls, checkpoint: dict[str, Any]) -> "NextTokenPolicy":
-        """Rebuild a policy from :meth:`to_checkpoint` output; the tokenizer must hash to its recorded sha256."""
+        """Rebuild a policy from :meth:`to_checkpoint` output; the tokenizer must hash to its recorded sha256.
+
+        Raises:
+            ValueError: another family's checkpoint, or a multi-task one of the earlier format, whose transformer
+                embedded the task (`shapes.num_tasks` > 0; single-task ones recorded 0 and still load).
+        """
         check_policy_type(checkpoint, POLICY_TYPE)
         shapes = checkpoint["shapes"]
+        if shapes.get("num_tasks", 0) != 0:
+            raise ValueError(
+                "shapes.num_tasks > 0: a multi-task transformer of an earlier format, which this code no longer reads "
+                "(the task embedding is the observation encoder's now); train it again"
+            )
         transformer = NextTokenTransformer(
             NextTokenConfig(**checkpoint["config"]),
             shapes["obs_dim"],
@@ -142,7 +149,6 @@ class NextTokenPolicy(TokenizedPolicy):
             shapes["action_dim"],
             tuple(shapes["scales"]),
             shapes["codebook_size"],
-            shapes["num_tasks"],
         )
         transformer.load_state_dict(checkpoint["transformer_state"], strict=True)
         return cls.with_checkpoint_parts(transformer, checkpoint)

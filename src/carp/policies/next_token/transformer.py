@@ -13,8 +13,8 @@ first, so the baseline also keeps CARP's coarse-to-fine prior, and every token i
 Inputs: a GPT-style shifted sequence. Position 0 reads the condition plus a learned start embedding (CARP's first
 scale input); position i > 0 reads a learned embedding of token i - 1, one table row per (dimension, id) pair, since
 ids of different dimensions index different codebooks. Each position adds CARP's learned position embedding and
-the level (scale) embedding of its scale. The condition (flattened `To` observation steps, plus a task embedding
-for multi-task policies) is projected to `D` and modulates every block through AdaLN, as in CARP. Token embeddings
+the level (scale) embedding of its scale. The condition (flattened `To` observation steps, a multi-task policy's
+task embedding included) is projected to `D` and modulates every block through AdaLN, as in CARP. Token embeddings
 replace CARP's projected, area-downsampled tokenizer latents because the latent of a partly predicted scale is not
 defined one token at a time.
 
@@ -41,7 +41,6 @@ class NextTokenTransformer(AdaptiveTransformer):
         action_dim: `A`, the tokenizer's action dimensions.
         scales: `(s_1, ..., s_K)`, the tokenizer's scales.
         codebook_size: `V`, the tokenizer's vocabulary per dimension.
-        num_tasks: 0 for a single-task policy, else the number of task indices (each with a learned embedding).
     """
 
     def __init__(
@@ -52,21 +51,18 @@ class NextTokenTransformer(AdaptiveTransformer):
         action_dim: int,
         scales: tuple[int, ...],
         codebook_size: int,
-        num_tasks: int = 0,
     ) -> None:
         super().__init__()
         check_dimensions(obs_dim=obs_dim, obs_steps=obs_steps, action_dim=action_dim)
         if codebook_size < 2:
             raise ValueError(f"codebook_size must be >= 2, got {codebook_size}")
-        if num_tasks < 0:
-            raise ValueError(f"num_tasks must be >= 0, got {num_tasks}")
         self.config = config
         self.action_dim = action_dim
         self.codebook_size = codebook_size
         self.layout = TokenLayout(action_dim, tuple(scales))
         length = self.layout.sequence_length
 
-        self._build_condition(obs_steps, obs_dim, num_tasks, config.width, 1)
+        self._build_condition(obs_steps, obs_dim, config.width, 1)
         self.token_embedding = nn.Embedding(action_dim * codebook_size, config.width)
         self._build_trunk(self.layout, config, codebook_size)
 
@@ -83,15 +79,12 @@ class NextTokenTransformer(AdaptiveTransformer):
         """`L`, tokens per chunk (and sequential model calls per chunk at inference)."""
         return self.layout.sequence_length
 
-    def forward(
-        self, obs_features: torch.Tensor, token_ids: torch.Tensor, task_ids: torch.Tensor | None = None
-    ) -> torch.Tensor:
+    def forward(self, obs_features: torch.Tensor, token_ids: torch.Tensor) -> torch.Tensor:
         """Teacher-forced logits of all L tokens, each from the condition and the tokens before it.
 
         Args:
-            obs_features: (B, To, Do) normalized observations.
+            obs_features: (B, To, F) observation features.
             token_ids: (B, L) long ground-truth ids in sequence order; the last one is never read.
-            task_ids: (B,) long, for multi-task policies.
 
         Returns:
             (B, L, V) logits; row i scores token i against dimension `i % A`'s vocabulary.
@@ -99,7 +92,7 @@ class NextTokenTransformer(AdaptiveTransformer):
         length = self.sequence_length
         if token_ids.dim() != 2 or token_ids.shape[1] != length:
             raise ValueError(f"token_ids must have shape (B, L) = (B, {length}), got {tuple(token_ids.shape)}")
-        condition = self.encode_condition(obs_features, task_ids)  # (B, D)
+        condition = self.encode_condition(obs_features)  # (B, D)
         modulations = self.modulations(condition)
         previous = self.token_embedding(token_ids[:, :-1] + self.vocabulary_offsets[:-1])  # (B, L - 1, D)
         start = condition.unsqueeze(1) + self.start_embedding  # (B, 1, D)

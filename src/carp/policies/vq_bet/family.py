@@ -37,13 +37,7 @@ AUTOENCODER_NAME = "action_vqvae.pt"
 
 
 def build(config: VqBetConfig, context: PolicyContext) -> VqBetPolicy:
-    """An untrained VQ-BeT policy (VQ-VAE included) sized by `config` for the data of `context`.
-
-    Raises:
-        ValueError: a multi-task context (this family is single-task).
-    """
-    if context.num_tasks:
-        raise ValueError(f"a {POLICY_TYPE} policy is single-task; got {context.num_tasks} tasks")
+    """An untrained VQ-BeT policy (VQ-VAE included) sized by `config` for the data of `context`."""
     transformer = BehaviorTransformer(
         config, context.feature_dim, context.obs_steps, context.action_horizon, context.action_dim
     )

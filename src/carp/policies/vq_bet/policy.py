@@ -4,7 +4,7 @@
 the code head's softmax with the caller's seeded generator, or the most likely one), decodes the codes with the
 VQ-VAE, adds the offset head's offset of those codes and un-normalizes. Prediction time is the GPT, the code choice
 and the offset; decoding time is the VQ-VAE decoding plus the un-normalization. The checkpoint holds the config,
-the shapes and both networks' weights (the VQ-VAE's codebooks included), so it is self-contained. Single-task.
+the shapes and both networks' weights (the VQ-VAE's codebooks included), so it is self-contained.
 """
 
 import dataclasses
@@ -99,6 +99,11 @@ class VqBetPolicy(PolicyModule):
         return "sampled" if self.code_choice == "sample" else "greedy"
 
     @property
+    def draws_random(self) -> bool:
+        """Sampled code choice draws; greedy does not."""
+        return self.code_choice == "sample"
+
+    @property
     def model_calls_per_chunk(self) -> int:
         """One GPT call per chunk."""
         return 1
@@ -122,19 +127,17 @@ class VqBetPolicy(PolicyModule):
 
         Args:
             obs: (B, To, Do) raw low-dim observations.
-            task_index: must be None (single-task).
+            task_index: see `PolicyModule.task_ids` (None: a multi-task policy's selected task).
             generator: random source of the code draws, seeded per episode; unused when greedy.
             images: (B, To, cameras, 3, h, w) uint8 camera images of an image policy; None for a state policy.
 
         Returns:
             Actions (B, H, A) raw float32, the durations in seconds and one model call.
         """
-        if task_index is not None:
-            raise ValueError(f"a {self.policy_type} policy is single-task; got a task index")
         with torch.inference_mode():
             started = time.perf_counter()
             transformer = self.transformer
-            obs_features = self.observation_features(obs, transformer.obs_steps, images)  # (B, To, F)
+            obs_features = self.observation_features(obs, transformer.obs_steps, images, task_index)  # (B, To, F)
             encoded = time.perf_counter()
             features = transformer.features(obs_features)  # (B, output_width)
             code_ids = self.choose_codes(transformer.code_logits(features).float(), generator)  # (B, layers)

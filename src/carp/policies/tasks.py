@@ -1,0 +1,115 @@
+"""The tasks a multi-task policy was trained on: their names, the task embedding's width, each task's statistics.
+
+CARP's multi-task setting (the paper's supplementary section H) trains one policy over several tasks and conditions it
+on a learnable task embedding (3-D there) concatenated with the observations of every step. Here the embedding lives
+in the shared observation encoder (`carp.policies.observations.TaskConditionedObservations`), so every family is
+multi-task capable without knowing it.
+
+Each task keeps its own min-max statistics, as the shared tokenizer saw every task's actions normalized with their
+own (`carp.tokenizer.artifact`): training normalizes every task's windows with its task's, and a policy evaluated on
+a task un-normalizes with that task's (:meth:`PolicyTasks.index` refuses a task the policy was not trained on). The
+policy's own `obs_normalizer` and `action_normalizer` are those of its *selected* task
+(`carp.policies.wrapper.PolicyModule.select_task`), whose index is also the default task of a prediction.
+
+The record is plain values stored in the policy's metadata under :data:`TASKS_METADATA_KEY`, so it travels in every
+family's checkpoint unchanged; a single-task policy has no such entry and no task embedding.
+"""
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from carp.data.normalizer import MinMaxNormalizer
+
+TASKS_METADATA_KEY = "tasks"
+"""Metadata entry of a multi-task policy: :meth:`PolicyTasks.to_dict`."""
+
+DEFAULT_TASK_EMBEDDING_DIM = 3
+"""Width of the learned task embedding (the paper's 3-D embedding)."""
+
+
+@dataclass(frozen=True)
+class PolicyTasks:
+    """Tasks of a multi-task policy, in task-index order.
+
+    Attributes:
+        names: task names; index i is task id i. At least two, no repeats.
+        embedding_dim: width of the learned task embedding appended to every observation step's features; >= 1.
+        obs_normalizers: task -> its `Do` observation statistics.
+        action_normalizers: task -> its `A` action statistics.
+        selected: the task whose statistics the policy currently uses; one of `names`.
+    """
+
+    names: tuple[str, ...]
+    obs_normalizers: Mapping[str, MinMaxNormalizer]
+    action_normalizers: Mapping[str, MinMaxNormalizer]
+    embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM
+    selected: str | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(self.names))
+        if len(self.names) < 2 or len(set(self.names)) != len(self.names):
+            raise ValueError(f"a multi-task policy needs at least two distinct tasks, got {list(self.names)}")
+        if isinstance(self.embedding_dim, bool) or not isinstance(self.embedding_dim, int) or self.embedding_dim < 1:
+            raise ValueError(f"task embedding_dim must be a positive integer, got {self.embedding_dim!r}")
+        for what, normalizers in (("obs", self.obs_normalizers), ("action", self.action_normalizers)):
+            if set(normalizers) != set(self.names):
+                raise ValueError(f"{what} statistics are for tasks {sorted(normalizers)}, not {list(self.names)}")
+            widths = {task: normalizer.num_features for task, normalizer in normalizers.items()}
+            if len(set(widths.values())) != 1:
+                raise ValueError(f"{what} statistics of the tasks differ in width: {widths}")
+        if self.selected is None:
+            object.__setattr__(self, "selected", self.names[0])
+        self.index(self.selected)
+
+    @property
+    def num_tasks(self) -> int:
+        """Number of task indices."""
+        return len(self.names)
+
+    def index(self, task: str) -> int:
+        """The task id of `task`.
+
+        Raises:
+            ValueError: the policy was not trained on `task`; the message lists the tasks it was trained on.
+        """
+        if task not in self.names:
+            raise ValueError(f"this policy was trained on tasks {list(self.names)}, not on {task!r}")
+        return self.names.index(task)
+
+    def with_selected(self, task: str) -> "PolicyTasks":
+        """The same tasks with `task` selected (ValueError if the policy was not trained on it)."""
+        self.index(task)
+        return PolicyTasks(self.names, self.obs_normalizers, self.action_normalizers, self.embedding_dim, task)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-types view, as the metadata stores it."""
+        return {
+            "names": list(self.names),
+            "embedding_dim": self.embedding_dim,
+            "selected": self.selected,
+            "normalizers": {
+                task: {"obs": self.obs_normalizers[task].to_dict(), "action": self.action_normalizers[task].to_dict()}
+                for task in self.names
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "PolicyTasks":
+        """Inverse of :meth:`to_dict`."""
+        normalizers = values["normalizers"]
+        return cls(
+            names=tuple(values["names"]),
+            obs_normalizers={task: MinMaxNormalizer.from_dict(entry["obs"]) for task, entry in normalizers.items()},
+            action_normalizers={
+                task: MinMaxNormalizer.from_dict(entry["action"]) for task, entry in normalizers.items()
+            },
+            embedding_dim=int(values["embedding_dim"]),
+            selected=values.get("selected"),
+        )
+
+
+def metadata_tasks(metadata: Mapping[str, Any] | None) -> PolicyTasks | None:
+    """The tasks a policy's metadata records, or None for a single-task policy."""
+    entry = (metadata or {}).get(TASKS_METADATA_KEY)
+    return None if entry is None else PolicyTasks.from_dict(entry)

@@ -1,0 +1,106 @@
+"""The serving protocol a checkpoint records about itself, so that `carp serve` needs nothing but the file.
+
+Training stores, under the checkpoint metadata's `SERVING_METADATA_KEY`, what a robot must send and how it must
+execute the replies: the low-dim observation keys in order with each key's width (the replay buffer's `obs_keys` and
+`obs_widths`, which ingestion read from the demo file), `To`, `H`, `Ta`, the observation kind and, for an image
+policy, its cameras and image size. Inference settings are not part of it: they are evaluation params (changing them
+must not retrain), so the server takes them from `--params` or the family's defaults.
+
+The stored value is a map of plain values::
+
+    {"format": 1, "observations": "state" | "image", "obs_keys": [...], "obs_widths": [...],
+     "obs_steps": To, "action_horizon": H, "action_steps": Ta, "cameras": [...], "image_size": int | None}
+"""
+
+from collections.abc import Mapping
+from typing import Any
+
+from carp.serving.session import ServingSpec
+
+SERVING_METADATA_KEY = "serving"
+PROTOCOL_FORMAT = 1
+"""Version of the stored map; a reader refuses others."""
+
+
+class ProtocolError(ValueError):
+    """A checkpoint's recorded protocol is missing, of another format or inconsistent with its policy."""
+
+
+def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None) -> dict[str, Any]:
+    """The protocol of a policy trained with `data` on the replay buffer whose attributes are `buffer_attrs`.
+
+    Args:
+        data: the params' data section (`carp.config.DataConfig`): `To`, `H` and `Ta`.
+        buffer_attrs: the replay buffer's attributes (`carp.data.replay_buffer`): ``obs_keys`` and ``obs_widths``,
+            the low-dim keys concatenated into the policy's `Do` features and each key's width.
+        image_encoder: the camera encoder of an image policy (`carp.config.ImageEncoderConfig`: its cameras and
+            image size are the images the policy sees); None for a state policy.
+
+    Raises:
+        ProtocolError: the attributes lack the keys or widths (a buffer ingested before they were recorded); the
+            message names the missing attribute.
+    """
+    missing = [key for key in ("obs_keys", "obs_widths") if key not in buffer_attrs]
+    if missing:
+        raise ProtocolError(
+            f"attrs lack {' and '.join(missing)} (the replay buffer was ingested before carp recorded them; run "
+            "the ingest stage again)"
+        )
+    return {
+        "format": PROTOCOL_FORMAT,
+        "observations": "state" if image_encoder is None else "image",
+        "obs_keys": [str(key) for key in buffer_attrs["obs_keys"]],
+        "obs_widths": [int(width) for width in buffer_attrs["obs_widths"]],
+        "obs_steps": data.obs_steps,
+        "action_horizon": data.action_horizon,
+        "action_steps": data.action_steps,
+        "cameras": [] if image_encoder is None else list(image_encoder.cameras),
+        "image_size": None if image_encoder is None else image_encoder.image_size,
+    }
+
+
+def spec_from_protocol(
+    protocol: Mapping[str, Any], obs_dim: int, action_dim: int, control_period_s: float
+) -> ServingSpec:
+    """The serving spec a recorded protocol describes.
+
+    Args:
+        protocol: the map :func:`training_protocol` made.
+        obs_dim: `Do` of the policy (its observation normalizer's width); must equal the sum of the key widths.
+        action_dim: `A` of the policy.
+        control_period_s: seconds between two control steps of the policy's task.
+
+    Raises:
+        ProtocolError: another format, a missing entry, or key widths that do not add up to `obs_dim`.
+    """
+    if protocol.get("format") != PROTOCOL_FORMAT:
+        raise ProtocolError(f"serving protocol format {protocol.get('format')!r}, this carp reads {PROTOCOL_FORMAT}")
+    try:
+        keys, widths = tuple(protocol["obs_keys"]), tuple(protocol["obs_widths"])
+        image_shape = None
+        if protocol["observations"] == "image":
+            size = protocol["image_size"]
+            image_shape = (len(protocol["cameras"]), 3, size, size)
+        spec = ServingSpec(
+            obs_keys=keys,
+            obs_steps=protocol["obs_steps"],
+            obs_dim=obs_dim,
+            action_horizon=protocol["action_horizon"],
+            action_dim=action_dim,
+            action_steps=protocol["action_steps"],
+            control_period_s=control_period_s,
+            image_shape=image_shape,
+            obs_widths=widths,
+            cameras=tuple(protocol["cameras"]),
+        )
+    except KeyError as error:
+        raise ProtocolError(f"the serving protocol lacks {error}") from None
+    except ValueError as error:
+        raise ProtocolError(f"the serving protocol does not fit the policy: {error}") from None
+    return spec
+
+
+def recorded_protocol(metadata: Mapping[str, Any]) -> Mapping[str, Any] | None:
+    """The protocol a checkpoint's metadata records, or None for a checkpoint trained before it was recorded."""
+    protocol = metadata.get(SERVING_METADATA_KEY)
+    return protocol if isinstance(protocol, Mapping) else None

@@ -1,0 +1,59 @@
+"""End to end with a multi-task policy: `dvc repro` on tiny params over Can and Square (observations of the same
+widths) trains the single-task CARPs and one multi-task CARP over both tasks, evaluates it on each task beside them,
+and the report sets them side by side; a second run runs nothing but the input check."""
+
+import json
+import sys
+
+import pytest
+
+from carp.policies.registry import load_policy
+from tests.pipeline.workspace import make_workspace, run, stages_run
+
+TASKS = ["can", "square"]
+MULTITASK = {
+    "tasks": TASKS,
+    "multitask": ["carp"],
+    "data": {"num_demos": 2},
+    "eval": {"episodes": 1, "workers": 1},
+}
+
+
+@pytest.mark.slow
+def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp_path):
+    workspace = make_workspace(tmp_path / "carp", MULTITASK)
+    first = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert {"train_multitask@carp-0", "evaluate_multitask@can-carp-0", "evaluate_multitask@square-carp-0"} <= (
+        stages_run(first.stdout)
+    )
+    for output in (
+        "models/policy/multitask/carp/seed0/policy.pt",
+        "reports/policy/multitask/carp/seed0/history.csv",
+        "reports/policy/multitask/carp/seed0/metrics.json",
+        *(f"models/policy/{task}/carp/seed0/policy.pt" for task in TASKS),
+        *(f"reports/eval/{task}/carp/seed0.json" for task in TASKS),
+        *(
+            f"reports/eval/{task}/carp-multitask/seed0{suffix}"
+            for task in TASKS
+            for suffix in (".json", "_episodes.csv")
+        ),
+        "reports/report.md",
+    ):
+        assert (workspace / output).exists(), output
+    # One checkpoint knows both tasks, in the order of `tasks`.
+    policy = load_policy(workspace / "models/policy/multitask/carp/seed0/policy.pt")
+    assert list(policy.tasks.names) == TASKS
+    metrics = json.loads((workspace / "reports/policy/multitask/carp/seed0/metrics.json").read_text())
+    assert "final_loss" in metrics
+    for task in TASKS:
+        summary = json.loads((workspace / f"reports/eval/{task}/carp-multitask/seed0.json").read_text())
+        assert summary["episodes"] == 1 and summary["policy_type"] == "carp"
+    report = (workspace / "reports/report.md").read_text()
+    section = report.split("## Multi-task", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith(("| can ", "| square "))]
+    assert len(rows) == 2 and all("| carp " in row and "/1 (" in row for row in rows)
+
+    second = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert stages_run(second.stdout) == {"check_inputs"}
