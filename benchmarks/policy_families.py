@@ -10,7 +10,9 @@ ones, so that a slower or busier stretch of the machine affects every row and bo
 - `diffusion_unet` (DP-C) and `diffusion_transformer` (DP-T) with DDIM-10 and DDPM-100, in PyTorch under inference
   mode (the sampler loop holds one denoiser call and one scheduler update per step);
 - `next_token`, greedy, in PyTorch with its kv-cache;
-- `vq_bet`, codes sampled, in PyTorch (one GPT call per chunk; its VQ-VAE untrained, which does not change the time).
+- `vq_bet`, codes sampled, in PyTorch (one GPT call per chunk; its VQ-VAE untrained, which does not change the time);
+- `edm_unet` (Consistency Policy's teacher, Heun-80: 158 U-Net calls) and `consistency_policy` one-step and
+  three-step, in PyTorch; the one-step row is the speed CARP's claim is measured against.
 
 Each batch size has its ratio column: a row's median over CARP's at that batch size (CARP on ONNX Runtime at batch
 1, CARP in PyTorch at batch 64, as the ONNX Runtime graphs are exported for batch 1). The issue's targets on the
@@ -46,6 +48,8 @@ TINY_SECTIONS = {
     "diffusion_transformer": {"num_layers": 1, "num_heads": 2, "width": 16, "num_train_steps": 10},
     "next_token": {"depth": 1, "width": 16, "num_heads": 2},
     "vq_bet": {"depth": 1, "width": 16, "num_heads": 2, "output_width": 16, "head_hidden_width": 32},
+    "edm_unet": {"down_dims": [16, 32], "kernel_size": 3, "step_embedding_dim": 16},
+    "consistency_policy": {"down_dims": [16, 32], "kernel_size": 3, "step_embedding_dim": 16},
 }
 INFERENCE_VARIANTS = {
     "diffusion_unet": ({"sampler": "ddim", "num_inference_steps": 10}, {"sampler": "ddpm", "num_inference_steps": 100}),
@@ -53,6 +57,7 @@ INFERENCE_VARIANTS = {
         {"sampler": "ddim", "num_inference_steps": 10},
         {"sampler": "ddpm", "num_inference_steps": 100},
     ),
+    "consistency_policy": ({"chain_levels": ()}, {"chain_levels": (27, 54)}),
 }
 """Inference settings timed per family (the family's defaults when absent): both samplers of the issue's targets."""
 REFERENCE = "carp"

@@ -29,6 +29,7 @@ from stage_support import (
     stage_policy_paths,
 )
 
+from carp.policies.registry import get_family
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError
@@ -41,6 +42,7 @@ from carp.training.task_policy import (
     train_and_write_task_policy,
     train_multitask_policy,
     train_task_policy,
+    train_task_teacher,
 )
 
 TORCHRUN_VARIABLES = ("RANK", "LOCAL_RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
@@ -108,6 +110,9 @@ def main() -> None:
             device,
         )  # fmt: skip
     family_config = params.family_config(args.policy)
+    # A distilled family trains its teacher first, in this stage, from the teacher family's own params section.
+    teacher = get_family(args.policy).teacher
+    teacher_config = None if teacher is None else params.family_config(teacher)
     training = params.training_for_seed(args.seed)
     model_dir, report_dir, _ = stage_policy_paths(args)
     checkpoint_dir = CHECKPOINT_DIR / "policy" / model_dir.relative_to(POLICY_DIR)
@@ -118,12 +123,20 @@ def main() -> None:
             train_and_write_multitask_policy, args.policy, family_config, training, params.data, inputs
         )
     else:
-        train = functools.partial(
-            train_task_policy, args.policy, family_config, training, params.data, inputs, args.task
-        )
+        # A distilled family's teacher trains first, then the student from it (`train_and_write_task_policy` does both).
+        def train(checkpoint_dir: Path, device: torch.device) -> None:
+            teacher_policy = train_task_teacher(
+                args.policy, teacher_config, training, params.data, inputs, args.task, checkpoint_dir, device
+            )
+            train_task_policy(
+                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device,
+                teacher=teacher_policy,
+            )  # fmt: skip
+
         train_and_write = functools.partial(
-            train_and_write_task_policy, args.policy, family_config, training, params.data, inputs, args.task
-        )
+            train_and_write_task_policy, args.policy, family_config, training, params.data, inputs, args.task,
+            teacher_config=teacher_config,
+        )  # fmt: skip
     trained = MULTITASK_DIRNAME if args.multitask else args.task
     try:
         if rank != 0:

@@ -167,6 +167,9 @@ def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_c
         ("diffusion_transformer", "DDPM-10", "torch"),
         ("next_token", "greedy", "torch"),
         ("vq_bet", "sampled", "torch"),
+        ("edm_unet", "Heun-80", "torch"),
+        ("consistency_policy", "1-step", "torch"),
+        ("consistency_policy", "3-step", "torch"),
     ], completed.stdout
     reference = float(rows[0][5])
     batched_reference = float(rows[1][8])  # CARP in PyTorch: the ONNX Runtime graphs are batch 1 only
@@ -176,8 +179,11 @@ def test_policy_families_prints_a_row_per_family_and_variant_with_its_ratio_to_c
         if backend == "torch":
             assert float(batched_ratio) == pytest.approx(float(per_chunk) / batched_reference, rel=0.02, abs=0.06)
     assert rows[1][9] == "1.0"
-    assert rows[-2][4] == str(10 * (1 + 2 + 3 + 4))  # next_token: one call per token, L = A * sum(scales)
-    assert rows[-1][4] == "1"  # vq_bet: one GPT call per chunk
+    calls = {(family, inference): int(count) for family, inference, _, _, count, *_ in rows}
+    assert calls["next_token", "greedy"] == 10 * (1 + 2 + 3 + 4)  # one call per token, L = A * sum(scales)
+    assert calls["vq_bet", "sampled"] == 1  # one GPT call per chunk
+    assert calls["edm_unet", "Heun-80"] == 2 * 79  # two U-Net calls per Heun step
+    assert (calls["consistency_policy", "1-step"], calls["consistency_policy", "3-step"]) == (1, 3)
     single = run_benchmark("policy_families.py", "--tiny", "--rounds", "1", "--skip-batched")
     assert single.returncode == 0 and len(row.findall(single.stdout)) == len(rows)
     assert all(match[8] == match[9] == "-" for match in row.findall(single.stdout))

@@ -107,6 +107,11 @@ def test_defaults_follow_the_design():
             "multitask=['carp']: multi-task policies train on state observations, data.observations='image'",
         ),
         (
+            {"tasks": ["can", "square"], "multitask": ["carp", "consistency_policy"]},
+            "multitask=['carp', 'consistency_policy']: consistency_policy distils its edm_unet teacher, which trains "
+            "on one task only",
+        ),
+        (
             {"tasks": ["lift", "pusht"], "multitask": ["carp"]},
             "tasks=['lift', 'pusht']: tasks must share one action space",
         ),
@@ -114,7 +119,7 @@ def test_defaults_follow_the_design():
         (
             {"inference": {"lstm": {}}},
             "inference.lstm: unknown policy family (known: carp, diffusion_unet, diffusion_transformer, next_token, "
-            "vq_bet)",
+            "vq_bet, edm_unet, consistency_policy)",
         ),
         ({"inference": {"carp": {"top_p": 0.9}}}, "inference.carp.top_p: unknown key (known: top_k, top_k_per_task)"),
         ({"eval": {"seed": 100}, "data": {"num_demos": 50}}, "eval.seed=100: evaluation seeds [100, 150) overlap"),

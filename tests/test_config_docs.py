@@ -36,6 +36,10 @@ def test_every_field_of_every_config_section_is_documented():
         "inference.next_token.",
         "vq_bet.",
         "inference.vq_bet.",
+        "edm_unet.",
+        "inference.edm_unet.",
+        "consistency_policy.",
+        "inference.consistency_policy.",
     ]
     assert documentation_problems() == []
     for _, cls in sections:

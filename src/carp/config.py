@@ -841,6 +841,15 @@ class Params:
         _require(len(set(families)) == len(families), "multitask", families, "must not repeat a family")
         if not families:
             return
+        from carp.policies.registry import get_family  # see family_sections
+
+        for name in families:
+            _require(
+                get_family(name).teacher is None,
+                "multitask",
+                families,
+                f"{name} distils its {get_family(name).teacher} teacher, which trains on one task only",
+            )
         _require(
             len(self.tasks) >= 2,
             "multitask",

@@ -27,6 +27,7 @@ from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
+from tests.policies.consistency.factories import tiny_student_config, tiny_teacher_config
 from tests.policies.stub_family import STUB_FAMILY, StubConfig
 from tests.policies.vq_bet.factories import tiny_config as vq_bet_config
 
@@ -40,12 +41,16 @@ TINY_CONFIGS = {
     ),
     "next_token": NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=0),
     "vq_bet": vq_bet_config(),
+    "edm_unet": tiny_teacher_config(),
+    "consistency_policy": tiny_student_config(),
 }
 TINY_INFERENCE = {
     "diffusion_unet": {"sampler": "ddim", "num_inference_steps": 4},
     "diffusion_transformer": {"sampler": "ddpm", "num_inference_steps": 10},
     "next_token": {"top_k": 3},
     "vq_bet": {"code_choice": "sample"},
+    "edm_unet": {"num_levels": 4},
+    "consistency_policy": {"chain_levels": (3, 6)},
 }
 
 
@@ -82,6 +87,13 @@ def stub_registered():
 def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp_path):
     config = TINY_CONFIGS.get(name) or get_family(name).config_class()
     training = TrainingConfig(epochs=2, batch_size=8, checkpoint_every=1)
+    teacher = None
+    teacher_family = get_family(name).teacher
+    if teacher_family is not None:
+        # A distilled family is given its teacher family's trained policy.
+        teacher = train_policy(
+            teacher_family, TINY_CONFIGS[teacher_family], training, tiny_context(), tiny_data(), tmp_path / "teacher"
+        )
     history = []
     policy = train_policy(
         name,
@@ -91,6 +103,7 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
         tiny_data(),
         tmp_path / "state",
         on_epoch_end=lambda e, m: history.append(m),
+        teacher=teacher,
     )
     assert len(history) == 2 and all(np.isfinite(epoch["loss"]) and epoch["epoch_seconds"] > 0 for epoch in history)
     untrained = build_policy(name, config, tiny_context())
@@ -125,13 +138,22 @@ def test_every_family_trains_saves_and_round_trips_through_load_policy(name, tmp
         tiny_data(),
         tmp_path / "state",
         on_epoch_end=lambda e, m: replayed.append(m),
+        teacher=teacher,
     )
     assert replayed == history
 
 
 def test_model_calls_per_chunk_are_the_familys_sequential_steps():
     context = tiny_context()
-    expected = {"carp": 2, "diffusion_unet": 4, "diffusion_transformer": 10, "next_token": 2 * (1 + 2), "vq_bet": 1}
+    expected = {
+        "carp": 2,
+        "diffusion_unet": 4,
+        "diffusion_transformer": 10,
+        "next_token": 2 * (1 + 2),
+        "vq_bet": 1,
+        "edm_unet": 2 * (4 - 1),
+        "consistency_policy": 3,
+    }
     for name, calls in expected.items():
         policy = build_policy(name, TINY_CONFIGS[name], context)
         policy.configure_inference(**TINY_INFERENCE.get(name, {}))

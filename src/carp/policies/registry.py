@@ -29,6 +29,14 @@ FAMILY_MODULES = {
     ),
     "next_token": ("carp.policies.next_token.config:SECTIONS", "carp.policies.next_token.family:FAMILY"),
     "vq_bet": ("carp.policies.vq_bet.config:SECTIONS", "carp.policies.vq_bet.family:FAMILY"),
+    "edm_unet": (
+        "carp.policies.consistency.config:TEACHER_SECTIONS",
+        "carp.policies.consistency.family:TEACHER_FAMILY",
+    ),
+    "consistency_policy": (
+        "carp.policies.consistency.config:STUDENT_SECTIONS",
+        "carp.policies.consistency.family:STUDENT_FAMILY",
+    ),
 }
 """One entry per family: registry name -> (`module:attribute` of its (config class, inference class),
 `module:attribute` of its :class:`PolicyFamily`)."""
@@ -52,6 +60,8 @@ class PolicyFamily:
         train: `train(config, run)` -> the trained policy in eval mode, given a :class:`TrainingRun`: builds the
             policy and runs the resumable loop on it (the shared loop, through :meth:`TrainingRun.train_with_loss`);
             see :func:`train_policy`.
+        teacher: the family whose trained policy this family's training distils (a distilled student's teacher),
+            given to `train` as :attr:`TrainingRun.teacher`; None for a family trained from the data alone.
     """
 
     name: str
@@ -60,6 +70,7 @@ class PolicyFamily:
     build: Callable[..., Policy]
     from_checkpoint: Callable[[dict[str, Any]], Policy]
     train: Callable[..., Policy]
+    teacher: str | None = None
 
 
 @dataclass(frozen=True)
@@ -78,6 +89,7 @@ class TrainingRun:
         epochs: passes over the windows; None takes `training.epochs`.
         on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
             `loss` and `epoch_seconds`.
+        teacher: the trained policy of the family's `teacher` family; None for other families.
     """
 
     training: Any
@@ -87,6 +99,7 @@ class TrainingRun:
     device: str | torch.device = "cpu"
     epochs: int | None = None
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None
+    teacher: Policy | None = None
 
     def train_with_loss(
         self,
@@ -189,6 +202,7 @@ def train_policy(
     device: str | torch.device = "cpu",
     epochs: int | None = None,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    teacher: Policy | None = None,
 ) -> Policy:
     """Train a policy of family `name`, resuming from `checkpoint_dir` when a run of the same setup left a state.
 
@@ -202,11 +216,12 @@ def train_policy(
         device: see :class:`TrainingRun`.
         epochs: see :class:`TrainingRun`.
         on_epoch_end: see :class:`TrainingRun`.
+        teacher: see :class:`TrainingRun`; required by a family that declares a `teacher`.
 
     Returns:
         The trained policy in eval mode on the CPU.
     """
-    run = TrainingRun(training, context, data, Path(checkpoint_dir), device, epochs, on_epoch_end)
+    run = TrainingRun(training, context, data, Path(checkpoint_dir), device, epochs, on_epoch_end, teacher)
     return get_family(name).train(config, run).to("cpu").train(False)
 
 

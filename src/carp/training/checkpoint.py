@@ -67,12 +67,17 @@ def read_checkpoint(path: Path, weights_only: bool) -> Any:
 
 
 def atomic_torch_save(payload: Any, path: Path) -> None:
-    """`torch.save` to a temporary file in the same directory, then atomically rename it to `path`."""
+    """`torch.save` to a temporary file in the same directory, then atomically rename it to `path`.
+
+    The payload is written through a file object: given a path, torch names the archive's records after the file,
+    here the temporary name with its process id, so that the same payload would save to different bytes per run.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        torch.save(payload, temporary)
+        with open(temporary, "wb") as handle:
+            torch.save(payload, handle)
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)

@@ -5,10 +5,15 @@ A multi-task policy trains on every task's windows, each labelled with its task.
 The work of the `train_policy` stage: `load_task_policy_inputs` reads and checks what it trains from,
 `train_task_policy` trains (every process of a multi-process run calls it), and `train_and_write_task_policy` trains
 inside a tracking run, measures the held-out action errors and writes the checkpoint, history and metrics (the one
-process that writes outputs). `load_multitask_policy_inputs`, `train_multitask_policy` and
-`train_and_write_multitask_policy` do the same for a multi-task policy.
+process that writes outputs). A distilled family (one that declares a teacher family, e.g. `consistency_policy`)
+trains its teacher first, in the same stage (`train_task_teacher`): the teacher's resumable state lives in
+`<checkpoint_dir>/teacher`, so a rerun whose teacher is unchanged (its params section, the loop's settings and the
+data) finds the teacher's training finished and only distils, and the teacher is written beside the policy as
+`teacher.pt`. `load_multitask_policy_inputs`, `train_multitask_policy` and `train_and_write_multitask_policy` do the
+same for a multi-task policy (of a family without a teacher).
 """
 
+import logging
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -25,15 +30,23 @@ from carp.evaluation.offline import held_out_action_errors
 from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
-from carp.policies.registry import train_policy
+from carp.policies.registry import get_family, train_policy
 from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
 from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
-from carp.training.loop import SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
+from carp.training.loop import CHECKPOINT_NAME, SNAPSHOT_DIRNAME, PolicyTrainingData, snapshot_path
 
 if TYPE_CHECKING:
     from carp.tracking.runs import StageRun
+
+logger = logging.getLogger(__name__)
+
+TEACHER_DIRNAME = "teacher"
+"""The teacher's resumable state goes into this folder of the student's checkpoint directory."""
+
+TEACHER_FILENAME = "teacher.pt"
+"""A distilled family's trained teacher is written beside its `policy.pt` under this name."""
 
 FINAL_METRICS = ("loss", "token_accuracy")
 """Per-epoch metrics whose last value is also reported as `final_<name>` (a family that has them)."""
@@ -150,6 +163,7 @@ def train_task_policy(
     device: torch.device,
     tracking_run_id: str | None = None,
     on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+    teacher: Policy | None = None,
 ) -> Policy:
     """Train a policy of `family` on the task's training windows, resuming from `checkpoint_dir` when it can.
 
@@ -165,10 +179,87 @@ def train_task_policy(
         device: where training runs (a process's own device in a multi-process run).
         tracking_run_id: the tracking run that logs this training, stored in the checkpoint's metadata.
         on_epoch_end: called with (epoch, metrics) after every epoch on the process that reports.
+        teacher: the trained policy of the family's teacher family (a distilled family, see
+            :func:`train_task_teacher`); None otherwise.
 
     Returns:
         The trained policy in eval mode on the CPU.
     """
+    train_data, context = _training_inputs(data, inputs, task, tracking_run_id)
+    return train_policy(
+        family,
+        family_config,
+        training,
+        context,
+        train_data,
+        checkpoint_dir,
+        device=device,
+        epochs=training.epochs_for(task, family),
+        on_epoch_end=on_epoch_end,
+        teacher=teacher,
+    )
+
+
+def train_task_teacher(
+    family: str,
+    teacher_config: Any,
+    training: TrainingConfig,
+    data: DataConfig,
+    inputs: TaskPolicyInputs,
+    task: str,
+    checkpoint_dir: Path,
+    device: torch.device,
+    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
+) -> Policy | None:
+    """The trained teacher of a distilled `family`, trained (or found trained) in `<checkpoint_dir>/teacher`.
+
+    The teacher trains in the shared resumable loop, whose state resumes only for the same teacher (its params
+    section, the loop's settings, the data): a finished state of the same teacher is reused without training, any
+    other is trained over. Its metadata holds no tracking run, so the same teacher saves to the same bytes.
+
+    Args:
+        family: registered policy family; None is returned unless it declares a teacher family.
+        teacher_config: the teacher family's params section.
+        training: see :func:`train_task_policy` (the teacher's epochs are its own family's for `task`).
+        data: see :func:`train_task_policy`.
+        inputs: see :func:`train_task_policy`.
+        task: see :func:`train_task_policy`.
+        checkpoint_dir: the student's resumable states; the teacher's go into its `teacher` folder.
+        device: see :func:`train_task_policy`.
+        on_epoch_end: called with (epoch, metrics) after every teacher epoch on the process that reports.
+
+    Returns:
+        The trained teacher in eval mode on the CPU, or None for a family without a teacher.
+    """
+    teacher_family = get_family(family).teacher
+    if teacher_family is None:
+        return None
+    teacher_dir = Path(checkpoint_dir) / TEACHER_DIRNAME
+    state = teacher_dir / CHECKPOINT_NAME
+    before = state.stat().st_mtime_ns if state.exists() else None
+    train_data, context = _training_inputs(data, inputs, task, tracking_run_id=None)
+    teacher = train_policy(
+        teacher_family,
+        teacher_config,
+        training,
+        context,
+        train_data,
+        teacher_dir,
+        device=device,
+        epochs=training.epochs_for(task, teacher_family),
+        on_epoch_end=on_epoch_end,
+    )
+    if before is not None and state.exists() and state.stat().st_mtime_ns == before:
+        logger.info("reused the trained %s teacher of %s from %s (no epoch trained)", teacher_family, family, state)
+    else:
+        logger.info("trained the %s teacher of %s in %s", teacher_family, family, teacher_dir)
+    return teacher
+
+
+def _training_inputs(
+    data: DataConfig, inputs: TaskPolicyInputs, task: str, tracking_run_id: str | None
+) -> tuple[PolicyTrainingData, PolicyContext]:
+    """The normalized training windows and the policy context of a task's training."""
     windows = inputs.windows
     # The task's own statistics, as the tokenizer saw every training task's actions (carp.tokenizer.artifact).
     obs_normalizer, action_normalizer = windows.obs_normalizer, windows.action_normalizer
@@ -192,17 +283,7 @@ def train_task_policy(
         },
         image_encoder=inputs.image_encoder,
     )
-    return train_policy(
-        family,
-        family_config,
-        training,
-        context,
-        train_data,
-        checkpoint_dir,
-        device=device,
-        epochs=training.epochs_for(task, family),
-        on_epoch_end=on_epoch_end,
-    )
+    return train_data, context
 
 
 def publish_snapshots(source_dir: Path, output_dir: Path, epochs: Sequence[int], final_epoch: int) -> list[Path]:
@@ -238,6 +319,7 @@ def train_and_write_task_policy(
     device: torch.device,
     outputs: TaskPolicyOutputs,
     run: "StageRun",
+    teacher_config: Any = None,
 ) -> dict[str, float]:
     """Train as :func:`train_task_policy` does, logging to `run`, then evaluate and write the outputs.
 
@@ -256,6 +338,8 @@ def train_and_write_task_policy(
         device: see :func:`train_task_policy`.
         outputs: where the checkpoint and the reports go.
         run: the tracking run of this training.
+        teacher_config: the teacher family's params section of a distilled family (see :func:`train_task_teacher`,
+            whose epochs go to `run` as `teacher_<metric>`); None for other families.
 
     Returns:
         The metrics written to `metrics.json`: held-out errors (none without held-out windows) and `final_*` values.
@@ -266,9 +350,15 @@ def train_and_write_task_policy(
         history.append({"epoch": epoch + 1, **metrics})
         run.log_metrics(metrics, step=epoch + 1)
 
+    def log_teacher_epoch(epoch: int, metrics: dict[str, float]) -> None:
+        run.log_metrics({f"teacher_{name}": value for name, value in metrics.items()}, step=epoch + 1)
+
     windows = inputs.windows
+    teacher = train_task_teacher(
+        family, teacher_config, training, data, inputs, task, checkpoint_dir, device, log_teacher_epoch
+    )
     policy = train_task_policy(
-        family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch
+        family, family_config, training, data, inputs, task, checkpoint_dir, device, run.run_id, log_epoch, teacher
     )
     valid_images = None if inputs.valid_images is None else inputs.valid_images.images
     held_out = held_out_action_errors(
@@ -277,6 +367,8 @@ def train_and_write_task_policy(
     run.log_metrics(held_out)
     outputs.checkpoint.parent.mkdir(parents=True, exist_ok=True)
     policy.save(outputs.checkpoint)
+    if teacher is not None:
+        teacher.save(outputs.checkpoint.parent / TEACHER_FILENAME)
     publish_snapshots(
         Path(checkpoint_dir) / SNAPSHOT_DIRNAME,
         outputs.checkpoint.parent / SNAPSHOT_DIRNAME,

@@ -10,11 +10,60 @@ configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transfor
 """
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 from carp.config import _require, require_optimizer_settings, require_positive_int
 
 SAMPLERS = ("ddpm", "ddim")
+
+
+class UNetShape(Protocol):
+    """The fields of a family config that size the DP-C U-Net (`carp.policies.diffusion.unet`).
+
+    :class:`DiffusionUNetConfig` has them, and so do the Consistency Policy sections, which train the same network.
+    """
+
+    down_dims: tuple[int, ...]
+    kernel_size: int
+    num_groups: int
+    step_embedding_dim: int
+
+    @property
+    def horizon_multiple(self) -> int:
+        """The horizon must be a multiple of this."""
+        ...
+
+
+def horizon_multiple(down_dims: tuple[int, ...]) -> int:
+    """`2 ** (levels - 1)`: each U-Net level but the coarsest halves the horizon."""
+    return 2 ** (len(down_dims) - 1)
+
+
+def check_unet_shape(section: str, config: Any) -> None:
+    """Validate a config's U-Net fields (:class:`UNetShape`), naming them under `section`.
+
+    Turns a `down_dims` list from YAML into the tuple a frozen config keeps.
+    """
+    object.__setattr__(config, "down_dims", tuple(config.down_dims))
+    _require(len(config.down_dims) >= 1, f"{section}.down_dims", config.down_dims, "must name at least one level")
+    for channels in config.down_dims:
+        require_positive_int(f"{section}.down_dims", channels)
+    require_positive_int(f"{section}.num_groups", config.num_groups)
+    _require(
+        all(channels % config.num_groups == 0 for channels in config.down_dims),
+        f"{section}.num_groups",
+        config.num_groups,
+        f"must divide every entry of down_dims={list(config.down_dims)}",
+    )
+    require_positive_int(f"{section}.kernel_size", config.kernel_size)
+    _require(config.kernel_size % 2 == 1, f"{section}.kernel_size", config.kernel_size, "must be odd")
+    require_positive_int(f"{section}.step_embedding_dim", config.step_embedding_dim)
+    _require(
+        config.step_embedding_dim >= 4 and config.step_embedding_dim % 2 == 0,
+        f"{section}.step_embedding_dim",
+        config.step_embedding_dim,
+        "must be an even integer >= 4",
+    )
 
 
 @dataclass(frozen=True)
@@ -153,31 +202,12 @@ class DiffusionUNetConfig(DenoisingConfig):
         # Lists arrive from YAML; the frozen config keeps a hashable tuple.
         object.__setattr__(self, "down_dims", tuple(self.down_dims))
         super().__post_init__()
-        section = self.SECTION
-        _require(len(self.down_dims) >= 1, f"{section}.down_dims", self.down_dims, "must name at least one level")
-        for channels in self.down_dims:
-            require_positive_int(f"{section}.down_dims", channels)
-        require_positive_int(f"{section}.num_groups", self.num_groups)
-        _require(
-            all(channels % self.num_groups == 0 for channels in self.down_dims),
-            f"{section}.num_groups",
-            self.num_groups,
-            f"must divide every entry of down_dims={list(self.down_dims)}",
-        )
-        require_positive_int(f"{section}.kernel_size", self.kernel_size)
-        _require(self.kernel_size % 2 == 1, f"{section}.kernel_size", self.kernel_size, "must be odd")
-        require_positive_int(f"{section}.step_embedding_dim", self.step_embedding_dim)
-        _require(
-            self.step_embedding_dim >= 4 and self.step_embedding_dim % 2 == 0,
-            f"{section}.step_embedding_dim",
-            self.step_embedding_dim,
-            "must be an even integer >= 4",
-        )
+        check_unet_shape(self.SECTION, self)
 
     @property
     def horizon_multiple(self) -> int:
         """The horizon must be a multiple of this: each level but the last halves it."""
-        return 2 ** (len(self.down_dims) - 1)
+        return horizon_multiple(self.down_dims)
 
 
 @dataclass(frozen=True)

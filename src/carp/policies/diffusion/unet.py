@@ -19,6 +19,10 @@ skip); the final Conv1d-GroupNorm-Mish block and 1x1 projection. Deviations:
   instead of running the step MLP and one Linear per block.
 - No local (per-step) conditioning and no inpainting of observations: global conditioning only, as DP uses it
   for state observations in its robomimic experiments.
+
+With `num_step_inputs` = 2 the condition holds two step embeddings, both from the one step encoder, before the
+observations: Consistency Policy's student (`carp.policies.consistency`) reads its current and its target noise
+level this way, as the official CTM U-Net does.
 """
 
 from dataclasses import dataclass
@@ -28,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from carp.policies.base import check_dimensions, check_observation_shape
-from carp.policies.diffusion.config import DiffusionUNetConfig
+from carp.policies.diffusion.config import UNetShape
 from carp.policies.diffusion.embedding import step_encoder
 
 
@@ -113,17 +117,22 @@ class ConditionalUNet1D(nn.Module):
         action_dim: `A`, channels of the denoised signal.
         obs_dim: `Do`, observation features per step.
         obs_steps: `To`, observation steps conditioned on.
+        num_step_inputs: steps (noise levels) each sample is conditioned on, `k`: 1 for a denoiser, 2 for a
+            consistency-trajectory student (its current and target levels).
     """
 
-    def __init__(self, config: DiffusionUNetConfig, action_dim: int, obs_dim: int, obs_steps: int) -> None:
+    def __init__(
+        self, config: UNetShape, action_dim: int, obs_dim: int, obs_steps: int, num_step_inputs: int = 1
+    ) -> None:
         super().__init__()
-        check_dimensions(action_dim=action_dim, obs_dim=obs_dim, obs_steps=obs_steps)
+        check_dimensions(action_dim=action_dim, obs_dim=obs_dim, obs_steps=obs_steps, num_step_inputs=num_step_inputs)
         self.config = config
         self.action_dim = action_dim
         self.obs_dim = obs_dim
         self.obs_steps = obs_steps
+        self.num_step_inputs = num_step_inputs
         step_dim = config.step_embedding_dim
-        condition_dim = step_dim + obs_steps * obs_dim
+        condition_dim = num_step_inputs * step_dim + obs_steps * obs_dim
         kernel, groups = config.kernel_size, config.num_groups
 
         def residual_block(in_channels: int, out_channels: int) -> FiLMResidualBlock:
@@ -177,19 +186,32 @@ class ConditionalUNet1D(nn.Module):
                 f"(2 ** (levels - 1) with {len(self.config.down_dims)} levels)"
             )
 
+    def _step_features(self, steps: torch.Tensor) -> torch.Tensor:
+        """(N, k * step_dim) embeddings of steps (N,) (k = 1) or (N, k), each column embedded by the one encoder."""
+        columns = steps.reshape(steps.shape[0], -1)  # (N, k)
+        if columns.shape[1] != self.num_step_inputs:
+            raise ValueError(
+                f"steps must have shape (N,) or (N, {self.num_step_inputs}) for {self.num_step_inputs} step inputs, "
+                f"got {tuple(steps.shape)}"
+            )
+        return self.step_encoder(columns.flatten()).reshape(columns.shape[0], -1)  # (N, k * step_dim)
+
     def forward(self, noisy_actions: torch.Tensor, steps: torch.Tensor, obs_features: torch.Tensor) -> torch.Tensor:
         """Predict the noise of a batch whose samples may be at different diffusion steps (training).
 
         Args:
             noisy_actions: (B, H, A) noised normalized actions.
-            steps: (B,) long diffusion step of each sample.
+            steps: (B,) diffusion step of each sample (long, or float noise-level inputs), or (B, k) with
+                `num_step_inputs` = k.
             obs_features: (B, To, Do) normalized observations.
 
         Returns:
-            (B, H, A) predicted noise.
+            (B, H, A) predicted noise (or whatever output the network is trained for).
         """
         self._check_inputs(obs_features, noisy_actions.shape[1])
-        condition = torch.cat((self.step_encoder(steps), obs_features.flatten(1)), dim=1)  # (B, step_dim + To * Do)
+        condition = torch.cat(
+            (self._step_features(steps), obs_features.flatten(1)), dim=1
+        )  # (B, k * step_dim + To * Do)
         condition = F.mish(condition)
         films = [block.film(condition).unsqueeze(-1) for block in self._film_blocks]  # (B, 2 * C, 1) each
         return self._denoise(noisy_actions, films)
@@ -200,19 +222,19 @@ class ConditionalUNet1D(nn.Module):
 
         Args:
             obs_features: (B, To, Do) normalized observations.
-            steps: (N,) long, the sampler's diffusion steps in calling order.
+            steps: (N,) or (N, k), the sampler's diffusion steps in calling order.
             action_horizon: `H` of the chunk to sample.
 
         Returns:
             The FiLM parts to pass to :meth:`predict_noise` at every step.
         """
         self._check_inputs(obs_features, action_horizon)
-        step_dim = self.config.step_embedding_dim
-        step_features = F.mish(self.step_encoder(steps.to(obs_features.device)))  # (N, step_dim)
+        step_dim = self.num_step_inputs * self.config.step_embedding_dim
+        step_features = F.mish(self._step_features(steps.to(obs_features.device)))  # (N, k * step_dim)
         obs_flat = F.mish(obs_features.flatten(1))  # (B, To * Do)
         step_films, observation_films = [], []
         for block in self._film_blocks:
-            weight = block.film.weight  # (2 * C, step_dim + To * Do)
+            weight = block.film.weight  # (2 * C, k * step_dim + To * Do)
             step_films.append(F.linear(step_features, weight[:, :step_dim]).unsqueeze(-1))  # (N, 2 * C, 1)
             observation_films.append(
                 F.linear(obs_flat, weight[:, step_dim:], block.film.bias).unsqueeze(-1)
