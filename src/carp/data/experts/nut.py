@@ -1,0 +1,139 @@
+"""The nut experts: NutAssemblySquare (the square nut onto its peg) and NutAssembly (both nuts onto theirs).
+
+Square's expert makes two choices that keep its grasps reliable: the nut's target yaw is chosen among the square
+peg's 90-degree symmetric options so the handle never points away from the robot (that side is at the edge of the
+Panda's workspace), and the grasp aims slightly above and further out along the handle so the fingertips clear the
+table and the nut ring; if the gripper closes on nothing it opens, rises and grasps again.
+"""
+
+import math
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from carp.data.experts.base import HOME_YAW_RAD, ScriptedExpert, gripper_rotation, wrap_angle, yaw_of
+
+
+class NutExpert(ScriptedExpert):
+    """Shared by the nut tasks: grasp a nut's handle, turn it to a peg-symmetric yaw facing the robot, drop it on a peg.
+
+    The square nut fits its peg in four yaws 90 degrees apart and the round nut its peg in any yaw, so both nuts take
+    a target handle yaw among the same options.
+    """
+
+    max_grasp_attempts = 4
+    # Grasp point along the square nut's handle (the handle site is at 0.054 m, the handle ends at 0.079 m) and above
+    # the nut's center, so the fingertips clear the ring and the table.
+    handle_grasp_offset_m = 0.062
+    grasp_above_center_m = 0.012
+    carry_nut_height_m = 1.0
+    release_nut_height_m = 0.86
+    # Handle directions (world yaw) aligned with the square peg; +x (0) would put the gripper at the workspace edge.
+    handle_yaw_options = (math.pi / 2, math.pi, -math.pi / 2)
+    target_handle_yaw = math.pi
+
+    def place_nut(
+        self,
+        nut_id: int,
+        peg_id: int,
+        handle_grasp_offset_m: float,
+        target_handle_yaw: Callable[[float], float] | None = None,
+    ) -> Iterator[np.ndarray]:
+        """Grasp a nut by its handle and drop it on a peg; ends with the gripper open, risen above the peg.
+
+        Args:
+            nut_id: the nut's body.
+            peg_id: the peg's body.
+            handle_grasp_offset_m: distance of the grasp point from the nut's centre along its handle.
+            target_handle_yaw: the handle's yaw over the peg given its yaw at the grasp; None: the nearest of
+                ``handle_yaw_options``.
+        """
+        peg = self.body_position(peg_id)
+        target = self._nearest_handle_yaw_option if target_handle_yaw is None else target_handle_yaw
+
+        def plan_grasp() -> tuple[np.ndarray, float]:
+            return self._plan_nut_grasp(nut_id, handle_grasp_offset_m, target)
+
+        for _ in range(self.max_grasp_attempts):
+            yield from self.grasp_from_above(plan_grasp)
+            if self.grasped:
+                break
+            yield from self.release_and_rise(0.08)
+        site, nut = self.site_position(), self.body_position(nut_id)
+        yield from self.move(np.array([site[0], site[1], self.carry_nut_height_m + site[2] - nut[2]]))
+        # Where the grip site must be for the nut to sit over the peg, from the grasp as it actually is.
+        nut_in_gripper = self.site_rotation().inv().apply(self.body_position(nut_id) - self.site_position())
+        nut_yaw_in_gripper = wrap_angle(yaw_of(self.body_quaternion(nut_id)) - self.grasp_yaw)
+        final_yaw = self.grasp_yaw + wrap_angle(self.target_handle_yaw - nut_yaw_in_gripper - self.grasp_yaw)
+        final_rotation = gripper_rotation(final_yaw)
+        above_peg = np.array([peg[0], peg[1], self.carry_nut_height_m]) - final_rotation.apply(nut_in_gripper)
+        yield from self.move(above_peg, final_yaw)
+        lowered = np.array([peg[0], peg[1], self.release_nut_height_m]) - final_rotation.apply(nut_in_gripper)
+        yield from self.move(lowered, step_m=self.limits.slow_step_m)
+        yield from self.release_and_rise(0.08)
+
+    def _nearest_handle_yaw_option(self, handle_yaw: float) -> float:
+        return min(self.handle_yaw_options, key=lambda option: abs(wrap_angle(option - handle_yaw)))
+
+    def _plan_nut_grasp(
+        self, nut_id: int, handle_grasp_offset_m: float, target_handle_yaw: Callable[[float], float]
+    ) -> tuple[np.ndarray, float]:
+        nut = self.body_position(nut_id)
+        handle_yaw = yaw_of(self.body_quaternion(nut_id))
+        self.target_handle_yaw = target_handle_yaw(handle_yaw)
+        yaw = self._grasp_yaw(handle_yaw, wrap_angle(self.target_handle_yaw - handle_yaw))
+        handle_direction = np.array([math.cos(handle_yaw), math.sin(handle_yaw), 0.0])
+        grasp = nut + handle_grasp_offset_m * handle_direction
+        grasp[2] = nut[2] + self.grasp_above_center_m
+        return grasp, yaw
+
+    @staticmethod
+    def _grasp_yaw(handle_yaw: float, turn: float) -> float:
+        """Closing axis across the handle; of the two options, the one that strays least from home overall."""
+        options = (handle_yaw + math.pi / 2, handle_yaw - math.pi / 2)
+
+        def worst_deviation(option: float) -> float:
+            start = wrap_angle(option - HOME_YAW_RAD)
+            return max(abs(start), abs(start + turn))
+
+        best = min(options, key=worst_deviation)
+        return HOME_YAW_RAD + wrap_angle(best - HOME_YAW_RAD)
+
+
+class SquareExpert(NutExpert):
+    """NutAssemblySquare: the square nut onto the square peg."""
+
+    name = "square_scripted"
+
+    def _script(self) -> Iterator[np.ndarray]:
+        env = self.env
+        yield from self.place_nut(env.obj_body_id[env.obj_to_use], env.peg1_body_id, self.handle_grasp_offset_m)
+
+
+class NutAssemblyExpert(NutExpert):
+    """NutAssembly: the round nut onto the round peg, then the square nut onto the square peg.
+
+    Each nut starts on its own peg's side of the table (robosuite's sampler), so the first carry never crosses the
+    second nut. Over a peg the arm is nearly stretched, and heading back from there towards the robot can lock its
+    elbow straight (the operational-space controller stalls at that singularity); the round peg, which takes its nut
+    in any yaw, is served first with the handle turned towards the robot, where the arm stays bent, and the square
+    nut, whose peg leaves less choice, goes last, with nothing to reach for afterwards.
+    """
+
+    name = "nut_assembly_scripted"
+    # The round nut's handle reaches 6 mm further out than the square nut's (site at 0.060 m, end at 0.085 m); the
+    # grasp takes its outer part, which keeps the arm as close to the robot as the handle allows over the peg.
+    round_handle_grasp_offset_m = 0.074
+    # Largest angle (radians) between the round nut's handle over its peg and the direction towards the robot (-x).
+    round_handle_spread_rad = math.pi / 4
+
+    def _script(self) -> Iterator[np.ndarray]:
+        env = self.env
+        square, round_ = (env.obj_body_id[nut.name] for nut in env.nuts)
+        yield from self.place_nut(round_, env.peg2_body_id, self.round_handle_grasp_offset_m, self._towards_robot)
+        yield from self.place_nut(square, env.peg1_body_id, self.handle_grasp_offset_m)
+
+    def _towards_robot(self, handle_yaw: float) -> float:
+        """The yaw nearest the handle's own within ``round_handle_spread_rad`` of the direction towards the robot."""
+        away = wrap_angle(handle_yaw - math.pi)
+        return math.pi + float(np.clip(away, -self.round_handle_spread_rad, self.round_handle_spread_rad))
