@@ -3,12 +3,14 @@
 For the policy of `--checkpoint` (one that records its serving protocol), else a randomly initialized Lift policy of
 the default configuration (A = 10, H = 16, depth 8, D = 64; `--tiny` for the test-sized one; speed does not depend
 on the weights), measures per chunk, after a warm-up:
-- in-process: `predict_action_timed` on a (1, To, Do) observation history, as evaluation calls the PyTorch policy;
+- in-process: `predict_action_timed` on a (1, To, Do) observation history, as evaluation calls the policy;
 - loopback: `PolicyClient.infer` with one step's per-key observation to a `ServerThread` on 127.0.0.1 in this
   process, from 1 and 4 clients at once (`--clients`), each on its own thread and connection, sending back to back.
   The server predicts one call at a time; each client count runs with batching off (`max_batch_size` 1: a request
   waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting together share a call, for a
   policy that draws nothing random, e.g. greedy CARP).
+Both for each backend of `--backends` (`carp serve --backend`): PyTorch, and CARP's exported graphs in ONNX Runtime,
+which take one request per call (no batching rows).
 
 Prints p50 and p99 in milliseconds, the throughput in chunks per second (in-process: one over the mean; loopback:
 all clients' timed requests over the wall time of the run) and the mean chunks per prediction call (warm-up
@@ -16,7 +18,7 @@ requests included). Predictions run on one torch thread (`--threads`), as
 evaluation workers do.
 
 Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [--requests 200] [--clients 1 4]
-       [--max-batch 8]
+       [--max-batch 8] [--backends torch onnxruntime]
 """
 
 import argparse
@@ -104,6 +106,31 @@ def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int
     return [value for result in results for value in result], wall
 
 
+def measure_backend(checkpoint: Path, backend: str, args: argparse.Namespace, label: str) -> list[tuple]:
+    """The table rows of `checkpoint` served by `backend`: in-process, then loopback per batching and client count."""
+    model, spec = load_served_model(checkpoint, backend=backend)
+    print(
+        f"{model.backend}: {label}, {model.policy.description}; To={spec.obs_steps}, Do={spec.obs_dim}, "
+        f"(H, A)=({spec.action_horizon}, {spec.action_dim}); {args.requests} requests per client after "
+        f"{WARM_UP_REQUESTS} warm-up; {args.threads} thread(s); batching "
+        f"{'possible' if model.batches else 'never (the policy samples, or its graphs take one request)'}"
+    )
+    seconds = in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests)
+    rows = [(model.backend, "in-process prediction", 1, "-", seconds, sum(seconds), 1.0)]
+    keys = dict(zip(spec.obs_keys, spec.obs_widths))
+    for max_batch in sorted({1, args.max_batch} if model.batches else {1}):
+        settings = ServerSettings(port=0, max_batch_size=max_batch)
+        with ServerThread(PolicyServer(model, spec, settings)) as server:
+            metrics = server.policy_server.metrics
+            for clients in args.clients:
+                calls, chunks = metrics.model_calls, metrics.predicted_chunks
+                seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
+                mean_batch = (metrics.predicted_chunks - chunks) / (metrics.model_calls - calls)
+                batching = "off" if max_batch == 1 else "on"
+                rows.append((model.backend, "loopback round trip", clients, batching, seconds, wall, mean_batch))
+    return rows
+
+
 def main() -> int:
     """Parse the arguments, measure, print the table."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -114,6 +141,13 @@ def main() -> int:
     parser.add_argument("--clients", type=int, nargs="+", default=[1, 4], help="concurrent clients of each run")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the predictions")
     parser.add_argument("--max-batch", type=int, default=8, help="most requests per call with batching on")
+    parser.add_argument(
+        "--backends",
+        nargs="+",
+        choices=("torch", "onnxruntime"),
+        default=["torch", "onnxruntime"],
+        help="what predicts",
+    )
     args = parser.parse_args()
     if min(args.requests, *args.clients, args.threads, args.max_batch) < 1:
         print("error: --requests, --clients, --threads and --max-batch must be positive", file=sys.stderr)
@@ -125,41 +159,28 @@ def main() -> int:
         if checkpoint is None:
             checkpoint = Path(folder) / "policy.pt"
             random_lift_policy(tiny=args.tiny).save(checkpoint)
-        try:
-            model, spec = load_served_model(checkpoint)
-        except ServingStartError as error:
-            print(f"error: {error}", file=sys.stderr)
-            return 1
         label = (
             str(args.checkpoint)
             if args.checkpoint
             else f"random Lift CARP policy ({'tiny' if args.tiny else 'default size'})"
         )
-        print(
-            f"serving latency: {label}, {model.policy.description}; To={spec.obs_steps}, Do={spec.obs_dim}, "
-            f"(H, A)=({spec.action_horizon}, {spec.action_dim}); {args.requests} requests per client after "
-            f"{WARM_UP_REQUESTS} warm-up; {args.threads} torch thread(s); batching "
-            f"{'possible' if model.batches else 'never (the policy samples)'}"
-        )
-        seconds = in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests)
-        rows = [("in-process prediction", 1, "-", seconds, sum(seconds), 1.0)]
-        keys = dict(zip(spec.obs_keys, spec.obs_widths))
-        for max_batch in sorted({1, args.max_batch}):
-            settings = ServerSettings(port=0, max_batch_size=max_batch)
-            with ServerThread(PolicyServer(model, spec, settings)) as server:
-                metrics = server.policy_server.metrics
-                for clients in args.clients:
-                    calls, chunks = metrics.model_calls, metrics.predicted_chunks
-                    seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
-                    mean_batch = (metrics.predicted_chunks - chunks) / (metrics.model_calls - calls)
-                    batching = "off" if max_batch == 1 else "on"
-                    rows.append(("loopback round trip", clients, batching, seconds, wall, mean_batch))
-    header = f"{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}{'per call':>10}"
+        try:
+            rows = [row for backend in args.backends for row in measure_backend(checkpoint, backend, args, label)]
+        except ServingStartError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 1
+    header = (
+        f"{'backend':<13}{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}"
+        f"{'per call':>10}"
+    )
     print(header)
-    for name, clients, batching, seconds, wall, mean_batch in rows:
+    for backend, name, clients, batching, seconds, wall, mean_batch in rows:
         p50, p99 = percentiles_ms(seconds)
         throughput = len(seconds) / wall
-        print(f"{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{throughput:>10.1f}{mean_batch:>10.2f}")
+        print(
+            f"{backend:<13}{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{throughput:>10.1f}"
+            f"{mean_batch:>10.2f}"
+        )
     return 0
 
 

@@ -251,23 +251,28 @@ def test_image_windows_refuses_a_buffer_without_images_in_one_line(tmp_path):
     assert completed.stderr.strip().splitlines() == [f"error: --buffer={tmp_path}: not a zarr replay buffer"]
 
 
-def test_serving_latency_prints_in_process_and_loopback_rows():
+def test_serving_latency_prints_in_process_and_loopback_rows_per_backend():
     completed = run_benchmark("serving_latency.py", "--tiny", "--requests", "6", "--clients", "1", "2")
     assert completed.returncode == 0, completed.stderr[-2000:]
-    header = completed.stdout.splitlines()[0]
-    assert "random Lift CARP policy (tiny)" in header and "Do=19, (H, A)=(8, 10)" in header
-    assert "batching possible" in header  # the family's default inference is greedy
+    torch_header, onnx_header = completed.stdout.splitlines()[:2]
+    for header in (torch_header, onnx_header):
+        assert "random Lift CARP policy (tiny)" in header and "Do=19, (H, A)=(8, 10)" in header
+    assert torch_header.startswith("torch:") and "batching possible" in torch_header  # greedy by default
+    assert onnx_header.startswith("onnxruntime:") and "batching never" in onnx_header  # graphs take one request
     pattern = (
-        rf"^(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}"
-        rf"\s+{NUMBER}$"
+        rf"^(torch|onnxruntime)\s+(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+{NUMBER}"
+        rf"\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}$"
     )
     rows = re.findall(pattern, completed.stdout, flags=re.MULTILINE)
-    assert [tuple(row[:3]) for row in rows] == [
-        ("in-process prediction", "1", "-"),
-        ("loopback round trip", "1", "off"),
-        ("loopback round trip", "2", "off"),
-        ("loopback round trip", "1", "on"),
-        ("loopback round trip", "2", "on"),
+    assert [tuple(row[:4]) for row in rows] == [
+        ("torch", "in-process prediction", "1", "-"),
+        ("torch", "loopback round trip", "1", "off"),
+        ("torch", "loopback round trip", "2", "off"),
+        ("torch", "loopback round trip", "1", "on"),
+        ("torch", "loopback round trip", "2", "on"),
+        ("onnxruntime", "in-process prediction", "1", "-"),
+        ("onnxruntime", "loopback round trip", "1", "off"),
+        ("onnxruntime", "loopback round trip", "2", "off"),
     ]
     for *_, batching, p50, p99, throughput, per_call in rows:
         assert 0 < float(p50) <= float(p99) and float(throughput) > 0

@@ -47,6 +47,13 @@ def _parser() -> argparse.ArgumentParser:
         "--max-batch", type=int, default=DEFAULT_MAX_BATCH_SIZE, help="most requests in one prediction call (1: off)"
     )
     serve.add_argument(
+        "--backend",
+        choices=("torch", "onnxruntime"),
+        default="torch",
+        help="what runs the predictions: PyTorch (batches requests), or ONNX Runtime graphs for CARP on state "
+        "observations (one request per call; other families stay in PyTorch)",
+    )
+    serve.add_argument(
         "--reload-interval",
         type=float,
         default=DEFAULT_RELOAD_INTERVAL_S,
@@ -91,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
             args.host, args.port, args.token, args.max_request_bytes, args.max_batch, reload_interval_s=interval
         )
         params = load_params(args.params) if args.params is not None else None
-        serve_checkpoint(args.model, params, settings, tracking_uri)
+        serve_checkpoint(args.model, params, settings, tracking_uri, args.backend)
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)

@@ -1,10 +1,18 @@
+import numpy as np
 import pytest
+import torch
+from carp_client import PolicyClient
 
 from carp import cli
 from carp.config import DataConfig, Params
+from carp.policies.base import Deployment
 from carp.policies.carp.config import CarpInference
-from carp.serving.startup import ServingStartError, load_served_model
-from tests.serving.conftest import PROTOCOL, SPEC, save_tiny_checkpoint
+from carp.policies.carp.onnx_policy import OnnxPolicy
+from carp.serving.server import PolicyServer, ServerSettings, ServerThread
+from carp.serving.session import Observed
+from carp.serving.startup import ServingStartError, _deployed, load_served_model
+from tests.policies.carp.factories import OBS_STEPS
+from tests.serving.conftest import PROTOCOL, SPEC, in_process_chunks, observations, save_tiny_checkpoint
 
 
 def test_a_checkpoint_that_records_its_protocol_is_served_without_params(checkpoint):
@@ -44,3 +52,42 @@ def test_serve_without_params_for_an_old_checkpoint_prints_one_error_line(tmp_pa
     assert exited.value.code == 1
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {old}: the checkpoint does not record its serving protocol")
+
+
+def test_the_onnxruntime_backend_serves_carps_exported_graphs_one_request_per_call(checkpoint):
+    in_torch, _ = load_served_model(checkpoint)
+    in_onnx, spec = load_served_model(checkpoint, backend="onnxruntime")
+    assert spec == SPEC and isinstance(in_onnx.policy, OnnxPolicy) and in_onnx.backend == "onnxruntime"
+    assert in_torch.backend == "torch" and in_torch.batches and not in_onnx.batches
+    for seed in range(3):
+        history = np.stack(observations(OBS_STEPS, seed))  # (To, Do)
+        chunks = [model.predict(Observed(history, None, torch.Generator()))[0].actions for model in (in_torch, in_onnx)]
+        assert chunks[1].shape == (1, SPEC.action_horizon, SPEC.action_dim)
+        np.testing.assert_allclose(chunks[1], chunks[0], rtol=1e-5, atol=1e-5)
+
+
+def test_a_server_on_the_onnxruntime_backend_names_it_and_matches_its_graphs_in_process(checkpoint):
+    model, spec = load_served_model(checkpoint, backend="onnxruntime")
+    episode = observations(5, seed=11)
+    running = ServerThread(PolicyServer(model, spec, ServerSettings(port=0))).start()
+    try:
+        with PolicyClient(running.url, timeout=10) as client:
+            assert client.metadata["backend"] == "onnxruntime"
+            client.reset(seed=0)
+            served = [client.infer({"obs": obs})["actions"] for obs in episode]
+    finally:
+        running.stop()
+    for reply, chunk in zip(served, in_process_chunks(model.policy, episode, 0), strict=True):
+        np.testing.assert_array_equal(reply, chunk)
+
+
+class PyTorchOnly:
+    """A family that exports no graphs: its deployment answers `torch` whatever is asked (`Policy.deployment`)."""
+
+    def deployment(self, checkpoint_path, backend, directory) -> Deployment:
+        return Deployment("torch", lambda: self)
+
+
+def test_a_family_without_graphs_stays_in_pytorch_on_the_onnxruntime_backend(tmp_path):
+    policy = PyTorchOnly()
+    assert _deployed(policy, tmp_path / "policy.pt", "onnxruntime") == (policy, "torch")

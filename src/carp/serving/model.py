@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from carp.data.sources import file_sha256
-from carp.policies.base import Policy, TimedPrediction
+from carp.policies.base import TORCH_BACKEND, Policy, TimedPrediction
 from carp.serving.session import IMAGES_KEY, Observed, ServingSpec
 
 __all__ = ["ModelSource", "ServedModel", "file_sha256"]
@@ -50,12 +50,14 @@ class ServedModel:
         policy: the policy, with its inference settings applied.
         source: where its checkpoint came from.
         inference: the settings given to its `configure_inference`, reported in the metadata.
+        backend: what runs the predictions (`torch`, or `onnxruntime` for exported graphs), reported in the metadata.
     """
 
     policy: Policy
     source: ModelSource
     inference: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    backend: str = TORCH_BACKEND
 
     def predict(self, observed: Observed) -> tuple[TimedPrediction, float]:
         """Predict one chunk; returns the prediction and the seconds spent waiting for the lock.
@@ -76,8 +78,11 @@ class ServedModel:
 
     @property
     def batches(self) -> bool:
-        """Whether requests of several episodes may share one call: only when the policy draws nothing random."""
-        return not self.policy.draws_random
+        """Whether requests of several episodes may share one call: in PyTorch, for a policy that draws nothing.
+
+        Exported graphs (`onnxruntime`) take one environment per call.
+        """
+        return self.backend == TORCH_BACKEND and not self.policy.draws_random
 
     def predict_batch(self, batch: list[Observed]) -> tuple[TimedPrediction, float]:
         """Predict one chunk per observation history of `batch` in one call (a policy that draws nothing, `batches`).

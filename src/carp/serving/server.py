@@ -141,6 +141,7 @@ class PolicyServer:
             "policy_type": self.model.policy.policy_type,
             "policy_description": self.model.policy.description,
             "inference": dict(self.model.inference),
+            "backend": self.model.backend,
             "observation": spec.observation_spec(),
             "observation_keys": spec.key_spec(),
             "obs_steps": spec.obs_steps,

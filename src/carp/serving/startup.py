@@ -20,7 +20,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from carp.policies.base import Policy
+from carp.policies.base import TORCH_BACKEND, Policy
 from carp.serving.model import ModelSource, ServedModel, file_sha256
 from carp.serving.protocol import recorded_protocol, spec_from_protocol
 from carp.serving.server import PolicyServer, ServerSettings, serve_forever
@@ -100,7 +100,7 @@ def is_registry_uri(model: str | Path) -> bool:
 
 
 def load_served_model(
-    model: str | Path, params=None, tracking_uri: str | None = None
+    model: str | Path, params=None, tracking_uri: str | None = None, backend: str = TORCH_BACKEND
 ) -> tuple[ServedModel, ServingSpec]:
     """Load the policy `model` names, apply its inference settings and derive its spec.
 
@@ -110,14 +110,17 @@ def load_served_model(
         params: a `carp.config.Params` whose `inference.<family>` settings apply (and whose `data` section gives
             the spec of a checkpoint that does not record it); None for the family's default settings.
         tracking_uri: the MLflow store holding the registry; needed for a registry URI only.
+        backend: what runs the predictions, as evaluation's `eval.backend`: `torch`, or `onnxruntime` for a family
+            that exports graphs (CARP on state observations; others stay in PyTorch). The metadata names the one
+            that runs.
 
     Raises:
         ServingStartError: no such file, model or alias, an unreadable checkpoint, one without the task it was
             trained on, or one without a recorded protocol and no params.
     """
     if not is_registry_uri(model):
-        return _load_checkpoint(Path(model), params)
-    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri)
+        return _load_checkpoint(Path(model), params, backend=backend)
+    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri, backend)
 
 
 def _resolve(uri: str, tracking_uri: str | None):
@@ -131,7 +134,7 @@ def _resolve(uri: str, tracking_uri: str | None):
         raise ServingStartError(str(error)) from None
 
 
-def _load_registered(uri: str, reference, params, tracking_uri: str) -> tuple[ServedModel, ServingSpec]:
+def _load_registered(uri: str, reference, params, tracking_uri: str, backend: str) -> tuple[ServedModel, ServingSpec]:
     from carp.tracking.registry import fetch_registered_policy
 
     with tempfile.TemporaryDirectory(prefix="carp-serve-") as folder:
@@ -140,10 +143,12 @@ def _load_registered(uri: str, reference, params, tracking_uri: str) -> tuple[Se
         except LookupError as error:
             raise ServingStartError(str(error)) from None
         source = ModelSource(uri, file_sha256(checkpoint), reference.name, reference.version, reference.alias)
-        return _load_checkpoint(checkpoint, params, source)
+        return _load_checkpoint(checkpoint, params, source, backend)
 
 
-def _load_checkpoint(model_path: Path, params, source: ModelSource | None = None) -> tuple[ServedModel, ServingSpec]:
+def _load_checkpoint(
+    model_path: Path, params, source: ModelSource | None = None, backend: str = TORCH_BACKEND
+) -> tuple[ServedModel, ServingSpec]:
     """Load the checkpoint file at `model_path`; `source` names it (default: the path and its sha256)."""
     from carp.policies.registry import load_policy
     from carp.training.checkpoint import CheckpointError
@@ -174,13 +179,26 @@ def _load_checkpoint(model_path: Path, params, source: ModelSource | None = None
         policy.configure_inference(**inference)
     except (KeyError, TypeError, ValueError) as error:
         raise ServingStartError(f"{label}: {error}") from None
+    policy, backend = _deployed(policy, model_path, backend)
     if source is None:
         source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
-    return ServedModel(policy, source, inference), spec
+    return ServedModel(policy, source, inference, backend=backend), spec
+
+
+def _deployed(policy: Policy, model_path: Path, backend: str) -> tuple[Policy, str]:
+    """`policy` as `backend` runs it (`Policy.deployment`, as in evaluation), and the backend that does run it."""
+    if backend == TORCH_BACKEND:
+        return policy, TORCH_BACKEND
+    with tempfile.TemporaryDirectory(prefix="carp-serve-graphs-") as folder:
+        deployment = policy.deployment(model_path, backend, Path(folder))
+        if deployment.backend == TORCH_BACKEND:
+            return policy, TORCH_BACKEND
+        # The runtime reads the exported graphs while it loads them, so their folder need not outlive this.
+        return deployment.load(), deployment.backend
 
 
 def model_reloader(
-    model: str | Path, params=None, tracking_uri: str | None = None
+    model: str | Path, params=None, tracking_uri: str | None = None, backend: str = TORCH_BACKEND
 ) -> Callable[[ModelSource], tuple[ServedModel, ServingSpec] | None]:
     """What `PolicyServer` calls to find out whether to serve another model, for `model` as `load_served_model`.
 
@@ -193,24 +211,30 @@ def model_reloader(
             reference = _resolve(str(model), tracking_uri)
             if reference.version == served.version:
                 return None
-            return _load_registered(str(model), reference, params, tracking_uri)
+            return _load_registered(str(model), reference, params, tracking_uri, backend)
         path = Path(model)
         if path.is_file() and file_sha256(path) == served.sha256:
             return None
-        return _load_checkpoint(path, params)
+        return _load_checkpoint(path, params, backend=backend)
 
     return reload
 
 
-def serve_checkpoint(model: str | Path, params, settings: ServerSettings, tracking_uri: str | None = None) -> None:
-    """Serve `model` (as `load_served_model`) with `settings` until interrupted, following it as it moves.
+def serve_checkpoint(
+    model: str | Path,
+    params,
+    settings: ServerSettings,
+    tracking_uri: str | None = None,
+    backend: str = TORCH_BACKEND,
+) -> None:
+    """Serve `model` (as `load_served_model`, run by `backend`) with `settings` until interrupted, following it.
 
     Raises:
         ServingStartError: the model cannot be loaded, the address cannot be bound, or the warm-up prediction does
             not fit the spec.
     """
-    served, spec = load_served_model(model, params, tracking_uri)
-    reloader = model_reloader(model, params, tracking_uri)
+    served, spec = load_served_model(model, params, tracking_uri, backend)
+    reloader = model_reloader(model, params, tracking_uri, backend)
     try:
         serve_forever(PolicyServer(served, spec, settings, reloader))
     except OSError as error:
