@@ -11,8 +11,13 @@ With `--compare` the same seeds also run in-process (`carp.evaluation.rollout.ru
 the same checkpoint and inference settings) and the executed actions are compared: plain execution reproduces the
 evaluation bit for bit with the PyTorch policy.
 
+A checkpoint trained before checkpoints recorded their protocol runs with `--params`, the params it was trained
+with (as `carp serve --params`); `--backend onnxruntime` serves CARP's exported graphs, as evaluation runs them by
+default. The last line counts the successes.
+
 Usage: PYTHONPATH=src:clients/python python examples/serve_control_loop.py [--checkpoint policy.pt]
-       [--episodes 2] [--seed 100000] [--max-steps 100] [--top-k 3] [--ensemble-m 0.01] [--compare]
+       [--params params.yaml] [--backend torch] [--episodes 2] [--seed 100000] [--max-steps 100] [--top-k 3]
+       [--ensemble-m 0.01] [--compare]
 """
 
 import argparse
@@ -66,6 +71,8 @@ def run_served_episode(
         max_steps: step limit.
     """
     keys = list(client.metadata["observation_keys"])
+    # A spec without per-key widths (a checkpoint older than the recorded protocol) takes the concatenated `obs`.
+    concatenated = list(client.metadata["observation"]["obs"]["keys"]) if not keys else None
     client.reset(seed)
     scheduler.reset()
     observation = task.reset(env, seed)
@@ -73,7 +80,11 @@ def run_served_episode(
     success = False
     for step in range(max_steps):
         features = task.observations(observation)
-        request = {key: np.asarray(features[key], dtype=np.float32) for key in keys} | {"step": step}
+        if concatenated is None:
+            request = {key: np.asarray(features[key], dtype=np.float32) for key in keys}
+        else:
+            request = {"obs": np.concatenate([np.asarray(features[key], np.float32).ravel() for key in concatenated])}
+        request["step"] = step
         if scheduler.ensemble_m is not None or not scheduler.has_action(step):
             reply = client.infer(request)
             scheduler.add(reply["actions"], reply["step"])
@@ -138,12 +149,12 @@ def controller_for(task, action_dim: int) -> str:
     raise ValueError(f"{task.name} has no controller with {action_dim}-D policy actions")
 
 
-def start_server(checkpoint: Path, params=None):
-    """A `ServerThread` serving `checkpoint` on a free loopback port (`params` as `load_served_model`)."""
+def start_server(checkpoint: Path, params=None, backend: str = "torch"):
+    """A `ServerThread` serving `checkpoint` on a free loopback port (`params` and `backend` as `load_served_model`)."""
     from carp.serving.server import PolicyServer, ServerSettings, ServerThread
     from carp.serving.startup import load_served_model
 
-    model, spec = load_served_model(checkpoint, params)
+    model, spec = load_served_model(checkpoint, params, backend=backend)
     return ServerThread(PolicyServer(model, spec, ServerSettings(port=0))).start(), model, spec
 
 
@@ -151,6 +162,8 @@ def main() -> int:
     """Parse the arguments, serve, run the episodes and print one line each."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoint", type=Path, help="a policy.pt recording its protocol (default: a tiny one)")
+    parser.add_argument("--params", type=Path, help="params.yaml whose inference (and, if needed, data) settings apply")
+    parser.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch", help="what predicts")
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--seed", type=int, default=100000, help="first episode's seed")
     parser.add_argument("--max-steps", type=int, default=100)
@@ -159,7 +172,9 @@ def main() -> int:
     parser.add_argument("--compare", action="store_true", help="also run the in-process evaluation loop")
     args = parser.parse_args()
 
-    from carp.config import Params
+    import dataclasses
+
+    from carp.config import ConfigError, Params, load_params
     from carp.policies.carp.config import CarpInference
     from carp.serving.startup import ServingStartError
     from carp.tasks import get_task
@@ -170,16 +185,21 @@ def main() -> int:
         if checkpoint is None:
             checkpoint = Path(folder) / "policy.pt"
             random_lift_policy().save(checkpoint)
-        params = None if args.top_k is None else Params(inference={"carp": CarpInference(top_k=args.top_k)})
         try:
-            server, model, spec = start_server(checkpoint, params)
-        except (ServingStartError, ValueError) as error:
+            params = load_params(args.params) if args.params is not None else None
+            if args.top_k is not None:
+                params = params or Params()
+                inference = {**params.inference, "carp": CarpInference(top_k=args.top_k)}
+                params = dataclasses.replace(params, inference=inference)
+            server, model, spec = start_server(checkpoint, params, args.backend)
+        except (ServingStartError, ConfigError, ValueError) as error:
             print(f"error: {error}", file=sys.stderr)
             return 1
         task = get_task(model.policy.metadata["task"])
         controller = controller_for(task, spec.action_dim)
         action_format = task.action_format(controller)
         env = task.make_env(task.make_env_args(controller))
+        successes = 0
         try:
             with PolicyClient(server.url) as client:
                 for index in range(args.episodes):
@@ -196,10 +216,12 @@ def main() -> int:
                         )
                         same = actions.shape == served.actions.shape and np.array_equal(actions, served.actions)
                         line += f"; in-process: success {success}, identical actions {same}"
-                    print(line)
+                    print(line, flush=True)
+                    successes += served.success
         finally:
             env.close()
             server.stop()
+    print(f"{successes}/{args.episodes} episodes succeeded ({model.backend}, {model.policy.description})")
     return 0
 
 

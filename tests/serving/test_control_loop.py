@@ -5,11 +5,12 @@ import importlib.util
 import numpy as np
 import pytest
 
-from carp.config import Params
+from carp.config import DataConfig, Params
 from carp.policies.carp.config import CarpInference
+from carp.serving.protocol import SERVING_METADATA_KEY
 from carp.tasks import get_task
 from tests.serving.conftest import CLIENT_DIR
-from tests.serving.random_policy import random_lift_policy
+from tests.serving.random_policy import LIFT_OBS_WIDTHS, random_lift_policy
 
 EXAMPLE = CLIENT_DIR.parents[1] / "examples" / "serve_control_loop.py"
 SEEDS, MAX_STEPS = (100000, 100001), 24
@@ -52,3 +53,32 @@ def test_the_served_loop_executes_the_in_process_evaluations_actions_bit_for_bit
         assert episode.success == success
         assert episode.chunks == MAX_STEPS // spec.action_steps
     assert not np.array_equal(served[0].actions, served[1].actions)
+
+
+@pytest.mark.slow
+def test_a_checkpoint_without_its_protocol_is_driven_with_the_concatenated_obs(tmp_path):
+    # The default size, whose H = 16 and Ta = 8 are the params' defaults, from which the old checkpoint's spec comes.
+    example = load_example()
+    policy = random_lift_policy(tiny=False)
+    recorded, old = tmp_path / "recorded.pt", tmp_path / "old.pt"
+    policy.save(recorded)
+    del policy.metadata[SERVING_METADATA_KEY]
+    policy.save(old)
+    task = get_task("lift")
+    action_format = task.action_format("absolute")
+    env = task.make_env(task.make_env_args("absolute"))
+    runs = []
+    try:
+        for checkpoint, params in ((recorded, None), (old, Params(data=DataConfig(obs_keys=tuple(LIFT_OBS_WIDTHS))))):
+            server, _, spec = example.start_server(checkpoint, params)
+            try:
+                with example.PolicyClient(server.url, timeout=30) as client:
+                    assert bool(client.metadata["observation_keys"]) == (params is None)
+                    scheduler = example.ChunkScheduler.from_metadata(client.metadata)
+                    runs.append(example.run_served_episode(client, scheduler, task, env, SEEDS[0], action_format, 16))
+            finally:
+                server.stop()
+    finally:
+        env.close()
+    assert runs[0].chunks == runs[1].chunks == 16 // spec.action_steps
+    np.testing.assert_array_equal(runs[0].actions, runs[1].actions)
