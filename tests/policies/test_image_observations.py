@@ -13,7 +13,7 @@ import torch
 
 from carp.config import ImageEncoderConfig, TrainingConfig
 from carp.policies.observations import observation_feature_dim
-from carp.policies.registry import build_policy, load_policy, train_policy
+from carp.policies.registry import build_policy, get_family, load_policy, train_policy
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS
 from tests.policies.test_registry import TINY_CONFIGS, TINY_INFERENCE, tiny_context, tiny_data
@@ -65,8 +65,14 @@ def test_feature_width_is_the_cameras_features_plus_the_proprioception():
 def test_every_family_trains_its_camera_encoder_end_to_end_and_round_trips(name, tmp_path):
     config = TINY_CONFIGS[name]
     training = TrainingConfig(epochs=2, batch_size=8, checkpoint_every=1)
+    teacher, teacher_family = None, get_family(name).teacher
+    if teacher_family is not None:
+        # A distilled family is given its teacher family's trained policy, on the same cameras.
+        teacher_data, _ = image_data()
+        teacher_config = TINY_CONFIGS[teacher_family]
+        teacher = train_policy(teacher_family, teacher_config, training, image_context(), teacher_data, tmp_path / "t")
     data, asked = image_data()
-    policy = train_policy(name, config, training, image_context(), data, tmp_path / "state")
+    policy = train_policy(name, config, training, image_context(), data, tmp_path / "state", teacher=teacher)
     # Every batch read its own windows' images, and every window was read once per epoch.
     assert sorted(np.concatenate(asked).tolist()) == sorted(list(range(WINDOWS)) * 2)
     state_policy = build_policy(name, config, tiny_context())

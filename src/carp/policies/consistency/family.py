@@ -171,6 +171,8 @@ def train_student(config: ConsistencyConfig, run: TrainingRun) -> ConsistencyPol
     }
     trained = run.train_with_loss(policy, _recipe(config), identity, training_step=training_step)
     trained.distillation = None
+    # Frozen for the distillation only: the trained policy counts and loads its encoder like any other.
+    trained.observation_encoder.requires_grad_(True)
     return trained
 
 
