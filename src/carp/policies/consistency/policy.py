@@ -8,6 +8,7 @@ code does at inference, and un-normalizes it. A checkpoint stores the family nam
 the shapes, the U-Net's weights (the EMA weights when the config asks for them) and the normalizer statistics.
 """
 
+import abc
 import dataclasses
 import time
 from typing import Any
@@ -70,9 +71,9 @@ class KarrasPolicy(PolicyModule):
         noise_inputs = torch.stack([self.schedule.preconditioning(sigma).c_noise for sigma in sigmas], dim=1)
         return unet(noisy * expand_like(c_in, noisy), noise_inputs.squeeze(1), features)  # (B, H, A)
 
+    @abc.abstractmethod
     def sample(self, features: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         """(B, H, A) normalized chunks given (B, To, F) features."""
-        raise NotImplementedError
 
     def predict_action_timed(
         self,
