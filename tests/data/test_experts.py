@@ -1,4 +1,5 @@
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -41,6 +42,27 @@ def test_angle_helpers():
     assert experts.nearest_symmetric_yaw(math.radians(10), math.pi / 2, math.pi / 2) == pytest.approx(math.radians(100))
     quaternion = Rotation.from_euler("z", 0.7).as_quat()
     assert experts.yaw_of(quaternion) == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize(
+    ("start", "end"),
+    [(math.radians(225), math.radians(27)), (math.radians(-40), math.radians(200)), (0.3, 1.9), (2.0, 3.9)],
+)
+def test_yaw_turns_keep_to_the_home_side(start, end):
+    # Whatever the shorter way round, the commanded yaw never passes the direction opposite home (-pi/2), where the
+    # wrist's last joint runs out of range: every leg is under 180 degrees and stays on home's side.
+    commanded = SimpleNamespace(command_rotation=experts.gripper_rotation(start))
+    path = experts.ScriptedExpert._yaw_path(commanded, end)
+    assert path[-1] == end
+    legs = zip([start, *path[:-1]], path, strict=True)
+    for leg_start, leg_end in legs:
+        turn = experts.wrap_angle(leg_end - leg_start)
+        for fraction in np.linspace(0.0, 1.0, 50):
+            yaw = leg_start + fraction * turn
+            assert abs(experts.wrap_angle(yaw - experts.HOME_YAW_RAD)) < math.pi - 0.1
+    # A turn that stays on home's side the shorter way takes no detour.
+    home = experts.HOME_YAW_RAD
+    assert (len(path) == 1) == (abs(experts.wrap_angle(end - home) - experts.wrap_angle(start - home)) < math.pi)
 
 
 @pytest.mark.parametrize("handle_yaw", np.linspace(-math.pi, math.pi, 37))

@@ -203,16 +203,33 @@ class ScriptedExpert(abc.ABC):
     def move(self, position: np.ndarray, yaw: float | None = None, step_m: float | None = None) -> Iterator[np.ndarray]:
         """Move the grip site to ``position`` with gripper yaw ``yaw`` (None: keep the commanded orientation)."""
         step_m = self.limits.fast_step_m if step_m is None else step_m
-        rotation = self.command_rotation if yaw is None else gripper_rotation(yaw)
+        rotations = [self.command_rotation] if yaw is None else [gripper_rotation(way) for way in self._yaw_path(yaw)]
         settled_steps = 0
         while True:
-            commanded = self._step_command(np.asarray(position, dtype=np.float64), rotation, step_m)
+            commanded = self._step_command(np.asarray(position, dtype=np.float64), rotations[0], step_m)
+            if len(rotations) > 1 and (rotations[0] * self.command_rotation.inv()).magnitude() < 1e-9:
+                rotations.pop(0)
+                commanded = False
             if commanded:
                 close_enough = np.linalg.norm(self.site_position() - position) < self.limits.position_tolerance_m
                 if close_enough or settled_steps >= self.limits.settle_limit_steps:
                     return
                 settled_steps += 1
             yield self._encode_action()
+
+    def _yaw_path(self, yaw: float) -> list[float]:
+        """Gripper yaws the commanded orientation passes through on its way to ``yaw``, ending with ``yaw``.
+
+        The rotation towards a target takes the shorter way round; when that way passes the yaw opposite home, the
+        wrist's last joint would run into its limit and the controller would twist the rest of the arm. The
+        turn then goes the other way, through the yaw halfway on the home side (each half is under 180 degrees, so
+        the shorter way of each is the home side's).
+        """
+        start = wrap_angle(yaw_of(self.command_rotation.as_quat()) - HOME_YAW_RAD)
+        end = wrap_angle(yaw - HOME_YAW_RAD)
+        if abs(wrap_angle(end - start)) >= abs(end - start) - 1e-9:
+            return [yaw]
+        return [HOME_YAW_RAD + (start + end) / 2, yaw]
 
     def set_gripper(self, command: float, steps: int) -> Iterator[np.ndarray]:
         """Hold the commanded pose while the gripper opens or closes."""

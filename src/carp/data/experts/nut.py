@@ -3,7 +3,8 @@
 Square's expert makes two choices that keep its grasps reliable: the nut's target yaw is chosen among the square
 peg's 90-degree symmetric options so the handle never points away from the robot (that side is at the edge of the
 Panda's workspace), and the grasp aims slightly above and further out along the handle so the fingertips clear the
-table and the nut ring; if the gripper closes on nothing it opens, rises and grasps again.
+table and the nut ring; if the gripper closes on nothing, or the nut does not come up with it, it opens, rises and
+grasps again.
 """
 
 import math
@@ -27,6 +28,8 @@ class NutExpert(ScriptedExpert):
     handle_grasp_offset_m = 0.062
     grasp_above_center_m = 0.012
     carry_nut_height_m = 1.0
+    # A nut this far above where it rested has come up with the gripper.
+    lifted_margin_m = 0.05
     release_nut_height_m = 0.86
     # Handle directions (world yaw) aligned with the square peg; +x (0) would put the gripper at the workspace edge.
     handle_yaw_options = (math.pi / 2, math.pi, -math.pi / 2)
@@ -55,12 +58,15 @@ class NutExpert(ScriptedExpert):
             return self._plan_nut_grasp(nut_id, handle_grasp_offset_m, target)
 
         for _ in range(self.max_grasp_attempts):
+            rest_height = self.body_position(nut_id)[2]
             yield from self.grasp_from_above(plan_grasp)
             if self.grasped:
-                break
+                site, nut = self.site_position(), self.body_position(nut_id)
+                yield from self.move(np.array([site[0], site[1], self.carry_nut_height_m + site[2] - nut[2]]))
+                # Fingers that close on the handle's edge rather than across it feel like a grasp but let go.
+                if self.body_position(nut_id)[2] > rest_height + self.lifted_margin_m:
+                    break
             yield from self.release_and_rise(0.08)
-        site, nut = self.site_position(), self.body_position(nut_id)
-        yield from self.move(np.array([site[0], site[1], self.carry_nut_height_m + site[2] - nut[2]]))
         # Where the grip site must be for the nut to sit over the peg, from the grasp as it actually is.
         nut_in_gripper = self.site_rotation().inv().apply(self.body_position(nut_id) - self.site_position())
         nut_yaw_in_gripper = wrap_angle(yaw_of(self.body_quaternion(nut_id)) - self.grasp_yaw)
@@ -117,7 +123,9 @@ class NutAssemblyExpert(NutExpert):
     second nut. Over a peg the arm is nearly stretched, and heading back from there towards the robot can lock its
     elbow straight (the operational-space controller stalls at that singularity); the round peg, which takes its nut
     in any yaw, is served first with the handle turned towards the robot, where the arm stays bent, and the square
-    nut, whose peg leaves less choice, goes last, with nothing to reach for afterwards.
+    nut, whose peg leaves less choice, goes last, with nothing to reach for afterwards. Between the two, the wrist turns
+    back to home above the round peg: the round nut can leave it turned by up to 135 degrees, and turning that far while
+    crossing the table to the square nut would twist the arm instead of the wrist.
     """
 
     name = "nut_assembly_scripted"
@@ -131,6 +139,7 @@ class NutAssemblyExpert(NutExpert):
         env = self.env
         square, round_ = (env.obj_body_id[nut.name] for nut in env.nuts)
         yield from self.place_nut(round_, env.peg2_body_id, self.round_handle_grasp_offset_m, self._towards_robot)
+        yield from self.move(self.command_position, HOME_YAW_RAD)
         yield from self.place_nut(square, env.peg1_body_id, self.handle_grasp_offset_m)
 
     def _towards_robot(self, handle_yaw: float) -> float:
