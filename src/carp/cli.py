@@ -48,10 +48,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     serve.add_argument(
         "--backend",
-        choices=("torch", "onnxruntime"),
-        default="torch",
-        help="what runs the predictions: PyTorch (batches requests), or ONNX Runtime graphs for CARP on state "
-        "observations (one request per call; other families stay in PyTorch)",
+        choices=("onnxruntime", "torch"),
+        default="onnxruntime",
+        help="what runs the predictions: ONNX Runtime graphs for CARP on state observations, as evaluation runs them "
+        "(one request per call; other families stay in PyTorch), or PyTorch (batches the requests of several "
+        "clients; default: onnxruntime)",
+    )
+    serve.add_argument(
+        "--task",
+        default=None,
+        help="task to serve: required for a multi-task policy (models/policy/multitask/...), one of its tasks",
     )
     serve.add_argument(
         "--reload-interval",
@@ -98,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
             args.host, args.port, args.token, args.max_request_bytes, args.max_batch, reload_interval_s=interval
         )
         params = load_params(args.params) if args.params is not None else None
-        serve_checkpoint(args.model, params, settings, tracking_uri, args.backend)
+        serve_checkpoint(args.model, params, settings, tracking_uri, args.backend, args.task)
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)

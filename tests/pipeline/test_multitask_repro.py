@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from carp.policies.registry import load_policy
+from carp.serving.startup import load_served_model
 from tests.pipeline.workspace import make_workspace, run, stages_run
 
 TASKS = ["can", "square"]
@@ -44,6 +45,10 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
     # One checkpoint knows both tasks, in the order of `tasks`.
     policy = load_policy(workspace / "models/policy/multitask/carp/seed0/policy.pt")
     assert list(policy.tasks.names) == TASKS
+    # It records its serving protocol: `carp serve --task` serves either task from the file alone.
+    for task in TASKS:
+        served, spec = load_served_model(workspace / "models/policy/multitask/carp/seed0/policy.pt", task=task)
+        assert served.policy.tasks.selected == task and spec.obs_widths is not None
     metrics = json.loads((workspace / "reports/policy/multitask/carp/seed0/metrics.json").read_text())
     assert "final_loss" in metrics
     for task in TASKS:

@@ -8,10 +8,12 @@ from carp.config import DataConfig, Params
 from carp.policies.base import Deployment
 from carp.policies.carp.config import CarpInference
 from carp.policies.carp.onnx_policy import OnnxPolicy
+from carp.policies.registry import load_policy
+from carp.serving.protocol import SERVING_METADATA_KEY
 from carp.serving.server import PolicyServer, ServerSettings, ServerThread
 from carp.serving.session import Observed
 from carp.serving.startup import ServingStartError, _deployed, load_served_model
-from tests.policies.carp.factories import OBS_STEPS
+from tests.policies.carp.factories import OBS_STEPS, tiny_policy
 from tests.serving.conftest import PROTOCOL, SPEC, in_process_chunks, observations, save_tiny_checkpoint
 
 
@@ -66,6 +68,50 @@ def test_the_onnxruntime_backend_serves_carps_exported_graphs_one_request_per_ca
         np.testing.assert_allclose(chunks[1], chunks[0], rtol=1e-5, atol=1e-5)
 
 
+def test_carp_serve_runs_carps_graphs_unless_told_torch(checkpoint, monkeypatch):
+    from carp.serving import startup
+
+    served = []
+    monkeypatch.setattr(startup, "serve_forever", lambda server: served.append(server.model))
+    cli.main(["serve", "--model", str(checkpoint)])
+    cli.main(["serve", "--model", str(checkpoint), "--backend", "torch"])
+    assert [model.backend for model in served] == ["onnxruntime", "torch"]
+    assert isinstance(served[0].policy, OnnxPolicy) and served[1].batches
+
+
+def test_a_multi_task_policy_serves_the_task_named_at_startup(tmp_path):
+    policy = tiny_policy(seed=3, num_tasks=2, task_names=("lift", "can"))
+    policy.metadata[SERVING_METADATA_KEY] = PROTOCOL
+    path = tmp_path / "multitask.pt"
+    policy.save(path)
+    with pytest.raises(ServingStartError, match=r"multi-task policy over \['lift', 'can'\]; name the task"):
+        load_served_model(path)
+    with pytest.raises(ServingStartError, match=r"trained on tasks \['lift', 'can'\], not on 'square'"):
+        load_served_model(path, task="square")
+    history = np.stack(observations(OBS_STEPS, seed=0))
+    chunks = {}
+    for task in ("lift", "can"):
+        served, spec = load_served_model(path, task=task)
+        assert spec == SPEC and served.task == task and served.policy.tasks.selected == task
+        chunks[task] = served.predict(Observed(history, None, torch.Generator()))[0].actions
+        reference = load_policy(path)
+        reference.select_task(task)
+        np.testing.assert_array_equal(chunks[task], reference.predict_action_timed(history[None]).actions)
+        in_onnx, _ = load_served_model(path, backend="onnxruntime", task=task)
+        assert in_onnx.backend == "onnxruntime" and in_onnx.task == task
+        np.testing.assert_allclose(
+            in_onnx.predict(Observed(history, None, torch.Generator()))[0].actions, chunks[task], atol=1e-5
+        )
+    # Each task's own statistics and id: the chunks differ.
+    assert np.abs(chunks["lift"] - chunks["can"]).max() > 1e-3
+
+
+def test_a_single_task_policy_refuses_another_task(checkpoint):
+    assert load_served_model(checkpoint, task="lift")[0].task == "lift"
+    with pytest.raises(ServingStartError, match="task 'can': this policy was trained on 'lift' only"):
+        load_served_model(checkpoint, task="can")
+
+
 def test_a_server_on_the_onnxruntime_backend_names_it_and_matches_its_graphs_in_process(checkpoint):
     model, spec = load_served_model(checkpoint, backend="onnxruntime")
     episode = observations(5, seed=11)
@@ -83,6 +129,8 @@ def test_a_server_on_the_onnxruntime_backend_names_it_and_matches_its_graphs_in_
 
 class PyTorchOnly:
     """A family that exports no graphs: its deployment answers `torch` whatever is asked (`Policy.deployment`)."""
+
+    tasks = None  # single-task
 
     def deployment(self, checkpoint_path, backend, directory) -> Deployment:
         return Deployment("torch", lambda: self)

@@ -51,6 +51,7 @@ class ServedModel:
         source: where its checkpoint came from.
         inference: the settings given to its `configure_inference`, reported in the metadata.
         backend: what runs the predictions (`torch`, or `onnxruntime` for exported graphs), reported in the metadata.
+        task: the task served (a multi-task policy serves the one selected at startup), reported in the metadata.
     """
 
     policy: Policy
@@ -58,6 +59,7 @@ class ServedModel:
     inference: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
     backend: str = TORCH_BACKEND
+    task: str = ""
 
     def predict(self, observed: Observed) -> tuple[TimedPrediction, float]:
         """Predict one chunk; returns the prediction and the seconds spent waiting for the lock.

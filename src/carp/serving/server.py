@@ -142,6 +142,7 @@ class PolicyServer:
             "policy_description": self.model.policy.description,
             "inference": dict(self.model.inference),
             "backend": self.model.backend,
+            "task": self.model.task,
             "observation": spec.observation_spec(),
             "observation_keys": spec.key_spec(),
             "obs_steps": spec.obs_steps,

@@ -100,7 +100,11 @@ def is_registry_uri(model: str | Path) -> bool:
 
 
 def load_served_model(
-    model: str | Path, params=None, tracking_uri: str | None = None, backend: str = TORCH_BACKEND
+    model: str | Path,
+    params=None,
+    tracking_uri: str | None = None,
+    backend: str = TORCH_BACKEND,
+    task: str | None = None,
 ) -> tuple[ServedModel, ServingSpec]:
     """Load the policy `model` names, apply its inference settings and derive its spec.
 
@@ -113,14 +117,17 @@ def load_served_model(
         backend: what runs the predictions, as evaluation's `eval.backend`: `torch`, or `onnxruntime` for a family
             that exports graphs (CARP on state observations; others stay in PyTorch). The metadata names the one
             that runs.
+        task: the task served: required for a multi-task policy (one of its tasks, whose statistics and task id it
+            then uses); for a single-task policy None or the task it was trained on.
 
     Raises:
         ServingStartError: no such file, model or alias, an unreadable checkpoint, one without the task it was
-            trained on, or one without a recorded protocol and no params.
+            trained on, a task the policy was not trained on (or none for a multi-task policy), or a checkpoint
+            without a recorded protocol and no params.
     """
     if not is_registry_uri(model):
-        return _load_checkpoint(Path(model), params, backend=backend)
-    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri, backend)
+        return _load_checkpoint(Path(model), params, backend=backend, task=task)
+    return _load_registered(str(model), _resolve(str(model), tracking_uri), params, tracking_uri, backend, task)
 
 
 def _resolve(uri: str, tracking_uri: str | None):
@@ -134,7 +141,9 @@ def _resolve(uri: str, tracking_uri: str | None):
         raise ServingStartError(str(error)) from None
 
 
-def _load_registered(uri: str, reference, params, tracking_uri: str, backend: str) -> tuple[ServedModel, ServingSpec]:
+def _load_registered(
+    uri: str, reference, params, tracking_uri: str, backend: str, task: str | None = None
+) -> tuple[ServedModel, ServingSpec]:
     from carp.tracking.registry import fetch_registered_policy
 
     with tempfile.TemporaryDirectory(prefix="carp-serve-") as folder:
@@ -143,11 +152,15 @@ def _load_registered(uri: str, reference, params, tracking_uri: str, backend: st
         except LookupError as error:
             raise ServingStartError(str(error)) from None
         source = ModelSource(uri, file_sha256(checkpoint), reference.name, reference.version, reference.alias)
-        return _load_checkpoint(checkpoint, params, source, backend)
+        return _load_checkpoint(checkpoint, params, source, backend, task)
 
 
 def _load_checkpoint(
-    model_path: Path, params, source: ModelSource | None = None, backend: str = TORCH_BACKEND
+    model_path: Path,
+    params,
+    source: ModelSource | None = None,
+    backend: str = TORCH_BACKEND,
+    task: str | None = None,
 ) -> tuple[ServedModel, ServingSpec]:
     """Load the checkpoint file at `model_path`; `source` names it (default: the path and its sha256)."""
     from carp.policies.registry import load_policy
@@ -160,9 +173,7 @@ def _load_checkpoint(
         policy = load_policy(model_path)
     except (CheckpointError, OSError) as error:
         raise ServingStartError(str(error) if source is None else f"{label}: {error}") from None
-    task = policy.metadata.get("task")
-    if not task:
-        raise ServingStartError(f"{label}: the checkpoint does not name the task it was trained on")
+    task = _served_task(policy, task, label)
     try:
         spec = recorded_spec(policy, task)
         if spec is None and params is None:
@@ -182,7 +193,27 @@ def _load_checkpoint(
     policy, backend = _deployed(policy, model_path, backend)
     if source is None:
         source = ModelSource(path=str(model_path), sha256=file_sha256(model_path))
-    return ServedModel(policy, source, inference, backend=backend), spec
+    return ServedModel(policy, source, inference, backend=backend, task=task), spec
+
+
+def _served_task(policy: Policy, requested: str | None, label) -> str:
+    """The task `policy` serves: `requested`, selected in a multi-task policy, or the single task it was trained on."""
+    if policy.tasks is not None:
+        if requested is None:
+            raise ServingStartError(
+                f"{label}: a multi-task policy over {list(policy.tasks.names)}; name the task to serve (--task)"
+            )
+        try:
+            policy.select_task(requested)
+        except ValueError as error:
+            raise ServingStartError(f"{label}: {error}") from None
+        return requested
+    trained = policy.metadata.get("task")
+    if not trained:
+        raise ServingStartError(f"{label}: the checkpoint does not name the task it was trained on")
+    if requested is not None and requested != trained:
+        raise ServingStartError(f"{label}: task {requested!r}: this policy was trained on {trained!r} only")
+    return trained
 
 
 def _deployed(policy: Policy, model_path: Path, backend: str) -> tuple[Policy, str]:
@@ -190,6 +221,10 @@ def _deployed(policy: Policy, model_path: Path, backend: str) -> tuple[Policy, s
     if backend == TORCH_BACKEND:
         return policy, TORCH_BACKEND
     with tempfile.TemporaryDirectory(prefix="carp-serve-graphs-") as folder:
+        if policy.tasks is not None:
+            # A deployment that loads the file again must find the served task selected in it, as evaluation does.
+            model_path = Path(folder) / "selected_task.pt"
+            policy.save(model_path)
         deployment = policy.deployment(model_path, backend, Path(folder))
         if deployment.backend == TORCH_BACKEND:
             return policy, TORCH_BACKEND
@@ -198,7 +233,11 @@ def _deployed(policy: Policy, model_path: Path, backend: str) -> tuple[Policy, s
 
 
 def model_reloader(
-    model: str | Path, params=None, tracking_uri: str | None = None, backend: str = TORCH_BACKEND
+    model: str | Path,
+    params=None,
+    tracking_uri: str | None = None,
+    backend: str = TORCH_BACKEND,
+    task: str | None = None,
 ) -> Callable[[ModelSource], tuple[ServedModel, ServingSpec] | None]:
     """What `PolicyServer` calls to find out whether to serve another model, for `model` as `load_served_model`.
 
@@ -211,11 +250,11 @@ def model_reloader(
             reference = _resolve(str(model), tracking_uri)
             if reference.version == served.version:
                 return None
-            return _load_registered(str(model), reference, params, tracking_uri, backend)
+            return _load_registered(str(model), reference, params, tracking_uri, backend, task)
         path = Path(model)
         if path.is_file() and file_sha256(path) == served.sha256:
             return None
-        return _load_checkpoint(path, params, backend=backend)
+        return _load_checkpoint(path, params, backend=backend, task=task)
 
     return reload
 
@@ -226,15 +265,16 @@ def serve_checkpoint(
     settings: ServerSettings,
     tracking_uri: str | None = None,
     backend: str = TORCH_BACKEND,
+    task: str | None = None,
 ) -> None:
-    """Serve `model` (as `load_served_model`, run by `backend`) with `settings` until interrupted, following it.
+    """Serve `model` (as `load_served_model` loads it) with `settings` until interrupted, following it.
 
     Raises:
         ServingStartError: the model cannot be loaded, the address cannot be bound, or the warm-up prediction does
             not fit the spec.
     """
-    served, spec = load_served_model(model, params, tracking_uri, backend)
-    reloader = model_reloader(model, params, tracking_uri, backend)
+    served, spec = load_served_model(model, params, tracking_uri, backend, task)
+    reloader = model_reloader(model, params, tracking_uri, backend, task)
     try:
         serve_forever(PolicyServer(served, spec, settings, reloader))
     except OSError as error:

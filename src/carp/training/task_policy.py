@@ -482,7 +482,13 @@ def train_multitask_policy(
         action_horizon=data.action_horizon,
         tokenizer_artifact=inputs.artifact,
         tasks=tasks,
-        metadata={"tokenizer": asdict(inputs.reference), "mlflow_run_id": tracking_run_id},
+        metadata={
+            "tokenizer": asdict(inputs.reference),
+            "mlflow_run_id": tracking_run_id,
+            # The tasks' observation keys and widths agree (checked when their windows were loaded), so one protocol
+            # serves every task; `carp serve --task` picks the task.
+            SERVING_METADATA_KEY: training_protocol(data, first.buffer.attrs),
+        },
     )
     return train_policy(
         family,

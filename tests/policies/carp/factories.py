@@ -69,9 +69,15 @@ def scrambled_transformer(spec: PolicySpec, seed: int = 0) -> CoarseToFineTransf
     return transformer.eval()
 
 
-def tiny_tasks(num_tasks: int, obs_normalizer: MinMaxNormalizer, action_normalizer: MinMaxNormalizer) -> PolicyTasks:
-    """Tasks `task0`, `task1`, ...; task i's statistics are the given ones shifted by i (task0 selected)."""
-    names = tuple(f"task{index}" for index in range(num_tasks))
+def tiny_tasks(
+    num_tasks: int,
+    obs_normalizer: MinMaxNormalizer,
+    action_normalizer: MinMaxNormalizer,
+    names: tuple[str, ...] | None = None,
+) -> PolicyTasks:
+    """Tasks `names` (default `task0`, `task1`, ...); task i's statistics are the given ones shifted by i (the first
+    selected)."""
+    names = names or tuple(f"task{index}" for index in range(num_tasks))
 
     def shifted(normalizer: MinMaxNormalizer, shift: float) -> MinMaxNormalizer:
         return MinMaxNormalizer(normalizer.minimum + shift, normalizer.maximum + shift)
@@ -83,10 +89,17 @@ def tiny_tasks(num_tasks: int, obs_normalizer: MinMaxNormalizer, action_normaliz
     )
 
 
-def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, num_tasks: int = 0, **overrides) -> CarpPolicy:
+def tiny_policy(
+    scales: tuple[int, ...] = (1, 2),
+    seed: int = 0,
+    num_tasks: int = 0,
+    task_names: tuple[str, ...] | None = None,
+    **overrides,
+) -> CarpPolicy:
     """Scrambled transformer + random tokenizer + normalizers (the second action feature is constant).
 
-    With `num_tasks`, a multi-task policy over :func:`tiny_tasks` (its features F = Do + the task embedding).
+    With `num_tasks`, a multi-task policy over :func:`tiny_tasks` named `task_names` (its features F = Do + the task
+    embedding).
     """
     rng = np.random.default_rng(seed)
     obs_min = rng.normal(size=OBS_DIM)
@@ -95,7 +108,7 @@ def tiny_policy(scales: tuple[int, ...] = (1, 2), seed: int = 0, num_tasks: int 
     action_normalizer = MinMaxNormalizer(action_min, np.array([3.0, 0.5]))
     metadata = {"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}}
     if num_tasks:
-        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer)
+        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer, task_names)
         metadata[TASKS_METADATA_KEY] = tasks.to_dict()
         overrides = {"obs_dim": OBS_DIM + DEFAULT_TASK_EMBEDDING_DIM} | overrides
     return CarpPolicy(
