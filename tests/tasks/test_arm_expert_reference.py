@@ -21,8 +21,9 @@ TASKS = ("lift", "can", "square")
 SEED = 0
 STEPS = 40
 # MuJoCo steps the same float64 computation on every CPU the pinned wheel runs on, up to the rounding of its
-# vectorized kernels; a changed plan, reset or conversion moves actions by millimetres or more.
-TOLERANCE = 1e-7
+# vectorized kernels, which differs between CPU vendors by a float32 unit in the last place of a stored value
+# (about 1.2e-7 near 1); a changed plan, reset or conversion moves actions by millimetres or more.
+TOLERANCE = 1e-6
 
 
 def record(task_name: str) -> dict[str, np.ndarray]:
