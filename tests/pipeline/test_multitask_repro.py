@@ -49,6 +49,9 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
     for task in TASKS:
         served, spec = load_served_model(workspace / "models/policy/multitask/carp/seed0/policy.pt", task=task)
         assert served.policy.tasks.selected == task and spec.obs_widths is not None
+    # The shared tokenizer's error on each task's own held-out windows.
+    tokenizer_metrics = json.loads((workspace / "reports/tokenizer/metrics.json").read_text())
+    assert all(f"task/{task}/rmse_percent_range/mean" in tokenizer_metrics for task in TASKS)
     metrics = json.loads((workspace / "reports/policy/multitask/carp/seed0/metrics.json").read_text())
     assert "final_loss" in metrics
     for task in TASKS:

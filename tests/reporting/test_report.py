@@ -101,6 +101,30 @@ def test_report_contains_every_section_and_numbers(tmp_path, inputs):
     assert (markdown_path.parent / "figures" / "sweep_scales.png").exists()
 
 
+def test_a_tokenizer_shared_by_several_tasks_gets_a_row_per_task(tmp_path, inputs):
+    per_task = {
+        "task/can/rmse_percent_range/x": 0.5,
+        "task/can/rmse_percent_range/y": 1.5,
+        "task/can/rmse_percent_range/mean": 1.0,
+        "task/can/max_error/max": 0.02,
+        "task/stack/rmse_percent_range/x": 2.5,
+        "task/stack/rmse_percent_range/y": 0.5,
+        "task/stack/rmse_percent_range/mean": 1.5,
+        "task/stack/max_error/max": 0.03,
+    }
+    shared = dataclasses.replace(inputs, tokenizer_metrics=inputs.tokenizer_metrics | per_task)
+    section = write_report(shared, tmp_path / "shared")[0].read_text().split("## Action tokenizer", 1)[1]
+    section = section.split("\n## ", 1)[0]
+    rows = [
+        [cell.strip() for cell in line.strip("|").split("|")]
+        for line in section.splitlines()
+        if line.startswith(("| can ", "| stack "))
+    ]
+    assert rows == [["can", "1", "y (1.5%)", "0.02"], ["stack", "1.5", "x (2.5%)", "0.03"]]
+    alone = write_report(inputs, tmp_path / "alone")[0].read_text()
+    assert "each task's held-out windows alone" not in alone
+
+
 def test_camera_images_get_a_grid_per_task_only_when_a_run_has_them(tmp_path, inputs):
     assert "## Camera images" not in write_report(inputs, tmp_path / "state")[0].read_text()
     frames = {

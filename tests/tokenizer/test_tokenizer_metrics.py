@@ -1,8 +1,11 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from carp.data.normalizer import MinMaxNormalizer
+from carp.tokenizer.evaluation import evaluate_tokenizer, summary_line
 from carp.tokenizer.metrics import (
     count_codes,
     perplexity,
@@ -10,6 +13,7 @@ from carp.tokenizer.metrics import (
     reconstruct_trajectory,
     reconstruction_metrics,
 )
+from carp.tokenizer.task_metrics import TASK_ERROR_METRICS, task_errors
 
 
 def test_count_codes_histograms_each_dimension_separately():
@@ -90,3 +94,31 @@ def test_trajectory_reconstruction_decodes_consecutive_chunks(tiny_tokenizer):
     padded_tail = torch.cat([trajectory[16:], trajectory[-1:].expand(4, 2)])
     last_chunk, _ = reconstruct(tiny_tokenizer, padded_tail[None])
     assert torch.allclose(reconstruction[16:], last_chunk[0, :4], atol=1e-6)
+
+
+def test_a_tokenizer_measured_on_several_tasks_reports_each_tasks_own_errors(tiny_tokenizer, tiny_actions, tmp_path):
+    # Two tasks whose actions span 1x and 10x the range: pooled errors mix them, each task's own are its alone.
+    normalizers = {
+        "lift": MinMaxNormalizer(np.array([-1.0, -1.0]), np.array([1.0, 1.0])),
+        "can": MinMaxNormalizer(np.array([-10.0, -10.0]), np.array([10.0, 10.0])),
+    }
+    raw = {"lift": tiny_actions[:3].double().numpy(), "can": 10.0 * tiny_actions[3:].double().numpy()}
+    figure = ("lift", raw["lift"][0])
+    metrics = evaluate_tokenizer(tiny_tokenizer, raw, normalizers, figure, tmp_path / "figure.png")
+    alone = {
+        task: evaluate_tokenizer(
+            tiny_tokenizer, {task: raw[task]}, normalizers, (task, raw[task][0]), tmp_path / "f.png"
+        )
+        for task in raw
+    }
+    for task, own in task_errors(metrics).items():
+        assert own == pytest.approx(
+            {key: value for key, value in alone[task].items() if key.startswith(TASK_ERROR_METRICS)}
+        )
+    assert set(task_errors(metrics)) == {"lift", "can"}
+    assert task_errors(metrics)["can"]["rmse/dim0"] == pytest.approx(
+        10 * reconstruction_metrics(tiny_tokenizer, tiny_actions[3:], torch.ones(2))["rmse/dim0"], rel=1e-5
+    )
+    # One task: nothing per task (it would repeat the pooled figures).
+    assert task_errors(alone["lift"]) == {}
+    assert "(lift " in summary_line(metrics, ("dim0", "dim1")) and "can " in summary_line(metrics, ("dim0", "dim1"))

@@ -25,6 +25,7 @@ from carp.reporting import comparison  # noqa: E402
 from carp.reporting.comparison import Runs  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
+from carp.tokenizer.task_metrics import task_errors  # noqa: E402
 
 
 @dataclass
@@ -335,6 +336,26 @@ def tokenizer_table(metrics: Mapping[str, float]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def tokenizer_task_table(metrics: Mapping[str, float]) -> pd.DataFrame:
+    """One row per task of a tokenizer measured on several tasks (`carp.tokenizer.task_metrics`); empty otherwise."""
+    rows = []
+    for task, own in task_errors(metrics).items():
+        dimensions = [key.split("/", 1)[1] for key in own if key.startswith("rmse_percent_range/")]
+        worst = max(
+            (name for name in dimensions if name not in ("mean", "max")),
+            key=lambda name: own[f"rmse_percent_range/{name}"],
+        )
+        rows.append(
+            {
+                "task": task,
+                "RMSE % of range (mean)": f"{own['rmse_percent_range/mean']:.3g}",
+                "worst dimension": f"{worst} ({own[f'rmse_percent_range/{worst}']:.3g}%)",
+                "max error": f"{own['max_error/max']:.4g}",
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path: Path, log_scale: bool = True) -> Path:
     """Plot per-epoch columns of a history table to a PNG."""
     figure, axis = plt.subplots(figsize=(6, 3.2))
@@ -447,6 +468,12 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             f"worst error {metrics.get('max_error/max', float('nan')):.4f}."
         )
         tokenizer.tables.append(tokenizer_table(metrics))
+        per_task = tokenizer_task_table(metrics)
+        if not per_task.empty:
+            tokenizer.paragraphs.append(
+                "The tokenizer is shared by the tasks; each task's held-out windows alone, relative to its own ranges:"
+            )
+            tokenizer.tables.append(per_task)
     if inputs.reconstruction_figure and Path(inputs.reconstruction_figure).exists():
         tokenizer.figures.append(Path(inputs.reconstruction_figure))
     if tokenizer.paragraphs or tokenizer.figures:

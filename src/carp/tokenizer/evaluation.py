@@ -9,6 +9,7 @@ import torch
 from carp.data.normalizer import MinMaxNormalizer
 from carp.tokenizer.metrics import reconstruct_trajectory, reconstruction_metrics
 from carp.tokenizer.plots import plot_reconstruction
+from carp.tokenizer.task_metrics import TASK_ERROR_METRICS, task_errors
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
 
@@ -43,15 +44,25 @@ def evaluate_tokenizer(
             ``dim0, dim1, ...``.
 
     Returns:
-        The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics` over all tasks' windows.
+        The flat metrics of :func:`carp.tokenizer.metrics.reconstruction_metrics` over all tasks' windows; with
+        several tasks, each task's own as well, keyed ``task/<task>/<metric>/<dimension>`` for the errors (RMSE, %
+        of range, max error), since a shared tokenizer can fit one task's actions much better than another's.
     """
     names = dimension_names(tokenizer.spec.action_dim, names)
-    windows, half_ranges = [], []
+    windows, half_ranges = {}, {}
     for task, task_windows in held_out_windows.items():
         normalizer = normalizers[task]
-        windows.append(torch.as_tensor(normalizer.normalize(task_windows.astype(np.float64)), dtype=torch.float32))
-        half_ranges.append(torch.as_tensor(normalizer.half_range()).expand(len(task_windows), 1, -1))
-    metrics = reconstruction_metrics(tokenizer, torch.cat(windows), torch.cat(half_ranges), names)
+        windows[task] = torch.as_tensor(normalizer.normalize(task_windows.astype(np.float64)), dtype=torch.float32)
+        half_ranges[task] = torch.as_tensor(normalizer.half_range()).expand(len(task_windows), 1, -1)
+    metrics = reconstruction_metrics(
+        tokenizer, torch.cat(list(windows.values())), torch.cat(list(half_ranges.values())), names
+    )
+    if len(windows) > 1:
+        for task in windows:
+            own = reconstruction_metrics(tokenizer, windows[task], half_ranges[task], names)
+            metrics.update(
+                {f"task/{task}/{key}": value for key, value in own.items() if key.startswith(TASK_ERROR_METRICS)}
+            )
     task, episode_actions = figure_episode
     normalizer = normalizers[task]
     normalized_episode = torch.as_tensor(normalizer.normalize(episode_actions.astype(np.float64)), dtype=torch.float32)
@@ -61,9 +72,11 @@ def evaluate_tokenizer(
 
 
 def summary_line(metrics: dict[str, float], names: Sequence[str]) -> str:
-    """One line summarizing the reconstruction error (mean and worst dimension as % of range)."""
+    """One line summarizing the reconstruction error (mean and worst dimension as % of range), then each task's mean."""
     worst = max(names, key=lambda name: metrics[f"rmse_percent_range/{name}"])
-    return (
+    line = (
         f"mean RMSE {metrics['rmse_percent_range/mean']:.2f}% of range, worst {worst} "
         f"{metrics[f'rmse_percent_range/{worst}']:.2f}%"
     )
+    per_task = [f"{task} {own['rmse_percent_range/mean']:.2f}%" for task, own in task_errors(metrics).items()]
+    return f"{line} ({', '.join(per_task)})" if per_task else line
