@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from carp.evaluation.metrics import latency_summary, measure_summary, wilson_interval
+from carp.evaluation.metrics import latency_summary, measure_summary, task_score, wilson_interval
 
 
 @pytest.mark.parametrize(
@@ -65,3 +65,10 @@ def test_measure_summary_of_too_few_values_is_nan_and_of_no_measures_empty():
     none = measure_summary([{"insertion_offset_mm": float("nan")}])
     assert math.isnan(none["insertion_offset_mm_mean"]) and none["insertion_offset_mm_episodes"] == 0
     assert measure_summary([{}, {}]) == {} and measure_summary([]) == {}
+
+
+def test_a_tasks_score_is_its_score_measure_or_else_its_success_rate():
+    summary = {"success_rate": 0.2, **measure_summary([{"max_reward": 0.5}, {"max_reward": 1.0}])}
+    assert task_score(summary, "max_reward") == pytest.approx(0.75)
+    assert task_score(summary, None) == 0.2
+    assert math.isnan(task_score({"success_rate": 0.0}, "max_reward"))  # no episode measured it

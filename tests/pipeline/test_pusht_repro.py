@@ -40,6 +40,7 @@ def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(tmp_path)
     summary = json.loads((workspace / "reports/eval/pusht/carp/seed0.json").read_text())
     assert summary["episodes"] == 2 and summary["max_reward_episodes"] == 2
     assert 0.0 <= summary["max_reward_mean"] <= 1.0
+    assert summary["score"] == summary["max_reward_mean"]  # what a sweep over Push-T maximizes
     episodes = pd.read_csv(workspace / "reports/eval/pusht/carp/seed0_episodes.csv")
     assert set(episodes["seed"]) == {100_000, 100_001} and (episodes["steps"] <= 30).all()
     assert episodes["max_reward"].between(0, 1).all()

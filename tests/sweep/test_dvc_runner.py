@@ -30,9 +30,12 @@ def _workspace(tmp_path):
     (tmp_path / "params.yaml").write_text(yaml.safe_dump({"scales": [1, 2], "codebook_size": 8, "other": 3}))
     (tmp_path / "tokenizer.json").write_text(json.dumps({TOKENIZER_ERROR_KEY: 2.5}))
     reports = []
-    for index, (success, predict, decode) in enumerate([(0.5, 1.0, 2.0), (1.0, 3.0, 4.0)]):
+    # The second summary predates the recorded score: its success rate stands in.
+    for index, (success, predict, decode, score) in enumerate([(0.5, 1.0, 2.0, 0.8), (1.0, 3.0, 4.0, None)]):
         report = tmp_path / f"eval{index}.json"
         summary = {"success_rate": success, "latency_predict_ms_median": predict, "latency_decode_ms_median": decode}
+        if score is not None:
+            summary["score"] = score
         report.write_text(json.dumps(summary))
         reports.append(report)
     return reports
@@ -60,6 +63,7 @@ def test_experiment_metrics_are_averaged_over_every_evaluation_and_a_failed_push
     with caplog.at_level(logging.WARNING):
         result = runner.run_experiment("sweep-s-t1", SETTINGS)
     assert (result.success_rate, result.latency_ms, result.tokenizer_rmse_percent) == pytest.approx((0.75, 5.0, 2.5))
+    assert result.objective == pytest.approx(0.9)
     assert [arguments for arguments, _ in dvc.calls] == [
         ["exp", "run", "--name", "sweep-s-t1", "-S", "scales=[1,2,4]", "-S", "codebook_size=16"],
         ["exp", "push", "origin", "sweep-s-t1"],

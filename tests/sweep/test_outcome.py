@@ -18,8 +18,9 @@ from carp.sweep.space import TrialSettings
 SETTINGS = TrialSettings((1, 2, 4), 64)
 
 
-def record(number, state="COMPLETE", success=None, latency=None, error=None, settings=SETTINGS):
-    return TrialRecord(number, state, settings, success, latency, error, f"sweep-s-t{number}" if success else "")
+def record(number, state="COMPLETE", success=None, latency=None, error=None, settings=SETTINGS, score=None):
+    experiment = f"sweep-s-t{number}" if success is not None else ""
+    return TrialRecord(number, state, settings, success, latency, error, experiment, score)
 
 
 def test_prune_decision():
@@ -52,6 +53,19 @@ def test_objective_tie_break_success_then_latency_then_number():
     assert best_record(records[4:]) is None
 
 
+def test_the_score_ranks_first_and_success_breaks_its_ties():
+    # Push-T-like trials: rarely a success, but the coverage they reach tells them apart.
+    records = [
+        record(0, success=0.0, latency=1.0, score=0.55),
+        record(1, success=0.1, latency=2.0, score=0.70),
+        record(2, success=0.0, latency=1.0, score=0.70),
+        record(3, success=0.2, latency=1.0, score=0.40),
+    ]
+    assert [r.number for r in sorted(records, key=ranking_key)] == [1, 2, 0, 3]
+    # A record without a score (an arm task's, or one stored before scores) ranks by its success rate.
+    assert record(4, success=0.3, latency=1.0).objective == 0.3
+
+
 def test_trials_csv_has_the_report_columns(tmp_path):
     path = tmp_path / "sweep" / "trials.csv"
     records = [
@@ -65,6 +79,7 @@ def test_trials_csv_has_the_report_columns(tmp_path):
     assert table["trial"].tolist() == [0, 1, 2]
     assert table.loc[0, "scales"] == "[1,2,4]" and table.loc[0, "num_scales"] == 3
     assert table.loc[0, "success_rate"] == pytest.approx(0.5) and table.loc[0, "latency_ms"] == pytest.approx(3.25)
+    assert table.loc[0, "score"] == pytest.approx(0.5)  # no score of its own: the success rate
     assert table.loc[1, "state"] == "PRUNED" and math.isnan(table.loc[1, "success_rate"])
     assert table.loc[1, "tokenizer_rmse_percent"] == pytest.approx(40.0)
     assert table.loc[0, "dvc_experiment"] == "sweep-s-t0"

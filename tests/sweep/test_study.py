@@ -159,7 +159,7 @@ def test_summary_names_the_best_trial_and_how_to_fetch_it(sweep_config):
     lines = SweepResult(records, best, 3).summary_lines(config)
     assert lines == [
         f"study {config.study_name}: 3/4 trials finished {{'COMPLETE': 2, 'PRUNED': 1}}",
-        "best: trial 3 (sweep-s-t3), success 75.0%, latency 1.25 ms; reproduce with: dvc exp run "
+        "best: trial 3 (sweep-s-t3), score 0.750, success 75.0%, latency 1.25 ms; reproduce with: dvc exp run "
         "-S 'scales=[1,2]' -S codebook_size=8",
         "in any workspace: dvc exp pull origin sweep-s-t3 && dvc exp apply sweep-s-t3",
     ]

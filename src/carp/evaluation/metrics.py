@@ -51,6 +51,17 @@ def summarize_episodes(
     }
 
 
+def task_score(summary: Mapping[str, float], score_measure: str | None) -> float:
+    """A task's headline score from an evaluation summary, NaN when no episode measured it.
+
+    The mean of the task's score measure where it has one (Push-T: DP's mean over episodes of the highest reward),
+    else the success rate, which is an arm task's score too (its sparse reward is 1 exactly on success).
+    """
+    if score_measure is None:
+        return float(summary["success_rate"])
+    return float(summary.get(f"{score_measure}_mean", float("nan")))
+
+
 def measure_summary(measures: Sequence[Mapping[str, float]]) -> dict[str, float]:
     """Per task measure, over the episodes that measured it (a finite value): mean, variance and their count.
 

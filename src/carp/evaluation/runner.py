@@ -12,12 +12,13 @@ import pandas as pd
 import torch
 
 from carp.config import EVAL_BACKENDS
-from carp.evaluation.metrics import latency_summary, measure_summary, summarize_episodes
+from carp.evaluation.metrics import latency_summary, measure_summary, summarize_episodes, task_score
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
 from carp.policies.base import Policy
 from carp.policies.registry import load_policy
+from carp.tasks import get_task
 from carp.tasks.base import ActionFormat
 
 if TYPE_CHECKING:
@@ -115,6 +116,7 @@ def evaluate_policy(
         # The camera encoder's share of the prediction time, so the report can give the latency without it.
         summary.update(latency_summary([s for r in results for s in r.encoding_seconds], "latency_encode"))
     summary.update(measure_summary([r.task_measures for r in results]))
+    summary["score"] = task_score(summary, None if task is None else get_task(task).score_measure)
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend

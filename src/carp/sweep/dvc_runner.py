@@ -69,6 +69,8 @@ class DvcExperimentRunner:
         # the token-predicting families (the default `policies: [carp]`).
         evaluations = [_read_json(path) for path in self.evaluation_reports]
         return ExperimentResult(
+            # Summaries written before evaluation recorded the task's score have the success rate as their score.
+            score=sum(e.get("score", e["success_rate"]) for e in evaluations) / len(evaluations),
             success_rate=sum(e["success_rate"] for e in evaluations) / len(evaluations),
             latency_ms=sum(e["latency_predict_ms_median"] + e["latency_decode_ms_median"] for e in evaluations)
             / len(evaluations),

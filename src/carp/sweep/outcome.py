@@ -1,9 +1,11 @@
 """What a trial produced, how trials are ranked and pruned, and the sweep's two report files.
 
-Ranking: the objective is the evaluation success rate (mean over tasks), maximized. Success rates are ratios of
-small episode counts, so ties are common; among tied trials the one with the lower inference latency wins, and
-among trials tied on both, the earlier one. Optuna itself only sees the success rate (a single objective keeps
-its samplers and ``best_trial`` simple); :func:`best_record` applies the full ordering.
+Ranking: the objective is the evaluation score (mean over tasks), maximized: each task's headline score
+(`carp.evaluation.metrics.task_score`), which is the success rate on the arm tasks and DP's mean maximum reward on
+Push-T, where a short training rarely finishes an episode but its coverage still tells trials apart. Scores are
+means over small episode counts, so ties are common; among tied trials the higher success rate wins, then the lower
+inference latency, then the earlier trial. Optuna itself only sees the score (a single objective keeps its samplers
+and ``best_trial`` simple); :func:`best_record` applies the full ordering.
 
 Pruning: the tokenizer is trained first; a trial whose tokenizer reconstruction error is more than
 ``prune_factor`` times the best error seen so far in the study stops before the (costly) policy training.
@@ -24,6 +26,7 @@ TRIALS_COLUMNS = (
     "scales",
     "num_scales",
     "codebook_size",
+    "score",
     "success_rate",
     "latency_ms",
     "tokenizer_rmse_percent",
@@ -40,11 +43,18 @@ class ExperimentResult:
         latency_ms: median inference latency per action chunk (prediction + decoding), mean over tasks.
         tokenizer_rmse_percent: tokenizer reconstruction RMSE in percent of each dimension's range, mean over
             dimensions (``rmse_percent_range/mean`` of ``reports/tokenizer/metrics.json``).
+        score: the evaluation score in [0, 1], mean over the pipeline's tasks (the objective); None: the success rate.
     """
 
     success_rate: float
     latency_ms: float
     tokenizer_rmse_percent: float
+    score: float | None = None
+
+    @property
+    def objective(self) -> float:
+        """What the sweep maximizes: the score."""
+        return self.success_rate if self.score is None else self.score
 
 
 @dataclass(frozen=True)
@@ -65,6 +75,12 @@ class TrialRecord:
     latency_ms: float | None = None
     tokenizer_rmse_percent: float | None = None
     dvc_experiment: str = ""
+    score: float | None = None
+
+    @property
+    def objective(self) -> float | None:
+        """What the sweep maximizes: the score (the success rate for a record that has none)."""
+        return self.success_rate if self.score is None else self.score
 
 
 def should_prune(tokenizer_error: float, best_error: float | None, prune_factor: float) -> bool:
@@ -92,10 +108,10 @@ def best_tokenizer_error(records: Iterable[TrialRecord], exclude_number: int | N
     return min(errors, default=None)
 
 
-def ranking_key(record: TrialRecord) -> tuple[float, float, int]:
-    """Sort key, best first: higher success, then lower latency, then earlier trial."""
-    assert record.success_rate is not None and record.latency_ms is not None
-    return (-record.success_rate, record.latency_ms, record.number)
+def ranking_key(record: TrialRecord) -> tuple[float, float, float, int]:
+    """Sort key, best first: higher score, then higher success, then lower latency, then earlier trial."""
+    assert record.objective is not None and record.success_rate is not None and record.latency_ms is not None
+    return (-record.objective, -record.success_rate, record.latency_ms, record.number)
 
 
 def best_record(records: Iterable[TrialRecord]) -> TrialRecord | None:
@@ -120,6 +136,7 @@ def write_trials_csv(records: Sequence[TrialRecord], path: Path) -> None:
                 "scales": schedule_label(settings.scales) if settings else "",
                 "num_scales": settings.num_scales if settings else "",
                 "codebook_size": settings.codebook_size if settings else "",
+                "score": _cell(record.objective),
                 "success_rate": _cell(record.success_rate),
                 "latency_ms": _cell(record.latency_ms),
                 "tokenizer_rmse_percent": _cell(record.tokenizer_rmse_percent),

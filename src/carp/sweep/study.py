@@ -106,7 +106,8 @@ class SweepResult:
         best = self.best
         if best is not None and best.settings is not None:
             lines.append(
-                f"best: trial {best.number} ({best.dvc_experiment}), success {100 * best.success_rate:.1f}%, latency "
+                f"best: trial {best.number} ({best.dvc_experiment}), score {best.objective:.3f}, success "
+                f"{100 * best.success_rate:.1f}%, latency "
                 f"{best.latency_ms:.2f} ms; reproduce with: dvc exp run {best.settings.command_line()}"
             )
             if config.git_remote:
@@ -212,6 +213,7 @@ def trial_record(trial: FrozenTrial) -> TrialRecord:
         state=trial.state.name,
         settings=trial_settings(trial),
         success_rate=attrs.get("success_rate"),
+        score=attrs.get("score"),
         latency_ms=attrs.get("latency_ms"),
         tokenizer_rmse_percent=attrs.get("tokenizer_rmse_percent"),
         dvc_experiment=attrs.get("dvc_experiment") or "",
@@ -274,7 +276,15 @@ class _Objective:
             int(trial.suggest_categorical(CODEBOOK_PARAM, codebook_choices(self.config))),
         )
         # A retried trial inherits its predecessor's user attrs; start from a clean slate.
-        for key in ("tokenizer_rmse_percent", "success_rate", "latency_ms", "dvc_experiment", "interrupted", "error"):
+        for key in (
+            "tokenizer_rmse_percent",
+            "score",
+            "success_rate",
+            "latency_ms",
+            "dvc_experiment",
+            "interrupted",
+            "error",
+        ):
             trial.set_user_attr(key, None)
         run_id = None
         if self.tracker is not None and self.parent_run_id is not None:
@@ -309,18 +319,20 @@ class _Objective:
             )
         result = self.runner.run_experiment(name, settings)
         trial.set_user_attr("dvc_experiment", name)
+        trial.set_user_attr("score", result.objective)
         trial.set_user_attr("success_rate", result.success_rate)
         trial.set_user_attr("latency_ms", result.latency_ms)
         trial.set_user_attr("tokenizer_rmse_percent", result.tokenizer_rmse_percent)
         self._log(
             run_id,
             {
+                "score": result.objective,
                 "success_rate": result.success_rate,
                 "latency_ms": result.latency_ms,
                 "tokenizer_rmse_percent": result.tokenizer_rmse_percent,
             },
         )
-        return result.success_rate, "COMPLETE", name
+        return result.objective, "COMPLETE", name
 
     def _log(self, run_id: str | None, metrics: dict[str, float]) -> None:
         if self.tracker is not None and run_id is not None:

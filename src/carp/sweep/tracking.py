@@ -114,6 +114,7 @@ class SweepTracker:
             self.log_trial_metrics(
                 parent_run_id,
                 {
+                    "best_score": best.objective,
                     "best_success_rate": best.success_rate,
                     "best_latency_ms": best.latency_ms,
                     "best_tokenizer_rmse_percent": best.tokenizer_rmse_percent,
