@@ -30,7 +30,9 @@ TINY_PARAMS = {
         "output_width": 16,
         "head_hidden_width": 32,
     },
-    "eval": {"episodes": 2, "workers": 2, "max_steps": {"lift": 40, "can": 40, "square": 40}},
+    # One worker runs the episodes in the stage's own process: spawning simulator workers (each importing torch and
+    # robosuite) costs far more than two short episodes. tests/evaluation and test_kill_and_resume cover workers.
+    "eval": {"episodes": 2, "workers": 1, "max_steps": {"lift": 40, "can": 40, "square": 40}},
 }
 
 
