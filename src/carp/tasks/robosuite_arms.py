@@ -160,7 +160,7 @@ class RobosuiteArmTask:
         return expert
 
     def measure(self) -> EpisodeMeasure:
-        """The nut tasks' insertion offsets; nothing for Lift, Can and Stack."""
+        """The nut tasks' insertion offsets; nothing for Lift, Can, Stack and StackThree."""
         return self.measure_factory()
 
     def video(self, env, camera: str) -> _StateFrames:
