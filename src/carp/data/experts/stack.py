@@ -79,7 +79,7 @@ class StackThreeExpert(StackExpert):
     """
 
     name = "stack_three_scripted"
-    # Height of the fingertips above the pair's top while crossing over to the third cube.
+    # Least height of the grip site (between the fingertips) above the pair's top while crossing over to the third cube.
     cross_clearance_m = 0.05
 
     def _script(self) -> Iterator[np.ndarray]:
