@@ -698,8 +698,8 @@ class Params:
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
         tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
-            square, stack and nut_assembly, and pusht), each at most once, all in one action space (one tokenizer
-            serves them: the arms and Push-T do not mix); the per-task stages (``collect``, ``ingest``,
+            square, stack, nut_assembly and stack_three, and pusht), each at most once, all in one action space (one
+            tokenizer serves them: the arms and Push-T do not mix); the per-task stages (``collect``, ``ingest``,
             ``train_policy``, ``evaluate``) fan out over this list.
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family

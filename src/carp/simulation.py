@@ -13,6 +13,7 @@ pose controller in robosuite 1.5:
 """
 
 import copy
+import importlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -23,9 +24,12 @@ TASK_ENV_NAMES = {
     "square": "NutAssemblySquare",
     "stack": "Stack",
     "nut_assembly": "NutAssembly",
+    "stack_three": "StackThree",
 }
+# Environments carp defines on robosuite's, by env name -> the module whose import registers them with robosuite.
+CARP_ENV_MODULES = {"StackThree": "carp.tasks.stack_three"}
 # Width of robomimic's "object" observation (robosuite's "object-state") per task.
-OBJECT_OBS_DIMS = {"lift": 10, "can": 14, "square": 14, "stack": 23, "nut_assembly": 28}
+OBJECT_OBS_DIMS = {"lift": 10, "can": 14, "square": 14, "stack": 23, "nut_assembly": 28, "stack_three": 36}
 # robot0_eef_pos (3) + robot0_eef_quat (4) + robot0_gripper_qpos (2), the proprioception used by default.
 ROBOT_OBS_DIM = 9
 LOW_DIM_OBS_DIMS = {task: dim + ROBOT_OBS_DIM for task, dim in OBJECT_OBS_DIMS.items()}
@@ -123,6 +127,10 @@ def make_env(
     """
     import robosuite
 
+    # Every process that builds an env passes here (evaluation workers, collection, ingestion from stored env_args),
+    # and robosuite knows an env class only once its defining module has run.
+    if env_args["env_name"] in CARP_ENV_MODULES:
+        importlib.import_module(CARP_ENV_MODULES[env_args["env_name"]])
     kwargs = copy.deepcopy(dict(env_args["env_kwargs"]))
     use_cameras = len(camera_names) > 0
     kwargs.update(

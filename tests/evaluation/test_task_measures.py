@@ -106,7 +106,7 @@ def test_the_nut_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_n
     assert isinstance(square.measure(), InsertionOffset)
     assert square.measure() is not square.measure()  # one per episode
     assert isinstance(get_task("nut_assembly").measure(), InsertionOffset)
-    for task in ("lift", "can", "stack"):
+    for task in ("lift", "can", "stack", "stack_three"):
         assert isinstance(get_task(task).measure(), NoMeasure) and get_task(task).measure().values() == {}
 
 

@@ -1,5 +1,5 @@
-"""Stack and NutAssembly behind the arm task seam: seeded resets, observations as the other arm tasks name them, and
-scripted experts whose demos succeed and pass the robomimic schema check."""
+"""Stack, NutAssembly and StackThree behind the arm task seam: seeded resets, observations as the other arm tasks name
+them, and scripted experts whose demos succeed and pass the robomimic schema check."""
 
 import numpy as np
 import pytest
@@ -10,7 +10,7 @@ from carp.data.robomimic_io import read_demonstrations
 from carp.tasks import get_task, task_for_env_args
 from tests.conftest import OBS_KEYS
 
-NEW_TASKS = ("stack", "nut_assembly")
+NEW_TASKS = ("stack", "nut_assembly", "stack_three")
 
 
 @pytest.fixture(scope="module", params=NEW_TASKS)
@@ -22,7 +22,11 @@ def task_and_env(request):
 
 
 def test_the_new_tasks_are_found_by_the_env_args_they_write():
-    assert {name: get_task(name).env_name for name in NEW_TASKS} == {"stack": "Stack", "nut_assembly": "NutAssembly"}
+    assert {name: get_task(name).env_name for name in NEW_TASKS} == {
+        "stack": "Stack",
+        "nut_assembly": "NutAssembly",
+        "stack_three": "StackThree",
+    }
     for name in NEW_TASKS:
         task = get_task(name)
         assert task_for_env_args(task.make_env_args("delta")) is task
@@ -65,6 +69,8 @@ def test_observations_carry_the_arm_tasks_default_keys_and_the_tasks_object_widt
         ("stack", "delta", 2, 120),
         ("nut_assembly", "absolute", 1, 400),
         ("nut_assembly", "delta", 1, 400),
+        ("stack_three", "absolute", 2, 260),
+        ("stack_three", "delta", 2, 260),
     ],
 )
 def test_the_expert_succeeds_on_fixed_seeds_and_its_demos_pass_the_schema(tmp_path, task, controller, seeds, max_steps):

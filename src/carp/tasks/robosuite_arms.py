@@ -1,9 +1,8 @@
-"""robosuite's Panda arm tasks (Lift, Can, Square, Stack, NutAssembly) behind the task seam, on `carp.simulation`.
+"""robosuite's Panda arm tasks (Lift, Can, Square, Stack, NutAssembly, and carp's StackThree) behind the task seam.
 
-They share everything but their env class, their scripted expert and (Square, NutAssembly) the insertion-offset
-measure. An
-action is the OSC controller's 7-D input; with ``data.controller: absolute`` the policy learns its 10-D form with a
-continuous 6-D rotation (`carp.data.rotation`).
+They run on `carp.simulation` and share everything but their env class, their scripted expert and (Square,
+NutAssembly) the insertion-offset measure. An action is the OSC controller's 7-D input; with ``data.controller:
+absolute`` the policy learns its 10-D form with a continuous 6-D rotation (`carp.data.rotation`).
 """
 
 from collections.abc import Callable, Mapping, Sequence
@@ -161,7 +160,7 @@ class RobosuiteArmTask:
         return expert
 
     def measure(self) -> EpisodeMeasure:
-        """The nut tasks' insertion offsets; nothing for Lift, Can and Stack."""
+        """The nut tasks' insertion offsets; nothing for Lift, Can, Stack and StackThree."""
         return self.measure_factory()
 
     def video(self, env, camera: str) -> _StateFrames:
@@ -192,5 +191,10 @@ TASKS = {
     "stack": RobosuiteArmTask("stack", simulation.TASK_ENV_NAMES["stack"]),
     "nut_assembly": RobosuiteArmTask(
         "nut_assembly", simulation.TASK_ENV_NAMES["nut_assembly"], measure_factory=_nut_assembly_offsets
+    ),
+    "stack_three": RobosuiteArmTask(
+        "stack_three",
+        simulation.TASK_ENV_NAMES["stack_three"],
+        paper_demos="any published demonstrations (the paper has no three-cube stack)",
     ),
 }

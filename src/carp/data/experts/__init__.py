@@ -1,6 +1,7 @@
 """Scripted experts that solve the robosuite arm tasks from privileged object state, one file per task.
 
-Lift, PickPlaceCan, NutAssemblySquare, NutAssembly and Stack; `carp.data.experts.base` holds what they share.
+Lift, PickPlaceCan, NutAssemblySquare, NutAssembly, Stack and carp's StackThree; `carp.data.experts.base` holds what
+they share.
 """
 
 from carp.data.experts.base import (
@@ -22,7 +23,7 @@ from carp.data.experts.base import (
 from carp.data.experts.can import CanExpert
 from carp.data.experts.lift import LiftExpert
 from carp.data.experts.nut import NutAssemblyExpert, NutExpert, SquareExpert
-from carp.data.experts.stack import StackExpert
+from carp.data.experts.stack import StackExpert, StackThreeExpert
 
 __all__ = [
     "CLOSE_GRIPPER_STEPS",
@@ -45,6 +46,7 @@ __all__ = [
     "NutExpert",
     "SquareExpert",
     "StackExpert",
+    "StackThreeExpert",
     "EXPERTS",
     "make_expert",
 ]
@@ -55,6 +57,7 @@ EXPERTS: dict[str, type[ScriptedExpert]] = {
     "square": SquareExpert,
     "stack": StackExpert,
     "nut_assembly": NutAssemblyExpert,
+    "stack_three": StackThreeExpert,
 }
 
 
