@@ -235,18 +235,27 @@ def test_the_version_tags_come_from_the_evaluation_summary():
         evaluation_tags({key: value for key, value in EVALUATION.items() if key != "selection"})
 
 
-def test_a_reserved_alias_is_refused_before_anything_is_registered(tmp_path):
+def _summary(path, evaluation):
+    path.write_text(json.dumps(evaluation))
+    return path
+
+
+def test_a_reserved_alias_or_a_summary_that_does_not_fit_is_refused_before_anything_is_registered(tmp_path):
     save_tiny_checkpoint(tmp_path / "policy.pt")
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    summary = _summary(tmp_path / "seed0.json", EVALUATION)
     with pytest.raises(ConfigError, match="alias='v2': 'latest', 'v<digits>'"):
-        register_confirmed_policy(uri, tmp_path, [0.1], EVALUATION | {"selection": "final"}, ("candidate", "v2"))
+        register_confirmed_policy(uri, tmp_path, [0.1, 0.3], summary, ("candidate", "v2"))
+    # Epoch 1 is no candidate: the run kept no snapshot.
+    with pytest.raises(ValueError, match=rf"^{summary}: the evaluation selected epoch 1, which is not among the run's"):
+        register_confirmed_policy(uri, tmp_path, [0.1, 0.3], summary, ("candidate",))
     assert not (tmp_path / "mlflow.db").exists()
 
 
 def _register_seed(uri, run_dir, seed, evaluation=EVALUATION):
+    summary = _summary(run_dir.with_suffix(".json"), evaluation | {"training_seed": seed})
     with stage_run(uri, "carp-lift", f"register_policy@lift-carp-{seed}", {}, {}):
-        aliases = policy_aliases("candidate", seed, (0, 1))
-        return register_confirmed_policy(uri, run_dir, [0.1, 0.3], evaluation | {"training_seed": seed}, aliases)
+        return register_confirmed_policy(uri, run_dir, [0.1, 0.3], summary, policy_aliases("candidate", seed, (0, 1)))
 
 
 @pytest.mark.slow

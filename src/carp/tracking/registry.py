@@ -433,7 +433,7 @@ def register_confirmed_policy(
     tracking_uri: str,
     policy_dir: Path,
     epoch_losses: Sequence[float],
-    evaluation: Mapping[str, Any],
+    evaluation_path: Path,
     aliases: Sequence[str],
 ) -> ModelReference:
     """Register (in the active run) the checkpoint that an evaluation ran on the test seeds, and point `aliases` at it.
@@ -447,22 +447,27 @@ def register_confirmed_policy(
         tracking_uri: absolute MLflow tracking URI.
         policy_dir: the training run's directory (`policy.pt`, `snapshots/`).
         epoch_losses: the run's mean training loss per epoch (its history), which numbers the final policy's epoch.
-        evaluation: the evaluation summary of that run.
+        evaluation_path: the evaluation summary of that run (the evaluate stage's JSON).
         aliases: at least one; the returned reference names the first.
 
     Raises:
-        FileNotFoundError: the run has no final policy.
-        ValueError: the summary does not fit the run or lacks a tag's value, an alias the registry refuses or
-            reserves (a `ConfigError`), or a checkpoint that does not name its task.
+        FileNotFoundError: the run has no final policy, or there is no summary.
+        ValueError: a summary that is not JSON, lacks a tag's value or does not fit the run (the message names it),
+            an alias the registry refuses or reserves (a `ConfigError`), or a checkpoint that does not name its task.
         carp.training.checkpoint.CheckpointError: a checkpoint is not a readable policy checkpoint.
     """
     if not aliases:
         raise ValueError("there is no alias to point at the registered policy")
     for alias in aliases:
         require_registry_alias("alias", alias)
-    tags = evaluation_tags(evaluation)
+    candidates = find_candidates(policy_dir, epoch_losses)
     with tempfile.TemporaryDirectory(prefix="carp-register-") as scratch:
-        checkpoint = confirmed_checkpoint(find_candidates(policy_dir, epoch_losses), evaluation, Path(scratch))
+        try:
+            evaluation = json.loads(Path(evaluation_path).read_text())
+            tags = evaluation_tags(evaluation)
+            checkpoint = confirmed_checkpoint(candidates, evaluation, Path(scratch))
+        except ValueError as error:
+            raise ValueError(f"{evaluation_path}: {error}") from None
         task, family, _ = _trained_policy(checkpoint)
         name, sha256 = policy_model_name(task, family), file_sha256(checkpoint)
         reference = register_policy(tracking_uri, checkpoint, name, aliases[0], sha256, tags)
