@@ -266,7 +266,9 @@ def confirmed_checkpoint(candidates: Sequence[Candidate], summary: Mapping[str, 
     if "selected_epoch" not in summary:
         raise ValueError("the evaluation summary names no selected_epoch (evaluate it again)")
     epoch = int(summary["selected_epoch"])
-    up_to_selected = sorted((c for c in candidates if c.epoch <= epoch), key=lambda candidate: candidate.epoch)
+    up_to_selected = sorted(
+        (candidate for candidate in candidates if candidate.epoch <= epoch), key=lambda candidate: candidate.epoch
+    )
     if not up_to_selected or up_to_selected[-1].epoch != epoch:
         kept = [candidate.epoch for candidate in candidates]
         raise ValueError(f"the evaluation selected epoch {epoch}, which is not among the run's candidates {kept}")
