@@ -29,9 +29,14 @@ from stage_support import (
 
 from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import buffer_latency, episodes_table, evaluate_policy, write_episode_videos
-from carp.evaluation.selection import evaluate_with_selection, find_candidates
+from carp.evaluation.selection import (
+    AVERAGED_POLICY_NAME,
+    evaluate_with_selection,
+    find_candidates,
+    save_averaged_policy,
+)
 from carp.outputs import write_json
-from carp.policies.registry import average_policies, load_policy
+from carp.policies.registry import load_policy
 from carp.training.checkpoint import CheckpointError
 
 
@@ -74,11 +79,7 @@ def main() -> None:
 
         def average(candidates):
             # The averaged policy is evaluated, not kept: the snapshots it comes from are the stage's inputs.
-            averaged = average_policies([candidate.path for candidate in candidates])
-            averaged.metadata["averaged_epochs"] = [candidate.epoch for candidate in candidates]
-            path = Path(scratch) / "averaged.pt"
-            averaged.save(path)
-            return path
+            return save_averaged_policy(candidates, Path(scratch) / AVERAGED_POLICY_NAME)
 
         def run_episodes(checkpoint, seeds):
             return evaluate_policy(
@@ -111,6 +112,7 @@ def main() -> None:
         )
         summary, results = evaluated.test
         summary.update(evaluated.selection.validation_summary(config.validation_top_k))
+        summary["selection"] = evaluated.selection.rule
         summary["candidates"] = len(candidates)
         summary["training_seed"] = args.seed
         if "validation_max_success_rate" in summary:

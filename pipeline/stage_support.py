@@ -35,6 +35,7 @@ STAGING_DIR = PROJECT_DIR / "data" / ".staging"
 TOKENIZER_DIR = PROJECT_DIR / "models" / "tokenizer"
 TOKENIZER_REF = PROJECT_DIR / "models" / "tokenizer_ref.json"
 POLICY_DIR = PROJECT_DIR / "models" / "policy"
+POLICY_REF_DIR = PROJECT_DIR / "models" / "policy_ref"
 REPORTS_DIR = PROJECT_DIR / "reports"
 TOKENIZER_REPORT_DIR = REPORTS_DIR / "tokenizer"
 POLICY_REPORT_DIR = REPORTS_DIR / "policy"
@@ -155,6 +156,11 @@ def evaluation_report(task: str, policy: str, seed: int) -> Path:
     `policy` is a family, or a family's `multitask_label` for its multi-task policy evaluated on `task`.
     """
     return EVAL_REPORT_DIR / task / policy / f"{seed_name(seed)}.json"
+
+
+def policy_reference(task: str, policy: str, seed: int) -> Path:
+    """``models/policy_ref/<task>/<policy>/seed<seed>.json``: the registered version of one run (register_policy)."""
+    return POLICY_REF_DIR / task / policy / f"{seed_name(seed)}.json"
 
 
 def load(path: Path) -> Params:

@@ -26,6 +26,7 @@ def test_defaults_follow_the_design():
     assert (params.data.obs_steps, params.data.action_horizon, params.data.action_steps) == (2, 16, 8)
     assert params.policies == ("carp",)
     assert params.multitask == ()
+    assert (params.register, params.tracking.policy_alias) == ((), "candidate")
     carp = params.family_config("carp")
     assert (carp.depth, carp.width, carp.num_heads) == (8, 64, 8)
     assert params.tokenizer.latent_channels == 8
@@ -115,6 +116,21 @@ def test_defaults_follow_the_design():
             {"tasks": ["lift", "pusht"], "multitask": ["carp"]},
             "tasks=['lift', 'pusht']: tasks must share one action space",
         ),
+        (
+            {"register": ["carp", "lstm"]},
+            "register=['carp', 'lstm']: every family must be one of ['carp', 'diffusion_unet',",
+        ),
+        (
+            {"policies": ["carp"], "register": ["next_token"]},
+            "register=['next_token']: every family must also be in policies=['carp'] (the pipeline registers what "
+            "it trains)",
+        ),
+        ({"register": ["carp", "carp"]}, "register=['carp', 'carp']: must not repeat a family"),
+        ({"tracking": {"policy_alias": ""}}, "tracking.policy_alias='': must be set"),
+        ({"tracking": {"policy_alias": "Latest"}}, "tracking.policy_alias='Latest': 'latest', 'v<digits>' and names"),
+        ({"tracking": {"policy_alias": "2nd"}}, "tracking.policy_alias='2nd': 'latest', 'v<digits>' and names"),
+        ({"tracking": {"policy_alias": "v3"}}, "tracking.policy_alias='v3': 'latest', 'v<digits>' and names"),
+        ({"tracking": {"policy_alias": "my pick"}}, "tracking.policy_alias='my pick': may only contain letters,"),
         ({"lstm": {"depth": 3}}, "lstm: unknown key"),
         (
             {"inference": {"lstm": {}}},
@@ -346,3 +362,10 @@ def test_multitask_families_need_not_be_single_task_families():
     params = params_from_dict({"tasks": ["can", "square"], "policies": ["carp"], "multitask": ["diffusion_unet"]})
     assert params.multitask == ("diffusion_unet",)
     assert params.family_config("diffusion_unet") is not None
+
+
+def test_registered_families_are_a_subset_of_the_trained_ones_with_a_hyphenated_alias():
+    params = params_from_dict(
+        {"policies": ["carp", "next_token"], "register": ["next_token"], "tracking": {"policy_alias": "pick_2-a"}}
+    )
+    assert params.register == ("next_token",) and params.tracking.policy_alias == "pick_2-a"

@@ -9,6 +9,7 @@ sections to library functions.
 """
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass, field, replace
@@ -39,6 +40,27 @@ class ConfigError(ValueError):
 def _require(condition: bool, key: str, value: Any, constraint: str) -> None:
     if not condition:
         raise ConfigError(f"{key}={value!r}: {constraint}")
+
+
+def require_registry_alias(key: str, alias: Any) -> None:
+    """Refuse at `key` an alias the MLflow registry would refuse or reserve (the one rule for every alias carp sets).
+
+    An alias is letters, digits, ``_`` and ``-`` (MLflow's characters), not ``latest`` in any case (MLflow's moving
+    pointer), not ``v<digits>`` (MLflow's version aliases) and not starting with a digit (a version number).
+    """
+    _require(isinstance(alias, str) and bool(alias), key, alias, "must be set")
+    _require(
+        re.fullmatch(r"[\w-]+", alias) is not None,
+        key,
+        alias,
+        "may only contain letters, digits, '_' and '-' (the MLflow registry's alias characters)",
+    )
+    _require(
+        alias.lower() != "latest" and not alias[:1].isdigit() and re.fullmatch(r"[vV]\d+", alias) is None,
+        key,
+        alias,
+        "'latest', 'v<digits>' and names starting with a digit are reserved by the MLflow registry",
+    )
 
 
 def require_positive_int(key: str, value: Any) -> None:
@@ -231,8 +253,9 @@ class TokenizerConfig:
         checkpoint_every: Epochs between resumable training states in ``checkpoints/``; an integer >= 1. The last
             epoch is always saved.
         seed: Seeds weight initialization, shuffling, augmentation and code restarts; any integer.
-        registry_alias: Alias the ``register_tokenizer`` stage sets on the registered version; not empty, not
-            ``latest`` and not starting with a digit (both reserved by the MLflow registry).
+        registry_alias: Alias the ``register_tokenizer`` stage sets on the registered version: letters, digits,
+            ``_`` and ``-``, not ``latest``, not ``v<digits>`` and not starting with a digit (reserved by the MLflow
+            registry).
         warmup_fraction: Share of the optimizer steps with a linear learning-rate warm-up; a number in [0, 1].
         restart_fraction: Share of the epochs, from the first, after which codes no training token used in that
             epoch are re-seeded from the data; a number in [0, 1].
@@ -279,13 +302,7 @@ class TokenizerConfig:
         )
         _require(self.commitment_weight >= 0, "tokenizer.commitment_weight", self.commitment_weight, "must be >= 0")
         _positive_training_fields(self, "tokenizer")
-        _require(bool(self.registry_alias.strip()), "tokenizer.registry_alias", self.registry_alias, "must be set")
-        _require(
-            self.registry_alias.lower() != "latest" and not self.registry_alias[:1].isdigit(),
-            "tokenizer.registry_alias",
-            self.registry_alias,
-            "'latest' and names starting with a digit are reserved by the MLflow registry",
-        )
+        require_registry_alias("tokenizer.registry_alias", self.registry_alias)
         for name in ("warmup_fraction", "restart_fraction", "augment_probability"):
             _require(0.0 <= getattr(self, name) <= 1.0, f"tokenizer.{name}", getattr(self, name), "must be in [0, 1]")
         _require(self.augment_max_scale >= 1.0, "tokenizer.augment_max_scale", self.augment_max_scale, "must be >= 1")
@@ -617,14 +634,20 @@ class TrackingConfig:
             project root, also for experiments run in a temporary copy.
         experiment_prefix: Prefix of the MLflow experiment names: ``<prefix>-<task>``, ``<prefix>-tokenizer`` and
             ``<prefix>-sweep``; not empty.
+        policy_alias: Alias the ``register_policy`` stage points at the policies it registers (families in
+            ``register``): ``<alias>-seed<k>`` at training seed k's version of ``carp-policy-<task>-<family>``, and
+            ``<alias>`` itself at the version of the first seed in ``seeds``. Letters, digits, ``_`` and ``-``, not
+            ``latest``, not ``v<digits>`` and not starting with a digit (reserved by the MLflow registry).
     """
 
     uri: str = "sqlite:///mlflow.db"
     experiment_prefix: str = "carp"
+    policy_alias: str = "candidate"
 
     def __post_init__(self) -> None:
         _require(bool(self.uri), "tracking.uri", self.uri, "must be set")
         _require(bool(self.experiment_prefix), "tracking.experiment_prefix", self.experiment_prefix, "must be set")
+        require_registry_alias("tracking.policy_alias", self.policy_alias)
 
 
 @dataclass(frozen=True)
@@ -714,6 +737,11 @@ class Params:
             state observations, and every task's observation keys of the same widths (Lift's ``object`` is 10 wide,
             Can's and Square's 14: train Lift with them on ``data.obs_keys`` without ``object``); the
             ``train_multitask`` and ``evaluate_multitask`` stages fan out over multitask x seeds (x tasks).
+        register: Policy families whose trained policies the pipeline registers in the MLflow Model Registry, each at
+            most once and each also in ``policies``. The ``register_policy`` stage fans out over tasks x register x
+            seeds: it registers the checkpoint that ``evaluate`` ran on the test seeds (``eval.selection``) as
+            ``carp-policy-<task>-<family>``, tagged with its evaluation, and points ``tracking.policy_alias`` at it.
+            Empty (the default) adds no stage.
         device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
             rollouts run on the CPU.
         data: Demonstrations, ingestion and the time convention.
@@ -739,6 +767,7 @@ class Params:
     policies: tuple[str, ...] = ("carp",)
     seeds: tuple[int, ...] = (0,)
     multitask: tuple[str, ...] = ()
+    register: tuple[str, ...] = ()
     device: str = "auto"
     data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
@@ -766,6 +795,7 @@ class Params:
         _require(all(seed >= 0 for seed in self.seeds), "seeds", list(self.seeds), "every seed must be >= 0")
         _require(len(set(self.seeds)) == len(self.seeds), "seeds", list(self.seeds), "must not repeat a seed")
         self._check_multitask(known)
+        self._check_register(known)
         # Families without a section in the file take their defaults, so every registered family has a config.
         object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
         object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
@@ -862,6 +892,19 @@ class Params:
             families,
             f"multi-task policies train on state observations, data.observations={self.data.observations!r}",
         )
+
+    def _check_register(self, known: dict[str, Any]) -> None:
+        """Registered families are distinct families the pipeline trains (``policies``)."""
+        families = list(self.register)
+        for name in families:
+            _require(name in known, "register", families, f"every family must be one of {list(known)}")
+            _require(
+                name in self.policies,
+                "register",
+                families,
+                f"every family must also be in policies={list(self.policies)} (the pipeline registers what it trains)",
+            )
+        _require(len(set(families)) == len(families), "register", families, "must not repeat a family")
 
     def _check_tasks_share_actions_and_observations(self) -> None:
         """Every task must take ``data.controller`` and the observation kind, and all must share one action space."""

@@ -1,14 +1,19 @@
 """Checkpoint selection: candidates on disk, the rules, and that no test seed runs before the choice is fixed."""
 
 import pytest
+import torch
 
 from carp.evaluation.selection import (
     Candidate,
     CandidateScore,
+    confirmed_checkpoint,
     evaluate_with_selection,
     find_candidates,
+    save_averaged_policy,
     select_candidate,
 )
+from carp.policies.registry import load_policy
+from tests.policies.carp.factories import tiny_policy
 
 VALIDATION_SEEDS = [200_000, 200_001, 200_002, 200_003]
 TEST_SEEDS = [100_000, 100_001, 100_002]
@@ -150,3 +155,64 @@ def test_the_averaged_policy_runs_on_the_test_seeds_after_validation_and_only_it
     assert str(evaluated.tested) == "b+c" and evaluated.test == [True, True, True]
     with pytest.raises(ValueError, match="needs a way to average"):
         evaluate_with_selection(CANDIDATES, "average_last", evaluator, lambda o: o, [], TEST_SEEDS, 2)
+
+
+def _saved_run(directory):
+    """A tiny CARP run whose transformer moves each epoch: snapshots after epochs 1 and 2, the final one after 3."""
+    paths = [directory / "snapshots" / f"epoch{epoch:04d}.pt" for epoch in (1, 2)] + [directory / "policy.pt"]
+    for epoch, path in enumerate(paths, start=1):
+        policy = tiny_policy()
+        with torch.no_grad():
+            for parameter in policy.transformer.parameters():
+                parameter.add_(float(epoch))
+        policy.save(path)
+    return find_candidates(directory, [0.5, 0.1, 0.3])
+
+
+@pytest.mark.parametrize(
+    ("rule", "validation_seeds", "selected_epoch"),
+    [("final", [], 3), ("lowest_loss", [], 2), ("best_validation", VALIDATION_SEEDS, 1), ("average_last", [], 3)],
+)
+def test_the_confirmed_checkpoint_is_the_file_the_evaluation_ran_on_the_test_seeds(
+    tmp_path, rule, validation_seeds, selected_epoch
+):
+    candidates = _saved_run(tmp_path / "run")
+    evaluation_scratch, register_scratch = tmp_path / "evaluation", tmp_path / "register"
+    evaluation_scratch.mkdir()
+    register_scratch.mkdir()
+
+    def run_episodes(path, seeds):
+        # Only the first epoch's policy succeeds on the validation seeds, so best_validation picks an early snapshot.
+        return [path == candidates[0].path and seeds != TEST_SEEDS] * len(seeds)
+
+    evaluated = evaluate_with_selection(
+        candidates,
+        rule,
+        run_episodes,
+        lambda outcome: outcome,
+        validation_seeds,
+        TEST_SEEDS,
+        average_last=2,
+        average=lambda chosen: save_averaged_policy(chosen, evaluation_scratch / "averaged.pt"),
+    )
+    summary = evaluated.selection.validation_summary(top_k=1)
+    assert summary["selected_epoch"] == selected_epoch
+
+    checkpoint = confirmed_checkpoint(candidates, summary, register_scratch)
+    assert checkpoint.read_bytes() == evaluated.tested.read_bytes()
+    if rule == "average_last":
+        assert checkpoint.parent == register_scratch
+        assert load_policy(checkpoint).metadata["averaged_epochs"] == [2, 3]
+        assert checkpoint.read_bytes() not in {candidate.path.read_bytes() for candidate in candidates}
+    else:
+        assert checkpoint == candidates[selected_epoch - 1].path
+
+
+def test_a_summary_that_does_not_fit_the_run_names_what_is_missing(tmp_path):
+    candidates = find_candidates(_run_dir(tmp_path), [0.9, 0.5, 0.4, 0.2, 0.3])
+    with pytest.raises(ValueError, match="names no selected_epoch"):
+        confirmed_checkpoint(candidates, {"success_rate": 0.5}, tmp_path)
+    with pytest.raises(ValueError, match=r"selected epoch 3, which is not among the run's candidates \[2, 4, 5\]"):
+        confirmed_checkpoint(candidates, {"selected_epoch": 3}, tmp_path)
+    with pytest.raises(ValueError, match=r"averaged the last 3 candidates up to epoch 4, but the run holds 2"):
+        confirmed_checkpoint(candidates, {"selected_epoch": 4, "averaged_checkpoints": 3}, tmp_path)

@@ -81,6 +81,7 @@ def test_a_fresh_clone_answers_dry_runs_and_status_with_every_seed_fanned_out(tm
         for seed in (0, 1):
             assert f"train_policy@lift-{family}-{seed}" in stages and f"evaluate@lift-{family}-{seed}" in stages
     assert stages[-1] == "report"
+    assert [stage for stage in stages if stage.startswith("register_policy")] == []  # register: [] by default
     assert not (workspace / "data").exists(), "a dry run runs nothing"
     experiment = run([*DVC, "exp", "run", "--dry", "-S", "tasks=[lift,can]"], workspace)
     assert experiment.returncode == 0, experiment.stderr[-2000:]

@@ -1,6 +1,6 @@
 """End to end with two policy families and two training seeds: `dvc repro` on tiny params trains and evaluates CARP and
-a tiny DP-T beside it, selects each seed's checkpoint on validation seeds, the report compares them, and a change to
-one family's params makes only that family's stages stale."""
+a tiny DP-T beside it, selects each seed's checkpoint on validation seeds, registers CARP's confirmed checkpoints, the
+report compares them, and a change to one family's params makes only that family's stages stale."""
 
 import json
 import sys
@@ -9,10 +9,13 @@ import pandas as pd
 import pytest
 import yaml
 
+from carp.data.sources import file_sha256
+from carp.tracking.registry import resolve_alias
 from tests.pipeline.workspace import make_workspace, run, stages_run
 
 FAMILIES = {
     "policies": ["carp", "diffusion_transformer"],
+    "register": ["carp"],
     "seeds": [0, 1],
     "training": {"snapshot_every": 1},
     "eval": {"selection": "best_validation", "validation_episodes": 2},
@@ -76,6 +79,21 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     assert (workspace / "reports/figures/steps_to_success_lift.png").exists()
     assert (workspace / "reports/figures/success_vs_latency.png").exists()
 
+    # CARP's confirmed checkpoints are registered, one version per seed; DP-T, not in `register`, is not.
+    uri = f"sqlite:///{workspace / 'mlflow.db'}"
+    references = {}
+    for seed in FAMILIES["seeds"]:
+        reference = json.loads((workspace / f"models/policy_ref/lift/carp/seed{seed}.json").read_text())
+        selected = json.loads((workspace / f"reports/eval/lift/carp/seed{seed}.json").read_text())["selected_epoch"]
+        run_dir = workspace / f"models/policy/lift/carp/seed{seed}"
+        confirmed = run_dir / ("policy.pt" if selected == 2 else f"snapshots/epoch{selected:04d}.pt")
+        assert (reference["name"], reference["alias"]) == ("carp-policy-lift-carp", f"candidate-seed{seed}")
+        assert reference["sha256"] == file_sha256(confirmed), seed
+        references[seed] = reference
+    assert references[0]["version"] != references[1]["version"]
+    assert resolve_alias(uri, "models:/carp-policy-lift-carp@candidate").version == references[0]["version"]
+    assert not (workspace / "models/policy_ref/lift/diffusion_transformer").exists()
+
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert second.returncode == 0, second.stderr[-3000:]
     assert stages_run(second.stdout) == {"check_inputs"}, second.stdout
@@ -106,5 +124,7 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     params["seeds"] = [0, 1, 2]
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     added = {f"{stage}@lift-{p}-2" for stage in ("train_policy", "evaluate") for p in FAMILIES["policies"]}
-    assert stale_stages(workspace) == added | {"report"}
+    # Registration tracks the seed list (the plain alias goes to the first seed), so every seed's registration reruns.
+    registered = {f"register_policy@lift-carp-{seed}" for seed in (0, 1, 2)}
+    assert stale_stages(workspace) == added | registered | {"report"}
     params_file.write_text(original)

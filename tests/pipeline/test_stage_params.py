@@ -79,6 +79,38 @@ def test_the_default_run_has_no_multi_task_stage(stages):
     assert [name for name in stages if "multitask" in name] == []
 
 
+def test_the_default_run_registers_no_policy(stages):
+    assert [name for name in stages if name.startswith("register_policy")] == []
+
+
+def test_registration_fans_out_over_the_registered_families_and_seeds_and_tracks_the_aliases(tmp_path):
+    stages = resolved_params(tmp_path, ["carp", "next_token"], register=["next_token"], seeds=[0, 1])
+    assert sorted(name for name in stages if name.startswith("register_policy")) == [
+        "register_policy@lift-next_token-0",
+        "register_policy@lift-next_token-1",
+    ]
+    # `seeds` decides which seed's version carries the plain alias.
+    assert stages["register_policy@lift-next_token-1"] == ["tracking.uri", "tracking.policy_alias", "seeds"]
+
+
+def test_the_registration_stage_refuses_a_family_missing_from_register_in_one_line(tmp_path):
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params.update(policies=["carp", "next_token"], register=["carp"])
+    params_path = tmp_path / "params.yaml"
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    completed = subprocess.run(
+        [sys.executable, str(REPO / "pipeline" / "register_policy.py"), "--params", str(params_path)]
+        + ["--task", "lift", "--policy", "next_token", "--seed", "0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == [
+        f"error: {params_path}: register=['carp']: --policy next_token is not listed"
+    ]
+
+
 def test_multi_task_stages_fan_out_over_multitask_and_seeds_and_track_the_task_list(tmp_path):
     stages = resolved_params(tmp_path, ["carp"], tasks=["can", "square"], multitask=["next_token"], seeds=[0, 1])
     assert sorted(name for name in stages if "multitask" in name) == [

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from carp.config import ConfigError
 from carp.data.normalizer import MinMaxNormalizer
+from carp.data.sources import file_sha256
+from carp.serving.startup import load_served_model
 from carp.tokenizer.artifact import (
     NonFiniteTokenizerError,
     TokenizerMismatchError,
@@ -18,8 +21,18 @@ from carp.tokenizer.artifact import (
 )
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.tracking.registry import TokenizerReference, fetch_registered_tokenizer, register_tokenizer
+from carp.tracking.registry import (
+    SHA_TAG,
+    TokenizerReference,
+    evaluation_tags,
+    fetch_registered_tokenizer,
+    policy_aliases,
+    register_confirmed_policy,
+    register_tokenizer,
+    resolve_alias,
+)
 from carp.tracking.runs import find_runs, stage_run
+from tests.serving.conftest import save_tiny_checkpoint
 
 SPEC = TokenizerSpec(action_dim=2, action_horizon=8, scales=(1, 2), codebook_size=8, latent_channels=4)
 
@@ -199,3 +212,86 @@ def test_reference_file_round_trip(tmp_path):
     reference = TokenizerReference("carp-tokenizer-x", "3", "default", "run", "f" * 64)
     reference.save(tmp_path / "ref.json")
     assert TokenizerReference.load(tmp_path / "ref.json") == reference
+
+
+EVALUATION = {"training_seed": 0, "selected_epoch": 1, "selection": "lowest_loss", "success_rate": 0.5, "episodes": 4}
+"""An evaluation summary's registered part: the lowest training loss picked epoch 1's snapshot."""
+
+
+def test_each_seed_gets_its_own_alias_and_the_first_seed_the_plain_one():
+    assert policy_aliases("candidate", 3, (3, 0)) == ("candidate-seed3", "candidate")
+    assert policy_aliases("candidate", 0, (3, 0)) == ("candidate-seed0",)
+
+
+def test_the_version_tags_come_from_the_evaluation_summary():
+    assert evaluation_tags(EVALUATION | {"successes": 2}) == {
+        "carp.training_seed": "0",
+        "carp.selected_epoch": "1",
+        "carp.selection": "lowest_loss",
+        "carp.test_success_rate": "0.5",
+        "carp.test_episodes": "4",
+    }
+    with pytest.raises(ValueError, match=r"the evaluation summary lacks \['selection'\]"):
+        evaluation_tags({key: value for key, value in EVALUATION.items() if key != "selection"})
+
+
+def _summary(path, evaluation):
+    path.write_text(json.dumps(evaluation))
+    return path
+
+
+def test_a_reserved_alias_or_a_summary_that_does_not_fit_is_refused_before_anything_is_registered(tmp_path):
+    save_tiny_checkpoint(tmp_path / "policy.pt")
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    summary = _summary(tmp_path / "seed0.json", EVALUATION)
+    with pytest.raises(ConfigError, match="alias='v2': 'latest', 'v<digits>'"):
+        register_confirmed_policy(uri, tmp_path, [0.1, 0.3], summary, ("candidate", "v2"))
+    # Epoch 1 is no candidate: the run kept no snapshot.
+    with pytest.raises(ValueError, match=rf"^{summary}: the evaluation selected epoch 1, which is not among the run's"):
+        register_confirmed_policy(uri, tmp_path, [0.1, 0.3], summary, ("candidate",))
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def _register_seed(uri, run_dir, seed, evaluation=EVALUATION):
+    summary = _summary(run_dir.with_suffix(".json"), evaluation | {"training_seed": seed})
+    with stage_run(uri, "carp-lift", f"register_policy@lift-carp-{seed}", {}, {}):
+        return register_confirmed_policy(uri, run_dir, [0.1, 0.3], summary, policy_aliases("candidate", seed, (0, 1)))
+
+
+@pytest.mark.slow
+def test_the_confirmed_checkpoint_is_registered_once_tagged_and_served_from_its_alias(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    runs = {}
+    for seed in (0, 1):
+        runs[seed] = tmp_path / f"seed{seed}"
+        save_tiny_checkpoint(runs[seed] / "snapshots" / "epoch0001.pt", seed=2 * seed)
+        save_tiny_checkpoint(runs[seed] / "policy.pt", seed=2 * seed + 1)
+    first = _register_seed(uri, runs[0], 0)
+    snapshot_sha = file_sha256(runs[0] / "snapshots" / "epoch0001.pt")
+    assert (first.name, first.version, first.alias, first.sha256) == (
+        "carp-policy-lift-carp",
+        "1",
+        "candidate-seed0",
+        snapshot_sha,
+    )
+    # The same bytes again, evaluated on more episodes: the same version, its tags follow the latest evaluation.
+    again = _register_seed(uri, runs[0], 0, EVALUATION | {"success_rate": 0.75, "episodes": 8})
+    assert again == first
+    assert _register_seed(uri, runs[1], 1).version == "2"
+
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    assert len(client.search_model_versions("name = 'carp-policy-lift-carp'")) == 2
+    for alias, version in (("candidate", "1"), ("candidate-seed0", "1"), ("candidate-seed1", "2")):
+        assert resolve_alias(uri, f"models:/carp-policy-lift-carp@{alias}").version == version, alias
+    assert client.get_model_version("carp-policy-lift-carp", "1").tags == {
+        SHA_TAG: snapshot_sha,
+        "carp.training_seed": "0",
+        "carp.selected_epoch": "1",
+        "carp.selection": "lowest_loss",
+        "carp.test_success_rate": "0.75",
+        "carp.test_episodes": "8",
+    }
+    assert client.get_model_version("carp-policy-lift-carp", "2").tags["carp.training_seed"] == "1"
+
+    served, _ = load_served_model("models:/carp-policy-lift-carp@candidate", tracking_uri=uri)
+    assert (served.source.sha256, served.source.version, served.source.alias) == (snapshot_sha, "1", "candidate")

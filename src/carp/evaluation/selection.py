@@ -9,16 +9,17 @@ kept, and the validation figures it returns let the report show the optimistic n
 """
 
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from carp.config import SELECTION_RULES
 
 Outcome = TypeVar("Outcome")
 
 FINAL_POLICY_NAME = "policy.pt"
+AVERAGED_POLICY_NAME = "averaged.pt"
 _SNAPSHOT_NAME = re.compile(r"^epoch(\d+)\.pt$")
 
 
@@ -231,3 +232,52 @@ def evaluate_with_selection(
         tested = average(selection.averaged)
     test = run_episodes(tested, list(test_seeds))
     return SelectedEvaluation(selection, validation, test, Path(tested))
+
+
+def save_averaged_policy(candidates: Sequence[Candidate], path: Path) -> Path:
+    """Write at `path` the policy whose weights are the mean of `candidates`' (`average_policies`); returns `path`.
+
+    Its metadata lists the averaged epochs. The bytes depend on the candidates alone (`atomic_torch_save` does not
+    name the archive after the file), so rebuilding the average after the evaluation gives the file it ran.
+    """
+    from carp.policies.registry import average_policies
+
+    averaged = average_policies([candidate.path for candidate in candidates])
+    averaged.metadata["averaged_epochs"] = [candidate.epoch for candidate in candidates]
+    averaged.save(path)
+    return Path(path)
+
+
+def confirmed_checkpoint(candidates: Sequence[Candidate], summary: Mapping[str, Any], scratch: Path) -> Path:
+    """The checkpoint that an evaluation ran on the test seeds, found from its summary among the run's candidates.
+
+    The summary (the evaluate stage's ``seed<k>.json``, `Selection.validation_summary`) names the chosen candidate's
+    ``selected_epoch`` and, with ``average_last``, how many of the latest candidates up to it were averaged
+    (``averaged_checkpoints``); that average is rebuilt (`save_averaged_policy`) in `scratch`.
+
+    Args:
+        candidates: the run's candidates (`find_candidates`), as the evaluation saw them.
+        summary: the evaluation summary.
+        scratch: an existing directory for the averaged policy; the caller removes it.
+
+    Raises:
+        ValueError: the summary names no selected epoch, or one (or averaged candidates) that the run does not hold.
+    """
+    if "selected_epoch" not in summary:
+        raise ValueError("the evaluation summary names no selected_epoch (evaluate it again)")
+    epoch = int(summary["selected_epoch"])
+    up_to_selected = sorted(
+        (candidate for candidate in candidates if candidate.epoch <= epoch), key=lambda candidate: candidate.epoch
+    )
+    if not up_to_selected or up_to_selected[-1].epoch != epoch:
+        kept = [candidate.epoch for candidate in candidates]
+        raise ValueError(f"the evaluation selected epoch {epoch}, which is not among the run's candidates {kept}")
+    averaged = int(summary.get("averaged_checkpoints", 0))
+    if not averaged:
+        return up_to_selected[-1].path
+    if averaged > len(up_to_selected):
+        raise ValueError(
+            f"the evaluation averaged the last {averaged} candidates up to epoch {epoch}, but the run holds "
+            f"{len(up_to_selected)} (epochs {[candidate.epoch for candidate in up_to_selected]})"
+        )
+    return save_averaged_policy(up_to_selected[-averaged:], Path(scratch) / AVERAGED_POLICY_NAME)

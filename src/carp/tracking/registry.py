@@ -7,17 +7,22 @@ checkpoint file (`policy.pt`) as the artifact; ``predict`` turns raw observation
 go through one registration and one download: versions carry the sha256 (the tokenizer's weights, the policy's
 checkpoint bytes) as a tag, registering the same hash again returns the existing version, and a download is checked
 against the tag. Policies are named per task and family (:func:`policy_model_name`); the user moves an alias (e.g.
-``champion``) to the version to serve, and `carp serve` follows it.
+``champion``) to the version to serve, and `carp serve` follows it. The pipeline's ``register_policy`` stage
+registers the checkpoint its evaluation confirmed on the test seeds (:func:`register_confirmed_policy`), tagged with
+that evaluation, under one alias per training seed (:func:`policy_aliases`).
 """
 
 import json
 import logging
 import os
+import shutil
 import tempfile
 import time
+from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import mlflow
 import numpy as np
@@ -26,7 +31,9 @@ from mlflow import MlflowClient
 from mlflow.models import ModelSignature
 from mlflow.types import ParamSchema, ParamSpec
 
+from carp.config import require_registry_alias
 from carp.data.sources import file_sha256
+from carp.evaluation.selection import confirmed_checkpoint, find_candidates
 from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact
 
 logger = logging.getLogger(__name__)
@@ -35,6 +42,14 @@ SHA_TAG = "carp.sha256"
 ARTIFACT_KEY = "tokenizer"
 POLICY_ARTIFACT_KEY = "policy"
 POLICY_FILENAME = "policy.pt"
+# Summary key of the evaluation (the evaluate stage's seed<k>.json) -> tag of the registered policy version.
+EVALUATION_TAGS = {
+    "training_seed": "carp.training_seed",
+    "selected_epoch": "carp.selected_epoch",
+    "selection": "carp.selection",
+    "success_rate": "carp.test_success_rate",
+    "episodes": "carp.test_episodes",
+}
 # Setting an alias is a read-then-insert on the server; writers that insert the same new alias at the same moment
 # collide on its primary key, and a repeat (which then updates) settles it.
 ALIAS_ATTEMPTS = 6
@@ -132,12 +147,21 @@ def register_tokenizer(
 
 
 def _register_version(
-    tracking_uri: str, name: str, alias: str, sha256: str, artifact_path: str, python_model, artifacts, signature=None
+    tracking_uri: str,
+    name: str,
+    alias: str,
+    sha256: str,
+    artifact_path: str,
+    python_model,
+    artifacts,
+    signature=None,
+    tags: Mapping[str, str] | None = None,
 ) -> ModelReference:
     """Register `python_model` with `artifacts` under `name` once per `sha256`, and point `alias` at that version.
 
     The model is logged in the active run unless a version of `name` already carries `sha256`, in which case the
-    oldest such version is reused.
+    oldest such version is reused. `tags` are set on the version either way (before the alias moves to it), so a
+    reused version carries the latest values.
     """
     client = MlflowClient(tracking_uri=tracking_uri)
     existing = [v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256]
@@ -158,6 +182,8 @@ def _register_version(
         version = min(
             (v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256), key=lambda v: int(v.version)
         )
+    for key, value in (tags or {}).items():
+        client.set_model_version_tag(name, str(version.version), key, value)
     aliased = point_alias(client, name, alias, str(version.version), sha256)
     return ModelReference(name=name, version=str(aliased.version), alias=alias, run_id=aliased.run_id, sha256=sha256)
 
@@ -280,27 +306,44 @@ class PolicyModel(mlflow.pyfunc.PythonModel):
         return self.policy.predict_action(np.asarray(model_input, dtype=np.float32))
 
 
-def register_policy(tracking_uri: str, checkpoint: Path, name: str, alias: str, sha256: str) -> ModelReference:
+def register_policy(
+    tracking_uri: str,
+    checkpoint: Path,
+    name: str,
+    alias: str,
+    sha256: str,
+    tags: Mapping[str, str] | None = None,
+) -> ModelReference:
     """Log and register the policy checkpoint at `checkpoint` (in the active run) under `name`; point `alias` at it.
 
     Idempotent like :func:`register_tokenizer`: a version already carrying `sha256` is reused.
 
     Args:
         tracking_uri: absolute MLflow tracking URI.
-        checkpoint: the `policy.pt` file.
+        checkpoint: a policy checkpoint file (`policy.pt`, a snapshot, an averaged policy); the version stores it as
+            `policy.pt`.
         name: registered model name (:func:`policy_model_name`).
         alias: alias to point at the version.
         sha256: hex sha256 of the checkpoint's bytes (tag of the version).
+        tags: further tags set on the version.
     """
-    return _register_version(
-        tracking_uri,
-        name,
-        alias,
-        sha256,
-        artifact_path="policy",
-        python_model=PolicyModel(),
-        artifacts={POLICY_ARTIFACT_KEY: str(checkpoint)},
-    )
+    checkpoint = Path(checkpoint)
+    with tempfile.TemporaryDirectory(prefix="carp-policy-") as staging:
+        if checkpoint.name != POLICY_FILENAME:
+            # The artifact keeps the file's name, and a download (`fetch_registered_policy`) looks for policy.pt.
+            staged = Path(staging) / POLICY_FILENAME
+            shutil.copyfile(checkpoint, staged)
+            checkpoint = staged
+        return _register_version(
+            tracking_uri,
+            name,
+            alias,
+            sha256,
+            artifact_path="policy",
+            python_model=PolicyModel(),
+            artifacts={POLICY_ARTIFACT_KEY: str(checkpoint)},
+            tags=tags,
+        )
 
 
 def fetch_registered_policy(tracking_uri: str, reference: ModelReference, destination: Path) -> Path:
@@ -332,19 +375,103 @@ def register_policy_checkpoint(tracking_uri: str, checkpoint: Path, alias: str) 
     checkpoint as the version's artifact, unless the same bytes are registered already.
 
     Raises:
-        ValueError: the checkpoint does not name its task, or `alias` is reserved by the registry.
+        ValueError: the checkpoint does not name its task, or `alias` is one the registry refuses or reserves
+            (`carp.config.require_registry_alias`; a `ConfigError`).
+        carp.training.checkpoint.CheckpointError: the file is not a readable policy checkpoint.
+    """
+    from carp.tracking.runs import stage_run
+
+    require_registry_alias("alias", alias)
+    task, family, source_run = _trained_policy(checkpoint)
+    tags = {"carp.policy_type": family, "carp.source_run": source_run}
+    with stage_run(tracking_uri, f"carp-{task}", f"register_policy@{task}-{family}", {}, tags):
+        name = policy_model_name(task, family)
+        return register_policy(tracking_uri, checkpoint, name, alias, file_sha256(checkpoint))
+
+
+def _trained_policy(checkpoint: Path) -> tuple[str, str, str]:
+    """The task, family and training run id the checkpoint at `checkpoint` records (it is loaded, so it is sound).
+
+    Raises:
+        ValueError: the checkpoint does not name its task.
         carp.training.checkpoint.CheckpointError: the file is not a readable policy checkpoint.
     """
     from carp.policies.registry import load_policy
-    from carp.tracking.runs import stage_run
 
-    if not alias.strip() or alias.lower() == "latest" or alias[:1].isdigit():
-        raise ValueError(f"alias {alias!r}: empty, 'latest' and names starting with a digit are reserved")
     policy = load_policy(checkpoint)
     task = policy.metadata.get("task")
     if not task:
         raise ValueError(f"{checkpoint}: the checkpoint does not name the task it was trained on")
-    name = policy_model_name(task, policy.policy_type)
-    tags = {"carp.policy_type": policy.policy_type, "carp.source_run": str(policy.metadata.get("mlflow_run_id"))}
-    with stage_run(tracking_uri, f"carp-{task}", f"register_policy@{task}-{policy.policy_type}", {}, tags):
-        return register_policy(tracking_uri, checkpoint, name, alias, file_sha256(checkpoint))
+    return task, policy.policy_type, str(policy.metadata.get("mlflow_run_id"))
+
+
+def policy_aliases(alias: str, seed: int, seeds: Sequence[int]) -> tuple[str, ...]:
+    """The aliases the pipeline points at training seed `seed`'s version, the seed's own first.
+
+    ``<alias>-seed<seed>`` always, and ``<alias>`` itself when `seed` is the first of `seeds`, so that
+    ``models:/<name>@<alias>`` names one policy the pipeline trained however many seeds it trains.
+    """
+    per_seed = f"{alias}-seed{seed}"
+    return (per_seed, alias) if seed == seeds[0] else (per_seed,)
+
+
+def evaluation_tags(evaluation: Mapping[str, Any]) -> dict[str, str]:
+    """The version tags (:data:`EVALUATION_TAGS`) of an evaluation summary.
+
+    Training seed, selected epoch, selection rule, and the success rate and episodes on the test seeds.
+
+    Raises:
+        ValueError: the summary lacks one of them (written before the summary recorded it).
+    """
+    missing = [key for key in EVALUATION_TAGS if key not in evaluation]
+    if missing:
+        raise ValueError(f"the evaluation summary lacks {missing} (evaluate the policy again)")
+    return {tag: str(evaluation[key]) for key, tag in EVALUATION_TAGS.items()}
+
+
+def register_confirmed_policy(
+    tracking_uri: str,
+    policy_dir: Path,
+    epoch_losses: Sequence[float],
+    evaluation_path: Path,
+    aliases: Sequence[str],
+) -> ModelReference:
+    """Register (in the active run) the checkpoint that an evaluation ran on the test seeds, and point `aliases` at it.
+
+    The checkpoint is the candidate the evaluation summary names (`carp.evaluation.selection.confirmed_checkpoint`:
+    a snapshot, the final policy, or the average rebuilt as the evaluation built it), registered as
+    :func:`policy_model_name` of the task and family it records, with :func:`evaluation_tags`. The same bytes keep
+    their version.
+
+    Args:
+        tracking_uri: absolute MLflow tracking URI.
+        policy_dir: the training run's directory (`policy.pt`, `snapshots/`).
+        epoch_losses: the run's mean training loss per epoch (its history), which numbers the final policy's epoch.
+        evaluation_path: the evaluation summary of that run (the evaluate stage's JSON).
+        aliases: at least one; the returned reference names the first.
+
+    Raises:
+        FileNotFoundError: the run has no final policy, or there is no summary.
+        ValueError: a summary that is not JSON, lacks a tag's value or does not fit the run (the message names it),
+            an alias the registry refuses or reserves (a `ConfigError`), or a checkpoint that does not name its task.
+        carp.training.checkpoint.CheckpointError: a checkpoint is not a readable policy checkpoint.
+    """
+    if not aliases:
+        raise ValueError("there is no alias to point at the registered policy")
+    for alias in aliases:
+        require_registry_alias("alias", alias)
+    candidates = find_candidates(policy_dir, epoch_losses)
+    with tempfile.TemporaryDirectory(prefix="carp-register-") as scratch:
+        try:
+            evaluation = json.loads(Path(evaluation_path).read_text())
+            tags = evaluation_tags(evaluation)
+            checkpoint = confirmed_checkpoint(candidates, evaluation, Path(scratch))
+        except ValueError as error:
+            raise ValueError(f"{evaluation_path}: {error}") from None
+        task, family, _ = _trained_policy(checkpoint)
+        name, sha256 = policy_model_name(task, family), file_sha256(checkpoint)
+        reference = register_policy(tracking_uri, checkpoint, name, aliases[0], sha256, tags)
+    client = MlflowClient(tracking_uri=tracking_uri)
+    for alias in aliases[1:]:
+        point_alias(client, name, alias, reference.version, sha256)
+    return reference
