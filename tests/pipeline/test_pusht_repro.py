@@ -1,6 +1,6 @@
 """End to end on Push-T: `dvc repro` with `tasks: [pusht]` on tiny params collects with the planning expert, ingests
-2-D targets, trains a tokenizer and CARP in Push-T's action space, evaluates with DP's score and a video, reports
-them with the scripted-demo caveat, and a second run does nothing."""
+2-D targets, trains a tokenizer and CARP (with VQ-BeT and Consistency Policy beside it) in Push-T's action space,
+evaluates with DP's score and a video, reports them with the scripted-demo caveat, and a second run does nothing."""
 
 import json
 import sys
@@ -8,10 +8,16 @@ import sys
 import pandas as pd
 import pytest
 
+from tests.pipeline.test_consistency_repro import TINY_UNET
 from tests.pipeline.workspace import make_workspace, run, stages_run
 
+# The two families whose tokenizer and teacher are their own (VQ-BeT's residual VQ-VAE, Consistency Policy's EDM
+# teacher) run beside CARP, at the sizes of their own e2e tests.
 PUSHT = {
     "tasks": ["pusht"],
+    "policies": ["carp", "vq_bet", "consistency_policy"],
+    "edm_unet": TINY_UNET,
+    "consistency_policy": TINY_UNET | {"num_levels": 10},
     "eval": {"max_steps": {"pusht": 30}, "video": True, "video_episodes": 1},
 }
 
@@ -41,6 +47,9 @@ def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(tmp_path)
     assert summary["episodes"] == 2 and summary["max_reward_episodes"] == 2
     assert 0.0 <= summary["max_reward_mean"] <= 1.0
     assert summary["score"] == summary["max_reward_mean"]  # what a sweep over Push-T maximizes
+    for family in ("vq_bet", "consistency_policy"):
+        other = json.loads((workspace / f"reports/eval/pusht/{family}/seed0.json").read_text())
+        assert other["max_reward_episodes"] == 2 and other["score"] == other["max_reward_mean"], family
     episodes = pd.read_csv(workspace / "reports/eval/pusht/carp/seed0_episodes.csv")
     assert set(episodes["seed"]) == {100_000, 100_001} and (episodes["steps"] <= 30).all()
     assert episodes["max_reward"].between(0, 1).all()
