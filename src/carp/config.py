@@ -734,9 +734,9 @@ class Params:
             with its task, a learned task embedding in the observation encoder, each task normalized with its own
             statistics), evaluated on every task beside the single-task policies; registered families, each at most
             once, not necessarily in ``policies``. Empty (the default) adds no stage. Needs at least two tasks with
-            state observations, and every task's observation keys of the same widths (Lift's ``object`` is 10 wide,
-            Can's and Square's 14: train Lift with them on ``data.obs_keys`` without ``object``); the
-            ``train_multitask`` and ``evaluate_multitask`` stages fan out over multitask x seeds (x tasks).
+            state observations and the same observation keys; a key narrower in one task than in another (Lift's
+            ``object`` is 10 wide, Can's 14) is zero-padded to the widest inside the policy. The ``train_multitask``
+            and ``evaluate_multitask`` stages fan out over multitask x seeds (x tasks).
         register: Policy families whose trained policies the pipeline registers in the MLflow Model Registry, each at
             most once and each also in ``policies``. The ``register_policy`` stage fans out over tasks x register x
             seeds: it registers the checkpoint that ``evaluate`` ran on the test seeds (``eval.selection``) as

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from carp.data.dataset import TaskWindows, check_tasks_agree, stack_task_windows
+from carp.data.dataset import TaskWindows, check_tasks_agree, stack_task_windows, task_obs_widths
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.windows import make_windows
@@ -68,9 +68,22 @@ def test_each_task_is_normalized_with_its_own_statistics():
     assert actions[task_ids == 1].min() >= -1 and actions[task_ids == 1].max() <= 1
 
 
-def test_tasks_whose_observations_differ_are_refused_naming_task_and_key():
-    with pytest.raises(ValueError, match="task 'can': observation key 'object' has 4 features, task 'lift''s has 2"):
-        check_tasks_agree({"lift": _task_windows(1, [5]), "can": _task_windows(2, [5], widths=(4, 1))})
+def test_tasks_whose_observation_keys_or_actions_differ_are_refused_naming_task_and_key():
     with pytest.raises(ValueError, match="task 'can': obs_keys \\['object'\\] differs from task 'lift''s"):
         check_tasks_agree({"lift": _task_windows(1, [5]), "can": _task_windows(2, [5], widths=(2,))})
     check_tasks_agree({"lift": _task_windows(1, [5]), "can": _task_windows(2, [6, 4])})
+    # A key of another width is padded, not refused.
+    check_tasks_agree({"lift": _task_windows(1, [5]), "can": _task_windows(2, [5], widths=(4, 1))})
+
+
+def test_a_narrower_task_is_zero_padded_per_key_to_the_widest_layout():
+    lift, can = _task_windows(1, [5, 3]), _task_windows(2, [6], widths=(4, 1))
+    windows = {"lift": lift, "can": can}
+    assert task_obs_widths(windows) == {"lift": (2, 1), "can": (4, 1)}
+    obs, _, task_ids = stack_task_windows(windows, "train")
+    assert obs.shape[-1] == 5  # object 4 + eef 1
+    lift_obs, can_obs = obs[task_ids == 0], obs[task_ids == 1]
+    # Lift's two object features fill the key's first columns, then two zeros, then its eef feature.
+    np.testing.assert_array_equal(lift_obs[..., [2, 3]], 0.0)
+    np.testing.assert_array_equal(lift_obs[..., [0, 1, 4]], lift.train_obs.astype(np.float32))
+    np.testing.assert_array_equal(can_obs, can.train_obs.astype(np.float32))

@@ -1,6 +1,7 @@
-"""End to end with a multi-task policy: `dvc repro` on tiny params over Can and Square (observations of the same
-widths) trains the single-task CARPs and one multi-task CARP over both tasks, evaluates it on each task beside them,
-and the report sets them side by side; a second run runs nothing but the input check."""
+"""End to end with a multi-task policy: `dvc repro` on tiny params over Lift and Can (a 10-wide and a 14-wide `object`
+observation, padded inside the policy) trains the single-task CARPs and one multi-task CARP over both tasks,
+evaluates it on each task beside them, and the report sets them side by side; a second run runs nothing but the
+input check."""
 
 import json
 import sys
@@ -11,7 +12,7 @@ from carp.policies.registry import load_policy
 from carp.serving.startup import load_served_model
 from tests.pipeline.workspace import make_workspace, run, stages_run
 
-TASKS = ["can", "square"]
+TASKS = ["lift", "can"]
 MULTITASK = {
     "tasks": TASKS,
     "multitask": ["carp"],
@@ -25,7 +26,7 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
     workspace = make_workspace(tmp_path / "carp", MULTITASK)
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
-    assert {"train_multitask@carp-0", "evaluate_multitask@can-carp-0", "evaluate_multitask@square-carp-0"} <= (
+    assert {"train_multitask@carp-0", "evaluate_multitask@lift-carp-0", "evaluate_multitask@can-carp-0"} <= (
         stages_run(first.stdout)
     )
     for output in (
@@ -46,9 +47,14 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
     policy = load_policy(workspace / "models/policy/multitask/carp/seed0/policy.pt")
     assert list(policy.tasks.names) == TASKS
     # It records its serving protocol: `carp serve --task` serves either task from the file alone.
+    # Each task's own observation widths: `object` is 10 wide in Lift, 14 in Can (the policy pads Lift's).
+    object_widths = {}
     for task in TASKS:
         served, spec = load_served_model(workspace / "models/policy/multitask/carp/seed0/policy.pt", task=task)
         assert served.policy.tasks.selected == task and spec.obs_widths is not None
+        object_widths[task] = spec.obs_widths[spec.obs_keys.index("object")]
+    assert object_widths == {"lift": 10, "can": 14}
+    assert policy.obs_normalizer.num_features == sum(policy.tasks.obs_widths["can"])
     # The shared tokenizer's error on each task's own held-out windows.
     tokenizer_metrics = json.loads((workspace / "reports/tokenizer/metrics.json").read_text())
     assert all(f"task/{task}/rmse_percent_range/mean" in tokenizer_metrics for task in TASKS)
@@ -59,7 +65,7 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
         assert summary["episodes"] == 1 and summary["policy_type"] == "carp"
     report = (workspace / "reports/report.md").read_text()
     section = report.split("## Multi-task", 1)[1].split("\n## ", 1)[0]
-    rows = [line for line in section.splitlines() if line.startswith(("| can ", "| square "))]
+    rows = [line for line in section.splitlines() if line.startswith(("| lift ", "| can "))]
     assert len(rows) == 2 and all("| carp " in row and "/1 (" in row for row in rows)
 
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)

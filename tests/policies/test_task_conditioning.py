@@ -1,5 +1,7 @@
 """Multi-task conditioning: one task embedding in the shared observation encoder, for every family."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -106,6 +108,23 @@ def test_task_records_are_checked():
             action_horizon=8,
             tasks=tiny_tasks(2, normalizer, normalizer),
         )
+
+
+def test_padded_tasks_round_trip_and_widths_must_pad_to_the_statistics():
+    widths = {"lift": (1, 1), "can": (1, 2)}
+    tasks = tiny_tasks(
+        2, MinMaxNormalizer(np.zeros(3), np.ones(3)), MinMaxNormalizer(np.zeros(2), np.ones(2)), ("lift", "can"), widths
+    )
+    again = PolicyTasks.from_dict(json.loads(json.dumps(tasks.to_dict())))
+    assert again.obs_widths == widths and again.names == tasks.names
+    assert again.padding().input_dim == 2 and not again.with_selected("can").padding().pads
+    np.testing.assert_array_equal(again.padding().pad(np.ones((1, 2))), [[1.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="pad to 4 features, the obs statistics have 3"):
+        PolicyTasks(
+            tasks.names, tasks.obs_normalizers, tasks.action_normalizers, obs_widths={"lift": (1, 1), "can": (2, 2)}
+        )
+    with pytest.raises(ValueError, match=r"obs widths are for tasks \['lift'\], not \['lift', 'can'\]"):
+        PolicyTasks(tasks.names, tasks.obs_normalizers, tasks.action_normalizers, obs_widths={"lift": (1, 2)})
 
 
 def test_a_diffusion_policy_trains_its_task_embedding_and_the_loop_checks_the_task_ids(tmp_path):

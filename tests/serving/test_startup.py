@@ -106,6 +106,24 @@ def test_a_multi_task_policy_serves_the_task_named_at_startup(tmp_path):
     assert np.abs(chunks["lift"] - chunks["can"]).max() > 1e-3
 
 
+def test_a_padded_multi_task_policy_serves_each_task_with_its_own_key_widths(tmp_path):
+    widths = {"lift": (1, 1), "can": (1, 2)}  # Can's is the padded layout, Lift's eef key one feature narrower
+    policy = tiny_policy(seed=3, num_tasks=2, task_names=("lift", "can"), obs_widths=widths)
+    policy.metadata[SERVING_METADATA_KEY] = PROTOCOL
+    path = tmp_path / "padded.pt"
+    policy.save(path)
+    assert load_served_model(path, task="can")[1] == SPEC
+    served, spec = load_served_model(path, task="lift")
+    assert (spec.obs_widths, spec.obs_dim) == ((1, 1), 2)
+    history = np.stack(observations(OBS_STEPS, seed=0))[:, :2]  # Lift's own (To, 2)
+    chunk = served.predict(Observed(history, None, torch.Generator()))[0].actions
+    reference = load_policy(path)
+    reference.select_task("lift")
+    np.testing.assert_array_equal(chunk, reference.predict_action_timed(history[None]).actions)
+    in_onnx, _ = load_served_model(path, backend="onnxruntime", task="lift")
+    np.testing.assert_allclose(in_onnx.predict(Observed(history, None, torch.Generator()))[0].actions, chunk, atol=1e-5)
+
+
 def test_a_single_task_policy_refuses_another_task(checkpoint):
     assert load_served_model(checkpoint, task="lift")[0].task == "lift"
     with pytest.raises(ServingStartError, match="task 'can': this policy was trained on 'lift' only"):

@@ -8,6 +8,7 @@ import numpy as np
 
 from carp.data.ingest import BUFFER_DIRNAME, NORMALIZATION_FILENAME
 from carp.data.normalizer import MinMaxNormalizer, load_normalizers
+from carp.data.obs_padding import padded_layout
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.windows import make_windows
 
@@ -50,11 +51,9 @@ def load_task_windows(processed_dir: Path, horizon: int, obs_steps: int, action_
 def check_tasks_agree(windows: Mapping[str, TaskWindows]) -> None:
     """Refuse tasks whose observations or actions differ in layout: one multi-task policy sees them all alike.
 
-    The first task is the reference; every other must have the same low-dim obs keys in the same order, each of the
-    same width, the same controller, and actions of the same width. Observations of different widths (Lift's 10-wide
-    `object` against Can's and Square's 14) are refused rather than zero-padded: a padded feature would mean
-    different things in different tasks, and evaluation would have to pad every simulator observation the same way.
-    Train such tasks together on obs keys they share (e.g. without `object`).
+    The first task is the reference; every other must have the same low-dim obs keys in the same order, the same
+    controller, and actions of the same width. A key may differ in width between tasks (Lift's 10-wide `object`
+    against Can's 14): the policy pads each to its widest task's width (`carp.data.obs_padding`).
 
     Raises:
         ValueError: naming the task, the key and both values.
@@ -68,24 +67,16 @@ def check_tasks_agree(windows: Mapping[str, TaskWindows]) -> None:
             ours, theirs = reference.buffer.attrs.get(key), own.buffer.attrs.get(key)
             if ours != theirs:
                 raise ValueError(f"task {task!r}: {key} {theirs!r} differs from task {reference_task!r}'s {ours!r}")
-        widths = zip(
-            reference.buffer.attrs["obs_keys"],
-            reference.buffer.attrs["obs_widths"],
-            own.buffer.attrs["obs_widths"],
-            strict=True,
-        )
-        for key, ours, theirs in widths:
-            if ours != theirs:
-                raise ValueError(
-                    f"task {task!r}: observation key {key!r} has {theirs} features, task {reference_task!r}'s has "
-                    f"{ours}; a multi-task policy needs the same observations in every task (leave {key!r} out of "
-                    "data.obs_keys)"
-                )
         if own.buffer.action.shape[1] != reference.buffer.action.shape[1]:
             raise ValueError(
                 f"task {task!r}: actions have {own.buffer.action.shape[1]} dimensions, task {reference_task!r}'s have "
                 f"{reference.buffer.action.shape[1]}"
             )
+
+
+def task_obs_widths(windows: Mapping[str, TaskWindows]) -> dict[str, tuple[int, ...]]:
+    """Each task's features per obs key (the replay buffer's `obs_widths`), in task-id order."""
+    return {task: tuple(int(width) for width in own.buffer.attrs["obs_widths"]) for task, own in windows.items()}
 
 
 def load_multitask_windows(
@@ -111,21 +102,23 @@ def stack_task_windows(windows: Mapping[str, TaskWindows], split: str) -> tuple[
     """One split of several tasks' windows, each normalized with its own task's statistics, and their task ids.
 
     Every window comes from one episode of one task (`carp.data.windows`), so stacking the tasks' windows never
-    makes one that straddles two demos or two tasks.
+    makes one that straddles two demos or two tasks. Tasks whose obs keys differ in width are padded to the widest
+    (`carp.data.obs_padding.padded_layout`): a padded column is 0, as the task's statistics would normalize it.
 
     Args:
         windows: task -> its windows, in task-id order.
         split: ``train`` or ``valid``.
 
     Returns:
-        obs (N, To, Do) and actions (N, H, A) float32 normalized, task ids (N,) int64 (the tasks' positions).
+        obs (N, To, Do) (padded) and actions (N, H, A) float32 normalized, task ids (N,) int64 (the tasks' positions).
     """
     if split not in ("train", "valid"):
         raise ValueError(f"split must be train or valid, got {split!r}")
+    paddings = padded_layout(task_obs_widths(windows))
     obs, actions, task_ids = [], [], []
-    for task_id, task_windows in enumerate(windows.values()):
+    for task_id, (task, task_windows) in enumerate(windows.items()):
         task_obs = getattr(task_windows, f"{split}_obs")
-        obs.append(task_windows.obs_normalizer.normalize(task_obs).astype(np.float32))
+        obs.append(paddings[task].pad(task_windows.obs_normalizer.normalize(task_obs).astype(np.float32)))
         actions.append(task_windows.action_normalizer.normalize(getattr(task_windows, f"{split}_actions")))
         task_ids.append(np.full(len(task_obs), task_id, dtype=np.int64))
     return np.concatenate(obs), np.concatenate(actions).astype(np.float32), np.concatenate(task_ids)

@@ -11,6 +11,10 @@ a task un-normalizes with that task's (:meth:`PolicyTasks.index` refuses a task 
 policy's own `obs_normalizer` and `action_normalizer` are those of its *selected* task
 (`carp.policies.wrapper.PolicyModule.select_task`), whose index is also the default task of a prediction.
 
+Tasks whose obs keys differ in width (Lift's `object` against Can's) share a padded layout
+(`carp.data.obs_padding`): the policy takes each task's own observations and pads them itself, so its obs statistics
+are all in the padded layout, and :meth:`PolicyTasks.padding` tells how the selected task's features sit in it.
+
 The record is plain values stored in the policy's metadata under :data:`TASKS_METADATA_KEY`, so it travels in every
 family's checkpoint unchanged; a single-task policy has no such entry and no task embedding.
 """
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.data.obs_padding import ObservationPadding, padded_layout
 
 TASKS_METADATA_KEY = "tasks"
 """Metadata entry of a multi-task policy: :meth:`PolicyTasks.to_dict`."""
@@ -35,9 +40,11 @@ class PolicyTasks:
     Attributes:
         names: task names; index i is task id i. At least two, no repeats.
         embedding_dim: width of the learned task embedding appended to every observation step's features; >= 1.
-        obs_normalizers: task -> its `Do` observation statistics.
+        obs_normalizers: task -> its observation statistics in the padded layout, `Do` wide.
         action_normalizers: task -> its `A` action statistics.
         selected: the task whose statistics the policy currently uses; one of `names`.
+        obs_widths: task -> its own features per obs key, whose per-key maxima are the padded layout; None when every
+            task has the padded layout itself (no padding; policies trained before padding existed record none).
     """
 
     names: tuple[str, ...]
@@ -45,6 +52,7 @@ class PolicyTasks:
     action_normalizers: Mapping[str, MinMaxNormalizer]
     embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM
     selected: str | None = None
+    obs_widths: Mapping[str, tuple[int, ...]] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "names", tuple(self.names))
@@ -61,6 +69,15 @@ class PolicyTasks:
         if self.selected is None:
             object.__setattr__(self, "selected", self.names[0])
         self.index(self.selected)
+        if self.obs_widths is not None:
+            if set(self.obs_widths) != set(self.names):
+                raise ValueError(f"obs widths are for tasks {sorted(self.obs_widths)}, not {list(self.names)}")
+            widths = {task: tuple(int(width) for width in self.obs_widths[task]) for task in self.names}
+            object.__setattr__(self, "obs_widths", widths)
+            padded_dim = padded_layout(widths)[self.names[0]].output_dim
+            obs_dim = self.obs_normalizers[self.names[0]].num_features
+            if padded_dim != obs_dim:
+                raise ValueError(f"obs widths {widths} pad to {padded_dim} features, the obs statistics have {obs_dim}")
 
     @property
     def num_tasks(self) -> int:
@@ -80,7 +97,15 @@ class PolicyTasks:
     def with_selected(self, task: str) -> "PolicyTasks":
         """The same tasks with `task` selected (ValueError if the policy was not trained on it)."""
         self.index(task)
-        return PolicyTasks(self.names, self.obs_normalizers, self.action_normalizers, self.embedding_dim, task)
+        return PolicyTasks(
+            self.names, self.obs_normalizers, self.action_normalizers, self.embedding_dim, task, self.obs_widths
+        )
+
+    def padding(self, task: str | None = None) -> ObservationPadding | None:
+        """How `task`'s (default: the selected task's) own observations are padded; None when no task is padded."""
+        if self.obs_widths is None:
+            return None
+        return padded_layout(self.obs_widths)[self.selected if task is None else task]
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-types view, as the metadata stores it."""
@@ -88,6 +113,7 @@ class PolicyTasks:
             "names": list(self.names),
             "embedding_dim": self.embedding_dim,
             "selected": self.selected,
+            "obs_widths": None if self.obs_widths is None else {task: list(w) for task, w in self.obs_widths.items()},
             "normalizers": {
                 task: {"obs": self.obs_normalizers[task].to_dict(), "action": self.action_normalizers[task].to_dict()}
                 for task in self.names
@@ -106,6 +132,7 @@ class PolicyTasks:
             },
             embedding_dim=int(values["embedding_dim"]),
             selected=values.get("selected"),
+            obs_widths=values.get("obs_widths"),
         )
 
 

@@ -193,7 +193,8 @@ class PolicyModule(nn.Module, abc.ABC):
         """(B, To, F) features the network is conditioned on, from raw observations (and images), on its device.
 
         Args:
-            obs: (B, To, Do) raw low-dim observations (numpy or torch).
+            obs: (B, To, Do) raw low-dim observations (numpy or torch); a multi-task policy also takes its selected
+                task's own (B, To, Do_task) and pads them (`carp.data.obs_padding`).
             obs_steps: `To` the network expects.
             images: (B, To, cameras, 3, h, w) uint8 camera images for an image policy; None for a state policy.
             task_index: see :meth:`task_ids`. The observations are normalized with the selected task's statistics.
@@ -202,6 +203,16 @@ class PolicyModule(nn.Module, abc.ABC):
             ValueError: `obs` or `images` has another shape, images are missing or unexpected, or a bad task index.
         """
         observations = torch.as_tensor(obs, dtype=torch.float32).to(self.device)
+        padding = None if self.tasks is None else self.tasks.padding()
+        if padding is not None and padding.pads:
+            # The selected task's own observations are padded; padded ones (training windows) pass as they are.
+            if observations.shape[-1] == padding.input_dim:
+                observations = padding.pad(observations)  # (B, To, Do_task) -> (B, To, Do)
+            elif observations.shape[-1] != padding.output_dim:
+                raise ValueError(
+                    f"obs of task {self.tasks.selected!r} must have its own {padding.input_dim} features (or the "
+                    f"padded {padding.output_dim}), got shape {tuple(observations.shape)}"
+                )
         check_observation_shape(observations, obs_steps, self.obs_normalizer.num_features, "obs")
         normalized = self.obs_normalizer.normalize(observations)  # (B, To, Do)
         task_ids = self.task_ids(task_index, observations.shape[0])

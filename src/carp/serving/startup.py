@@ -33,9 +33,18 @@ class ServingStartError(RuntimeError):
     """The server cannot start; the message is one line that names the file or setting at fault."""
 
 
+def _selected_padding(policy: Policy):
+    """The selected task's observation padding of a multi-task policy (`carp.data.obs_padding`), else None."""
+    tasks = getattr(policy, "tasks", None)
+    return None if tasks is None else tasks.padding()
+
+
 def _policy_dims(policy: Policy) -> tuple[int, int]:
+    """`Do` of the observations the policy takes (a padded multi-task policy: its selected task's own) and `A`."""
+    padding = _selected_padding(policy)
     try:
-        return policy.obs_normalizer.num_features, policy.action_normalizer.num_features
+        obs_dim = policy.obs_normalizer.num_features if padding is None else padding.input_dim
+        return obs_dim, policy.action_normalizer.num_features
     except AttributeError:
         raise ServingStartError(
             f"a {policy.policy_type} policy does not expose obs_normalizer and action_normalizer, so Do and A "
@@ -83,6 +92,10 @@ def recorded_spec(policy: Policy, task: str) -> ServingSpec | None:
     protocol = recorded_protocol(policy.metadata)
     if protocol is None:
         return None
+    padding = _selected_padding(policy)
+    if padding is not None:
+        # One protocol serves every task of a multi-task policy; the served task's key widths are its own.
+        protocol = {**protocol, "obs_widths": list(padding.widths)}
     obs_dim, action_dim = _policy_dims(policy)
     return spec_from_protocol(protocol, obs_dim, action_dim, 1.0 / get_task(task).control_frequency_hz)
 

@@ -23,9 +23,16 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
-from carp.data.dataset import TaskWindows, load_multitask_windows, load_task_windows, stack_task_windows
+from carp.data.dataset import (
+    TaskWindows,
+    load_multitask_windows,
+    load_task_windows,
+    stack_task_windows,
+    task_obs_widths,
+)
 from carp.data.image_windows import ImageWindowReader
 from carp.data.ingest import BUFFER_DIRNAME
+from carp.data.obs_padding import padded_layout
 from carp.evaluation.offline import held_out_action_errors
 from carp.outputs import write_history, write_json
 from carp.policies.base import Policy
@@ -468,15 +475,18 @@ def train_multitask_policy(
     train_data = PolicyTrainingData(
         obs=torch.as_tensor(obs), actions=torch.as_tensor(actions), task_ids=torch.as_tensor(task_ids)
     )
+    obs_widths = task_obs_widths(windows)
+    paddings = padded_layout(obs_widths)
     tasks = PolicyTasks(
         inputs.tasks,
-        {task: task_windows.obs_normalizer for task, task_windows in windows.items()},
+        {task: paddings[task].pad_normalizer(task_windows.obs_normalizer) for task, task_windows in windows.items()},
         {task: task_windows.action_normalizer for task, task_windows in windows.items()},
         task_embedding_dim,
+        obs_widths=obs_widths,
     )
     first = windows[inputs.tasks[0]]
     context = PolicyContext(
-        obs_normalizer=first.obs_normalizer,
+        obs_normalizer=tasks.obs_normalizers[inputs.tasks[0]],
         action_normalizer=first.action_normalizer,
         obs_steps=data.obs_steps,
         action_horizon=data.action_horizon,
@@ -485,8 +495,8 @@ def train_multitask_policy(
         metadata={
             "tokenizer": asdict(inputs.reference),
             "mlflow_run_id": tracking_run_id,
-            # The tasks' observation keys and widths agree (checked when their windows were loaded), so one protocol
-            # serves every task; `carp serve --task` picks the task.
+            # The tasks' observation keys agree (checked when their windows were loaded), so one protocol serves every
+            # task; `carp serve --task` picks the task, whose own key widths the policy's tasks record.
             SERVING_METADATA_KEY: training_protocol(data, first.buffer.attrs),
         },
     )

@@ -7,6 +7,7 @@ import torch
 
 from carp.config import TrainingConfig
 from carp.data.normalizer import MinMaxNormalizer
+from carp.data.obs_padding import padded_layout
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.family import train
 from carp.policies.carp.policy import CarpPolicy
@@ -74,18 +75,27 @@ def tiny_tasks(
     obs_normalizer: MinMaxNormalizer,
     action_normalizer: MinMaxNormalizer,
     names: tuple[str, ...] | None = None,
+    obs_widths: dict[str, tuple[int, ...]] | None = None,
 ) -> PolicyTasks:
     """Tasks `names` (default `task0`, `task1`, ...); task i's statistics are the given ones shifted by i (the first
-    selected)."""
+    selected). With `obs_widths` (task -> its widths per key, padding to `obs_normalizer`'s width), a task keeps the
+    statistics of its own columns, padded (`carp.data.obs_padding`)."""
     names = names or tuple(f"task{index}" for index in range(num_tasks))
 
     def shifted(normalizer: MinMaxNormalizer, shift: float) -> MinMaxNormalizer:
         return MinMaxNormalizer(normalizer.minimum + shift, normalizer.maximum + shift)
 
+    obs_normalizers = {name: shifted(obs_normalizer, index) for index, name in enumerate(names)}
+    if obs_widths is not None:
+        for name, padding in padded_layout(obs_widths).items():
+            own = obs_normalizers[name]
+            columns = padding.positions()
+            obs_normalizers[name] = padding.pad_normalizer(MinMaxNormalizer(own.minimum[columns], own.maximum[columns]))
     return PolicyTasks(
         names,
-        {name: shifted(obs_normalizer, index) for index, name in enumerate(names)},
+        obs_normalizers,
         {name: shifted(action_normalizer, index) for index, name in enumerate(names)},
+        obs_widths=obs_widths,
     )
 
 
@@ -94,12 +104,13 @@ def tiny_policy(
     seed: int = 0,
     num_tasks: int = 0,
     task_names: tuple[str, ...] | None = None,
+    obs_widths: dict[str, tuple[int, ...]] | None = None,
     **overrides,
 ) -> CarpPolicy:
     """Scrambled transformer + random tokenizer + normalizers (the second action feature is constant).
 
     With `num_tasks`, a multi-task policy over :func:`tiny_tasks` named `task_names` (its features F = Do + the task
-    embedding).
+    embedding), whose tasks' own obs widths are `obs_widths` (:func:`tiny_tasks`).
     """
     rng = np.random.default_rng(seed)
     obs_min = rng.normal(size=OBS_DIM)
@@ -108,8 +119,9 @@ def tiny_policy(
     action_normalizer = MinMaxNormalizer(action_min, np.array([3.0, 0.5]))
     metadata = {"tokenizer_ref": {"name": "carp-tokenizer-test", "version": 1}}
     if num_tasks:
-        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer, task_names)
+        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer, task_names, obs_widths)
         metadata[TASKS_METADATA_KEY] = tasks.to_dict()
+        obs_normalizer = tasks.obs_normalizers[tasks.selected]
         overrides = {"obs_dim": OBS_DIM + DEFAULT_TASK_EMBEDDING_DIM} | overrides
     return CarpPolicy(
         tiny_artifact(tiny_tokenizer(scales, seed)),

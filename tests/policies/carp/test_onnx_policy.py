@@ -90,6 +90,26 @@ def test_multi_task_graph_takes_the_task_index(tmp_path):
         np.testing.assert_array_equal(drawn, torch_tokens(policy, obs, task_index, top_k=2, seed=task_index))
 
 
+def test_a_padded_task_takes_its_own_observations_in_pytorch_and_in_its_graph(tmp_path):
+    # Lift's keys are 1 and 1 wide, Can's 1 and 2: Lift's observations sit in the first two of the three columns.
+    widths = {"lift": (1, 1), "can": (1, 2)}
+    policy = tiny_policy(SCALES, seed=4, num_tasks=2, task_names=("lift", "can"), obs_widths=widths)
+    own = np.random.default_rng(5).normal(size=(1, OBS_STEPS, 2))
+    padded = np.concatenate([own, np.zeros((1, OBS_STEPS, 1))], axis=-1)
+    np.testing.assert_array_equal(torch_tokens(policy, own), torch_tokens(policy, padded))
+    np.testing.assert_array_equal(policy.predict_action(own), policy.predict_action(padded))
+    graph = OnnxPolicy(export_policy_graphs(policy, tmp_path / "lift"))
+    np.testing.assert_array_equal(graph.predict_tokens(own), torch_tokens(policy, own))
+    np.testing.assert_allclose(graph.predict_action(own), policy.predict_action(own), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"obs of task 'lift' must have its own 2 features \(or the padded 3\)"):
+        policy.predict_action(np.zeros((1, OBS_STEPS, 4)))
+    # Can has the padded layout itself: its graph takes all three columns.
+    policy.select_task("can")
+    can_obs = np.random.default_rng(6).normal(size=(1, OBS_STEPS, OBS_DIM))
+    can_graph = OnnxPolicy(export_policy_graphs(policy, tmp_path / "can"))
+    np.testing.assert_array_equal(can_graph.predict_tokens(can_obs), torch_tokens(policy, can_obs))
+
+
 def test_bad_inputs_are_refused(exported):
     _, onnx_policy = exported
     with pytest.raises(ValueError, match=r"obs must have shape \(1, 2, 3\) \(one environment\), got \(2, 2, 3\)"):

@@ -80,12 +80,19 @@ class PredictionGraph(nn.Module):
         obs_scale, obs_offset = _normalizer_buffers(policy.obs_normalizer, unnormalize=False)
         self.register_buffer("obs_scale", obs_scale)
         self.register_buffer("obs_offset", obs_offset)
+        # A multi-task policy's selected task may be narrower than its padded layout: the graph takes the task's own
+        # observations and pads them with a 0/1 matrix (exact).
+        padding = None if policy.tasks is None else policy.tasks.padding()
+        if padding is not None and padding.pads:
+            self.register_buffer("obs_padding", torch.as_tensor(padding.matrix()))  # (Do_task, Do)
+        else:
+            self.obs_padding = None
 
     def forward(self, obs: torch.Tensor, *extra: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Predict the chunk's f_hat.
 
         Args:
-            obs: (1, To, Do) raw observations.
+            obs: (1, To, Do) raw observations (a padded multi-task policy's selected task: its own Do_task).
             extra: the task index (1,) long for multi-task policies, then the uniforms (1, L, k) when top_k > 1.
 
         Returns:
@@ -98,6 +105,8 @@ class PredictionGraph(nn.Module):
         spec, layout = transformer.spec, transformer.layout
         width, heads, depth = spec.config.width, spec.config.num_heads, spec.config.depth
         head_width = width // heads
+        if self.obs_padding is not None:
+            obs = obs @ self.obs_padding  # (1, To, Do_task) -> (1, To, Do)
         features = self.observation_encoder(obs * self.obs_scale + self.obs_offset, None, task_ids)  # (1, To, F)
         condition = transformer.encode_condition(features)  # (1, D)
         # One Split of the flat vector: M (D,) outputs, where unbinding (1, M, 1, D) adds a Squeeze and a Reshape each.
@@ -208,7 +217,9 @@ def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) ->
     policy = policy.to("cpu").eval()
     spec = policy.spec
     prediction = PredictionGraph(policy, top_k)
-    inputs, names = [torch.zeros(1, spec.obs_steps, policy.obs_normalizer.num_features)], ["obs"]
+    padding = None if policy.tasks is None else policy.tasks.padding()
+    obs_dim = policy.obs_normalizer.num_features if padding is None else padding.input_dim
+    inputs, names = [torch.zeros(1, spec.obs_steps, obs_dim)], ["obs"]
     if policy.num_tasks > 0:
         inputs.append(torch.zeros(1, dtype=torch.long))
         names.append("task_ids")
