@@ -28,17 +28,21 @@ TINY_SECTIONS = {
 }
 
 
-def _context(num_tasks: int) -> PolicyContext:
+def _context(num_tasks: int, obs_widths: dict[str, tuple[int, ...]] | None = None) -> PolicyContext:
     tokenizer = tiny_tokenizer()
     obs_normalizer = MinMaxNormalizer(np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0))
     action_normalizer = MinMaxNormalizer(np.full(2, -1.0), np.full(2, 1.0))
+    tasks = None
+    if num_tasks:
+        names = None if obs_widths is None else tuple(obs_widths)
+        tasks = tiny_tasks(num_tasks, obs_normalizer, action_normalizer, names, obs_widths)
     return PolicyContext(
-        obs_normalizer=obs_normalizer,
+        obs_normalizer=obs_normalizer if tasks is None else tasks.obs_normalizers[tasks.selected],
         action_normalizer=action_normalizer,
         obs_steps=OBS_STEPS,
         action_horizon=tokenizer.spec.action_horizon,
         tokenizer_artifact=tiny_artifact(tokenizer),
-        tasks=tiny_tasks(num_tasks, obs_normalizer, action_normalizer) if num_tasks else None,
+        tasks=tasks,
     )
 
 
@@ -91,6 +95,25 @@ def test_every_family_is_conditioned_on_the_task_and_its_checkpoint_keeps_the_ta
     torch.testing.assert_close(loaded.observation_features(obs, OBS_STEPS), selected)
     with pytest.raises(ValueError, match="trained on tasks \\['task0', 'task1'\\], not on 'square'"):
         loaded.select_task("square")
+
+
+@pytest.mark.parametrize("family", sorted(TINY_SECTIONS))
+def test_every_family_pads_a_narrower_tasks_own_observations_and_keeps_the_widths(family, tmp_path):
+    widths = {"lift": (1, 1), "can": (1, 2)}  # Lift's second key is one feature narrower than Can's
+    torch.manual_seed(0)
+    policy = build_policy(family, TINY_SECTIONS[family], _context(2, widths))
+    own = np.random.default_rng(0).uniform(-1, 1, size=(2, OBS_STEPS, 2)).astype(np.float32)
+    padded = np.concatenate([own, np.zeros((2, OBS_STEPS, 1), dtype=np.float32)], axis=-1)
+    torch.testing.assert_close(
+        policy.observation_features(own, OBS_STEPS), policy.observation_features(padded, OBS_STEPS)
+    )
+    policy.save(tmp_path / "policy.pt")
+    loaded = load_policy(tmp_path / "policy.pt")
+    assert loaded.tasks.obs_widths == widths
+    torch.testing.assert_close(loaded.observation_features(own, OBS_STEPS), policy.observation_features(own, OBS_STEPS))
+    loaded.select_task("can")
+    with pytest.raises(ValueError, match=r"obs must have shape \(B, To, Do\) = \(B, 2, 3\), got \(2, 2, 2\)"):
+        loaded.observation_features(own, OBS_STEPS)
 
 
 def test_task_records_are_checked():
