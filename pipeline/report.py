@@ -11,6 +11,7 @@ from stage_support import (
     REPORTS_DIR,
     TOKENIZER_REPORT_DIR,
     evaluation_report,
+    fail,
     git_commit,
     load,
     multitask_label,
@@ -22,7 +23,7 @@ from stage_support import (
 from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
-from carp.reporting.comparison import RunResults, pooled_metrics
+from carp.reporting.comparison import add_referenced_runs, pooled_metrics, read_run_results, split_multitask
 from carp.reporting.report import ReportInputs, write_report
 from carp.tasks import get_task
 
@@ -34,30 +35,35 @@ def main() -> None:
     args = parse_args(__doc__)
     params = load(args.params)
     tokenizer_history = TOKENIZER_REPORT_DIR / "history.csv"
+    own_labels = (*params.policies, *map(multitask_label, params.multitask))
     runs = {
-        task: {policy: {seed: _run_results(task, policy, seed) for seed in params.seeds} for policy in params.policies}
+        task: {
+            label: {seed: read_run_results(evaluation_report(task, label, seed)) for seed in params.seeds}
+            for label in own_labels
+        }
         for task in params.tasks
     }
+    try:
+        references = {name: PROJECT_DIR / name for name in params.comparison.references}
+        runs, reference_notes = add_referenced_runs(runs, references, params.tasks)
+    except (OSError, ValueError) as error:
+        fail(f"{args.params}: comparison.references: {error}")
+    single_task, multitask = split_multitask(runs, multitask_label(""))
     # The training curves of each family's first seed; the others' histories sit beside them.
     first_seed = params.seeds[0]
     inputs = ReportInputs(
         evaluation={
             task: {policy: pooled_metrics(seed_runs) for policy, seed_runs in task_runs.items()}
-            for task, task_runs in runs.items()
+            for task, task_runs in single_task.items()
         },
-        runs=runs,
+        runs=single_task,
         multitask={
-            task: {
-                policy: pooled_metrics(
-                    {seed: _run_results(task, multitask_label(policy), seed) for seed in params.seeds}
-                )
-                for policy in params.multitask
-            }
-            for task in params.tasks
-            if params.multitask
+            task: {policy: pooled_metrics(seed_runs) for policy, seed_runs in families.items()}
+            for task, families in multitask.items()
         },
         max_steps={task: params.max_steps_for(task) for task in params.tasks},
         demo_notes={task: scripted_demo_note(task) for task in params.tasks if task not in params.data.raw_files},
+        reference_notes=reference_notes,
         margin=params.comparison.margin,
         alpha=params.comparison.alpha,
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
@@ -102,11 +108,6 @@ def scripted_demo_note(task: str) -> str:
         f"The {task} demos are scripted by carp's expert ({spec.expert_name}), not {spec.paper_demos}: success rates "
         "and scores are not directly comparable with the paper's."
     )
-
-
-def _run_results(task: str, policy: str, seed: int) -> RunResults:
-    summary = evaluation_report(task, policy, seed)
-    return RunResults(json.loads(summary.read_text()), pd.read_csv(summary.with_name(f"{summary.stem}_episodes.csv")))
 
 
 def _json_or_none(path):

@@ -171,6 +171,8 @@ def test_defaults_follow_the_design():
         ({"study": {"data_efficiency_sizes": [60, 30]}}, "study.data_efficiency_sizes=[60, 30]: must hold at least"),
         ({"comparison": {"margin": 0}}, "comparison.margin=0.0: must lie in (0, 1)"),
         ({"comparison": {"alpha": 0.5}}, "comparison.alpha=0.5: must lie in (0, 0.5)"),
+        ({"comparison": {"references": ["a", "a"]}}, "comparison.references=['a', 'a']: must name each once"),
+        ({"comparison": {"references": [""]}}, "comparison.references=['']: must be non-empty paths"),
         ({"data": [1, 2]}, "data: expected a mapping"),
         ({"data": {"observations": "depth"}}, "data.observations='depth': must be one of ('state', 'image')"),
         ({"data": {"cameras": []}}, "data.cameras=[]: must name at least one camera"),

@@ -615,14 +615,31 @@ class ComparisonConfig:
             (1 - 2 alpha) intervals of their paired difference lie inside (-margin, margin); a number in (0, 1).
         alpha: Significance level of every test, after Holm's correction over all pairs of the run; a number in
             (0, 0.5).
+        references: Evaluation directories of other runs (their ``reports/eval``, or a copy of it kept with the
+            project) whose evaluations of this run's tasks the report adds to its own: more training seeds of a
+            family, families trained elsewhere, the single-task policies beside a multi-task one. Paths relative to
+            the project root, each at most once; a training seed of a family on a task may come from one place only.
+            The episodes pair by episode seed, so reference runs evaluated on the same test seeds. The report stage
+            reruns when this list changes (``dvc repro -f report`` after a referenced directory changes). Empty (the
+            default): the run's own evaluations only.
     """
 
     margin: float = 0.05
     alpha: float = 0.05
+    references: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         _require(0 < self.margin < 1, "comparison.margin", self.margin, "must lie in (0, 1)")
         _require(0 < self.alpha < 0.5, "comparison.alpha", self.alpha, "must lie in (0, 0.5)")
+        references = list(self.references)
+        object.__setattr__(self, "references", tuple(references))
+        _require(
+            all(isinstance(path, str) and path for path in references),
+            "comparison.references",
+            references,
+            "must be non-empty paths",
+        )
+        _require(len(set(references)) == len(references), "comparison.references", references, "must name each once")
 
 
 @dataclass(frozen=True)

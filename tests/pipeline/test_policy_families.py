@@ -3,6 +3,7 @@ a tiny DP-T beside it, selects each seed's checkpoint on validation seeds, regis
 report compares them, and a change to one family's params makes only that family's stages stale."""
 
 import json
+import shutil
 import sys
 
 import pandas as pd
@@ -128,3 +129,36 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     registered = {f"register_policy@lift-carp-{seed}" for seed in (0, 1, 2)}
     assert stale_stages(workspace) == added | registered | {"report"}
     params_file.write_text(original)
+
+    # Seed 1's evaluations kept apart and referenced: a run of seed 0 alone compares both seeds, as the full run did.
+    whole = (workspace / "reports/report.md").read_text()
+    for policy in FAMILIES["policies"]:
+        kept = workspace / "earlier/eval/lift" / policy
+        kept.mkdir(parents=True)
+        for name in ("seed1.json", "seed1_episodes.csv"):
+            shutil.copy(workspace / f"reports/eval/lift/{policy}/{name}", kept / name)
+    params = yaml.safe_load(original)
+    params["seeds"] = [0]
+    params["comparison"]["references"] = ["earlier/eval"]
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    referencing = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert referencing.returncode == 0, referencing.stderr[-3000:]
+    assert "train_policy@lift-carp-0" not in stages_run(referencing.stdout) and "report" in stages_run(
+        referencing.stdout
+    )
+    merged = (workspace / "reports/report.md").read_text()
+    assert "carp (training seeds 1) from earlier/eval" in merged
+
+    def comparison(report: str) -> str:
+        return report.split("## Comparison on lift", 1)[1].split("\n## ", 1)[0]
+
+    assert comparison(merged) == comparison(whole)
+    # A seed of a family that the run has itself is refused, naming the file of params, the reference and the seed.
+    params["comparison"]["references"] = ["reports/eval"]
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    clash = run([sys.executable, "pipeline/report.py"], workspace)
+    assert clash.returncode == 1
+    assert (
+        clash.stderr.strip().splitlines()[-1].startswith("error: ")
+        and "training seed 0 is already in the report" in clash.stderr
+    )

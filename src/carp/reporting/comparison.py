@@ -5,6 +5,8 @@ training seed -> summary and test episodes) into what those functions take and i
 across families by their episode seed (the same initial state), and training seeds pair by number.
 """
 
+import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import combinations
@@ -79,6 +81,119 @@ def _episode_column(runs: Runs, column: str, dtype, episode_seeds: Sequence[int]
             episodes = episodes[episodes["seed"].isin(episode_seeds)]
         values[seed] = episodes[column].to_numpy(dtype=dtype)
     return values
+
+
+EVALUATION_SUMMARY_PATTERN = re.compile(r"seed(\d+)\.json")
+"""File name of one training seed's evaluation summary in an evaluation directory (``seed<k>.json``)."""
+
+
+def read_run_results(summary: Path) -> RunResults:
+    """One evaluation summary (``seed<k>.json``) and the test episodes beside it (``seed<k>_episodes.csv``)."""
+    summary = Path(summary)
+    return RunResults(json.loads(summary.read_text()), pd.read_csv(summary.with_name(f"{summary.stem}_episodes.csv")))
+
+
+def referenced_runs(eval_dir: Path, tasks: Sequence[str]) -> dict[str, dict[str, dict[int, RunResults]]]:
+    """Every evaluation of `tasks` in another run's evaluation directory: task -> label -> training seed -> results.
+
+    Args:
+        eval_dir: that run's ``reports/eval`` (``<task>/<label>/seed<k>.json`` with its episodes beside it; a label
+            is a family, or ``<family>-multitask`` for a multi-task policy).
+        tasks: the tasks to read; a task the directory lacks gives nothing.
+
+    Raises:
+        FileNotFoundError: `eval_dir` is not a directory, or a summary has no episodes file beside it.
+    """
+    eval_dir = Path(eval_dir)
+    if not eval_dir.is_dir():
+        raise FileNotFoundError(f"{eval_dir}: no such evaluation directory")
+    found: dict[str, dict[str, dict[int, RunResults]]] = {}
+    for task in tasks:
+        task_dir = eval_dir / task
+        for label_dir in sorted(path for path in task_dir.iterdir() if path.is_dir()) if task_dir.is_dir() else ():
+            for summary in sorted(label_dir.iterdir()):
+                matched = EVALUATION_SUMMARY_PATTERN.fullmatch(summary.name)
+                if matched is None:
+                    continue
+                if not summary.with_name(f"{summary.stem}_episodes.csv").is_file():
+                    raise FileNotFoundError(f"{summary}: no {summary.stem}_episodes.csv beside it")
+                runs = found.setdefault(task, {}).setdefault(label_dir.name, {})
+                runs[int(matched.group(1))] = read_run_results(summary)
+    return found
+
+
+def merge_runs(
+    own: Mapping[str, Mapping[str, Runs]], referenced: Mapping[str, Mapping[str, Runs]], source: str
+) -> dict[str, dict[str, dict[int, RunResults]]]:
+    """Both runs' evaluations (task -> label -> training seed -> results), the training seeds of a label added up.
+
+    Raises:
+        ValueError: both have the same training seed of a label on a task; the message names `source`, the task,
+            the label and the seed.
+    """
+    merged = {task: {label: dict(runs) for label, runs in labels.items()} for task, labels in own.items()}
+    for task, labels in referenced.items():
+        for label, runs in labels.items():
+            mine = merged.setdefault(task, {}).setdefault(label, {})
+            for seed, run in runs.items():
+                if seed in mine:
+                    raise ValueError(f"{source}: {task}/{label} training seed {seed} is already in the report")
+                mine[seed] = run
+    return merged
+
+
+def add_referenced_runs(
+    own: Mapping[str, Mapping[str, Runs]], references: Mapping[str, Path], tasks: Sequence[str]
+) -> tuple[dict[str, dict[str, dict[int, RunResults]]], dict[str, str]]:
+    """The run's evaluations with those of other runs added (`comparison.references`), and what came from where.
+
+    Args:
+        own: the run's own evaluations, task -> label -> training seed -> results.
+        references: name (as the params give it) -> that run's evaluation directory (:func:`referenced_runs`).
+        tasks: the run's tasks; other tasks of a reference are left out.
+
+    Returns:
+        The merged evaluations (:func:`merge_runs`) and, per task with referenced evaluations, a sentence naming
+        each referenced label, its training seeds and where they came from.
+
+    Raises:
+        FileNotFoundError, ValueError: from :func:`referenced_runs` and :func:`merge_runs`.
+    """
+    merged = {task: dict(labels) for task, labels in own.items()}
+    sources: dict[str, list[str]] = {}
+    for name, eval_dir in references.items():
+        referenced = referenced_runs(eval_dir, tasks)
+        merged = merge_runs(merged, referenced, name)
+        for task, labels in referenced.items():
+            sources.setdefault(task, []).extend(
+                f"{label} (training seeds {', '.join(map(str, sorted(runs)))}) from {name}"
+                for label, runs in labels.items()
+            )
+    notes = {
+        task: f"Evaluations of other runs (comparison.references): {'; '.join(found)}."
+        for task, found in sources.items()
+    }
+    return merged, notes
+
+
+def split_multitask(
+    runs: Mapping[str, Mapping[str, Runs]], suffix: str
+) -> tuple[dict[str, dict[str, Runs]], dict[str, dict[str, Runs]]]:
+    """Single-task and multi-task evaluations apart: labels ending in `suffix` are a family's multi-task policy.
+
+    Returns:
+        task -> family -> runs of the single-task policies, and task -> family -> runs of the multi-task ones (the
+        family named without `suffix`; a task without any is left out).
+    """
+    single = {
+        task: {label: seeds for label, seeds in labels.items() if not label.endswith(suffix)}
+        for task, labels in runs.items()
+    }
+    multi = {
+        task: {label.removesuffix(suffix): seeds for label, seeds in labels.items() if label.endswith(suffix)}
+        for task, labels in runs.items()
+    }
+    return single, {task: families for task, families in multi.items() if families}
 
 
 def pooled_metrics(runs: Runs) -> dict[str, Any]:

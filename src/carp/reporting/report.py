@@ -65,6 +65,8 @@ class ReportInputs:
         max_steps: task -> episode step limit (the curves' horizon).
         demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
             demos where the paper trained on human ones); shown under the task's policies.
+        reference_notes: task -> which of its evaluations came from other runs (``comparison.references``); shown
+            under the task's policies.
         margin: equivalence margin of the verdicts, in success rate.
         alpha: significance level of the verdicts after Holm's correction.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
@@ -84,6 +86,7 @@ class ReportInputs:
     multitask: Mapping[str, Mapping[str, Mapping]] = field(default_factory=dict)
     max_steps: Mapping[str, int] = field(default_factory=dict)
     demo_notes: Mapping[str, str] = field(default_factory=dict)
+    reference_notes: Mapping[str, str] = field(default_factory=dict)
     margin: float = 0.05
     alpha: float = 0.05
     sweep_trials: pd.DataFrame | None = None
@@ -392,6 +395,7 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
                 "split into prediction and decoding; model calls are the sequential network calls per chunk "
                 "(K scales, L tokens or N denoising steps); the backend ran the rollouts.",
                 *([inputs.demo_notes[task]] if task in inputs.demo_notes else []),
+                *([inputs.reference_notes[task]] if task in inputs.reference_notes else []),
             ],
             tables=[comparison_table(policies, inputs.policy_histories.get(task))],
         )
