@@ -98,6 +98,7 @@ def main() -> None:
                 backend=config.backend,
                 cameras=cameras,
                 task=args.task,
+                ensemble_m=config.ensemble_m,
             )
 
         evaluated = evaluate_with_selection(

@@ -169,6 +169,7 @@ def test_defaults_follow_the_design():
         ),
         ({"data": {"subset_size": 150}}, "data.subset_size=150: must be <= the 100 demos collected for lift"),
         ({"study": {"data_efficiency_sizes": [60, 30]}}, "study.data_efficiency_sizes=[60, 30]: must hold at least"),
+        ({"eval": {"ensemble_m": -1}}, "eval.ensemble_m=-1.0: must be null or a number >= 0"),
         ({"comparison": {"margin": 0}}, "comparison.margin=0.0: must lie in (0, 1)"),
         ({"comparison": {"alpha": 0.5}}, "comparison.alpha=0.5: must lie in (0, 0.5)"),
         ({"comparison": {"references": ["a", "a"]}}, "comparison.references=['a', 'a']: must name each once"),

@@ -527,6 +527,11 @@ class EvalConfig:
             candidates, next to their maximum and the confirmed test success; an integer >= 1.
         average_last: With ``selection: average_last``, how many of the latest candidates are averaged; an integer
             >= 1 (1 is the final policy), at most the candidates the training keeps (checked when evaluating).
+        ensemble_m: How a policy's chunks are executed: ``null`` (the default, carp's protocol and the CARP paper's)
+            runs ``data.action_steps`` actions of each chunk, then predicts the next; a number >= 0 predicts a chunk at
+            every control step and executes the temporal ensemble of the overlapping chunks (ACT's weights
+            ``exp(-m * i)``, i = 0 the oldest prediction; 0 = their plain mean, VQ-BeT's Push-T inference), every
+            family alike. Costs ``Ta`` times the predictions per episode.
     """
 
     episodes: int = 50
@@ -541,6 +546,7 @@ class EvalConfig:
     validation_seed: int = 200_000
     validation_top_k: int = 3
     average_last: int = 3
+    ensemble_m: float | None = None
 
     def validation_seeds(self) -> list[int]:
         """The seeds of the validation episodes, which select a checkpoint."""
@@ -572,6 +578,12 @@ class EvalConfig:
         _require(self.validation_seed >= 0, "eval.validation_seed", self.validation_seed, "must be >= 0")
         _require(self.validation_top_k >= 1, "eval.validation_top_k", self.validation_top_k, "must be >= 1")
         require_positive_int("eval.average_last", self.average_last)
+        _require(
+            self.ensemble_m is None or (not isinstance(self.ensemble_m, bool) and self.ensemble_m >= 0),
+            "eval.ensemble_m",
+            self.ensemble_m,
+            "must be null or a number >= 0",
+        )
         validation_end = self.validation_seed + self.validation_episodes
         _require(
             self.validation_episodes == 0

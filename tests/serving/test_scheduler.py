@@ -2,6 +2,8 @@ import numpy as np
 import pytest
 from carp_client import ChunkScheduler, ensemble_weights
 
+from carp.evaluation.sources import ChunkEnsemble
+
 # To = 2 (offset 1), Ta = 3, H = 6: a plain chunk covers 3 steps, an ensembled one H - To + 1 = 5.
 OFFSET, ACTION_STEPS, HORIZON = 1, 3, 6
 
@@ -82,3 +84,15 @@ def test_a_scheduler_follows_the_servers_metadata_and_refuses_bad_settings():
         ChunkScheduler(1, 8, ensemble_m=-1.0)
     with pytest.raises(ValueError, match="4 rows cannot cover 8 steps from row 1"):
         ChunkScheduler(1, 8).add(np.zeros((4, 2)), 0)
+
+
+@pytest.mark.parametrize("m", [0.0, 0.3])
+def test_the_client_ensembles_served_chunks_as_the_evaluation_ensembles_its_own(m):
+    # carp_client never imports carp, so the rule lives twice: the robot and the simulator must execute alike.
+    rng = np.random.default_rng(4)
+    chunks = rng.normal(size=(12, 6, 3))  # a chunk per step, H = 6, To = 2: each covers 5 steps
+    scheduler = ChunkScheduler(executed_offset=1, action_steps=4, ensemble_m=m)
+    ensemble = ChunkEnsemble(m)
+    for step, chunk in enumerate(chunks):
+        scheduler.add(chunk, step)
+        np.testing.assert_allclose(scheduler.action(step), ensemble.act(chunk[1:]), rtol=1e-12, atol=1e-12)

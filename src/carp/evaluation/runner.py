@@ -44,6 +44,7 @@ def evaluate_policy(
     backend: str = "onnxruntime",
     cameras: "RenderSettings | None" = None,
     task: str | None = None,
+    ensemble_m: float | None = None,
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
@@ -68,6 +69,9 @@ def evaluate_policy(
     runs with that task's statistics and task id (a copy of the checkpoint with the task selected, in the temporary
     directory, is what the workers load). None skips the check.
 
+    `ensemble_m` (None: ``Ta`` actions per chunk) predicts a chunk at every step and executes the temporal ensemble of
+    the overlapping chunks (`carp.evaluation.sources.ChunkEnsemble`); the summary records it.
+
     With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
     calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
@@ -91,6 +95,7 @@ def evaluate_policy(
             action_steps=action_steps,
             inference=inference,
             task_index=task_index,
+            ensemble_m=ensemble_m,
         )
         results = evaluate_episodes(
             env_args,
@@ -120,7 +125,9 @@ def evaluate_policy(
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
-    summary["action_steps"] = action_steps  # chunks per control step, for the report's inference budget
+    # Control steps per chunk, for the report's inference budget: one when every step predicts a chunk.
+    summary["action_steps"] = action_steps if ensemble_m is None else 1
+    summary["ensemble_m"] = ensemble_m
     return summary, results
 
 

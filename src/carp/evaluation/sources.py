@@ -30,6 +30,49 @@ def executed_actions(chunk: np.ndarray, obs_steps: int, action_steps: int, actio
     return action_format.to_env(executed)
 
 
+class ChunkEnsemble:
+    """Temporal ensembling of overlapping chunks, queried at every control step (ACT's rule; VQ-BeT's averaging).
+
+    A chunk predicted at step t covers steps t .. t + n - 1 with its rows from ``To - 1`` on. The action of a step is
+    the weighted mean of the rows that every chunk covering it predicts for it, weight ``exp(-m * i)`` for the i-th
+    oldest prediction (i = 0 the oldest), normalized: ``m = 0`` is the plain mean of the overlapping chunks. The
+    robot-side client's `carp_client.ChunkScheduler` applies the same rule to served chunks (it never imports carp;
+    a test checks the two agree).
+
+    Args:
+        m: the weights' decay; >= 0.
+    """
+
+    def __init__(self, m: float) -> None:
+        if not m >= 0:
+            raise ValueError(f"ensemble m must be >= 0, got {m}")
+        self.m = float(m)
+        self._chunks: list[tuple[int, np.ndarray]] = []  # (first step, (n, A) rows), oldest first
+        self._step = 0
+
+    def reset(self) -> None:
+        """A new episode: forget every chunk."""
+        self._chunks.clear()
+        self._step = 0
+
+    def act(self, rows: np.ndarray) -> np.ndarray:
+        """Take the chunk predicted at the current step and return the action of this step; then step on.
+
+        Args:
+            rows: (n, A) the chunk's rows from the current step on (row 0 acts now).
+
+        Returns:
+            (A,) float64 the weighted mean of every kept chunk's row for the current step.
+        """
+        step = self._step
+        self._chunks.append((step, np.asarray(rows, dtype=np.float64)))
+        self._chunks = [(start, chunk) for start, chunk in self._chunks if step - start < len(chunk)]
+        predictions = np.stack([chunk[step - start] for start, chunk in self._chunks])  # (count, A), oldest first
+        weights = np.exp(-self.m * np.arange(len(predictions)))
+        self._step += 1
+        return (weights / weights.sum()) @ predictions
+
+
 class ExpertSource:
     """A task's scripted expert (privileged state) behind the same interface as the policy; one action per decision."""
 
@@ -58,6 +101,8 @@ class PolicySource:
         inference: the family's inference settings (e.g. ``{"top_k": 3}``), applied through
             ``configure_inference``; any sampling draws from a generator seeded per episode.
         task_index: task id for multi-task policies.
+        ensemble_m: None executes ``Ta`` actions per chunk; a number >= 0 predicts a chunk at every step and executes
+            the temporal ensemble of the overlapping chunks (:class:`ChunkEnsemble`), one action per chunk.
     """
 
     def __init__(
@@ -68,6 +113,7 @@ class PolicySource:
         action_steps: int,
         inference: Mapping[str, Any] | None = None,
         task_index: int | None = None,
+        ensemble_m: float | None = None,
     ) -> None:
         self.policy = load()
         self.policy.configure_inference(**dict(inference or {}))
@@ -75,6 +121,7 @@ class PolicySource:
         self.obs_steps = obs_steps
         self.action_steps = action_steps
         self.task_index = task_index
+        self.ensemble = None if ensemble_m is None else ChunkEnsemble(ensemble_m)
         # Rollouts run on the CPU, so the draws come from a CPU generator whatever the policy's backend.
         self._generator = torch.Generator()
 
@@ -84,11 +131,13 @@ class PolicySource:
         An episode's draws then do not depend on which worker runs it or on what that worker ran before.
         """
         self._generator.manual_seed(seed)
+        if self.ensemble is not None:
+            self.ensemble.reset()
 
     def act(
         self, observation_history: np.ndarray, env, images: np.ndarray | None = None
     ) -> tuple[np.ndarray, ChunkTiming]:
-        """(Ta, stored_dim) actions for the env and the chunk's prediction/decoding time.
+        """(Ta, stored_dim) actions for the env (one when ensembling) and the chunk's prediction/decoding time.
 
         Args:
             observation_history: (To, Do) raw low-dim observations, oldest first.
@@ -100,7 +149,11 @@ class PolicySource:
             observation_history[None], task_index=self.task_index, generator=self._generator, **seen
         )
         started = time.perf_counter()
-        executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.action_format)
+        if self.ensemble is None:
+            executed = executed_actions(timed.actions[0], self.obs_steps, self.action_steps, self.action_format)
+        else:
+            action = self.ensemble.act(timed.actions[0][self.obs_steps - 1 :])  # (A,)
+            executed = self.action_format.to_env(action[None])
         decoding_seconds = timed.decoding_seconds + time.perf_counter() - started
         return executed, ChunkTiming(
             prediction=timed.prediction_seconds, decoding=decoding_seconds, encoding=timed.encoding_seconds
