@@ -219,14 +219,17 @@ def test_a_pair_untouched_stays_nan_and_the_episode_takes_the_pairs_that_touched
 
     measure = InsertionOffset(NUT_ASSEMBLY_PAIRS)
     # Geoms 0-1 the square nut, 2 its peg, 3 the round nut, 4 its peg; bodies 1-4 in the same order.
-    measure._nut_geoms = np.array([[1, 1, 0, 0, 0], [0, 0, 0, 1, 0]], dtype=bool)
-    measure._peg_geoms = np.array([[0, 0, 1, 0, 0], [0, 0, 0, 0, 1]], dtype=bool)
-    measure._nut_bodies, measure._peg_bodies = np.array([1, 3]), np.array([2, 4])
     positions = np.zeros((5, 3))
     positions[1] = [0.003, 0.004, 0.9]  # 5 mm from the square peg at the origin
     env = type("Env", (), {})()
+    env.nuts = [type("Nut", (), {"name": name})() for name in ("SquareNut", "RoundNut")]
+    env.obj_body_id = {"SquareNut": 1, "RoundNut": 3}
+    env.obj_geom_id = {"SquareNut": [0, 1], "RoundNut": [3]}
+    env.peg1_body_id, env.peg2_body_id = 2, 4
     env.sim = type("Sim", (), {})()
+    env.sim.model = type("Model", (), {"ngeom": 5, "geom_bodyid": np.array([1, 1, 2, 3, 4])})()
     env.sim.data = _Contacts(positions)
+    measure.reset(env)
     measure.observe(env, 1)  # no contact yet
     env.sim.data.ncon, env.sim.data.contact.geom = 1, np.array([[2, 1]])  # peg before nut: either order counts
     measure.observe(env, 2)
