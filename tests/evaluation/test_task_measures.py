@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from carp import simulation
-from carp.evaluation.insertion_offset import InsertionOffset
+from carp.evaluation.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
@@ -101,11 +101,13 @@ def square_env():
     env.close()
 
 
-def test_the_nut_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_nothing():
+def test_the_insertion_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_nothing():
     square = get_task("square")
     assert isinstance(square.measure(), InsertionOffset)
     assert square.measure() is not square.measure()  # one per episode
     assert isinstance(get_task("nut_assembly").measure(), InsertionOffset)
+    threading = get_task("threading").measure()
+    assert isinstance(threading, InsertionOffset) and threading.pairs == THREADING_PAIRS
     for task in ("lift", "can", "stack", "stack_three"):
         assert isinstance(get_task(task).measure(), NoMeasure) and get_task(task).measure().values() == {}
 
