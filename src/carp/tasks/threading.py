@@ -167,6 +167,7 @@ class Threading(ManipulationEnv):
         use_object_obs: whether ``object-state`` is observed.
         reward_scale: the reward on success (None: 1).
         reward_shaping: refused when True.
+        initialization_noise: the arm's joint noise at reset, robosuite's default as in Lift (drawn from ``rng``).
 
     Raises:
         ValueError: ``reward_shaping=True``.
@@ -326,7 +327,7 @@ class Threading(ManipulationEnv):
         return np.array(self.sim.data.site_xpos[self.ring_center_site_id])
 
     def ring_axis(self) -> np.ndarray:
-        """World direction (3,) of the ring's axis (unit), pointing away from the side the tripod's legs open to."""
+        """World direction (3,) of the ring's axis (unit): the tripod's x-axis, within 30 degrees of +x."""
         return np.array(self.sim.data.body_xmat[self.tripod_body_id]).reshape(3, 3)[:, 0]
 
     def reward(self, action=None) -> float:
