@@ -211,7 +211,7 @@ def test_rendering_cost_refuses_an_unknown_task_in_one_line():
     assert completed.returncode == 1
     assert completed.stderr.strip().splitlines() == [
         "error: --tasks ['peg_in_hole']: unknown; expected some of "
-        "['can', 'lift', 'nut_assembly', 'square', 'stack', 'stack_three']"
+        "['can', 'lift', 'nut_assembly', 'square', 'stack', 'stack_three', 'threading']"
     ]
 
 

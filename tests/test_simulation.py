@@ -34,7 +34,7 @@ def test_controller_kind_reads_robosuite_1_4_part_configs():
 
 @pytest.mark.parametrize(
     ("task", "controller", "message"),
-    [("threading", "absolute", "unknown task 'threading'"), ("lift", "joint", "unknown controller 'joint'")],
+    [("peg_in_hole", "absolute", "unknown task 'peg_in_hole'"), ("lift", "joint", "unknown controller 'joint'")],
 )
 def test_make_env_args_rejects_unknown_values(task, controller, message):
     with pytest.raises(ValueError, match=message):

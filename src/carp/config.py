@@ -750,9 +750,9 @@ class Params:
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
         tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
-            square, stack, nut_assembly and stack_three, and pusht), each at most once, all in one action space (one
-            tokenizer serves them: the arms and Push-T do not mix); the per-task stages (``collect``, ``ingest``,
-            ``train_policy``, ``evaluate``) fan out over this list.
+            square, stack, nut_assembly, stack_three and threading, and pusht), each at most once, all in one action
+            space (one tokenizer serves them: the arms and Push-T do not mix); the per-task stages (``collect``,
+            ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.

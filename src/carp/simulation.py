@@ -25,11 +25,20 @@ TASK_ENV_NAMES = {
     "stack": "Stack",
     "nut_assembly": "NutAssembly",
     "stack_three": "StackThree",
+    "threading": "Threading",
 }
 # Environments carp defines on robosuite's, by env name -> the module whose import registers them with robosuite.
-CARP_ENV_MODULES = {"StackThree": "carp.tasks.stack_three"}
+CARP_ENV_MODULES = {"StackThree": "carp.tasks.stack_three", "Threading": "carp.tasks.threading"}
 # Width of robomimic's "object" observation (robosuite's "object-state") per task.
-OBJECT_OBS_DIMS = {"lift": 10, "can": 14, "square": 14, "stack": 23, "nut_assembly": 28, "stack_three": 36}
+OBJECT_OBS_DIMS = {
+    "lift": 10,
+    "can": 14,
+    "square": 14,
+    "stack": 23,
+    "nut_assembly": 28,
+    "stack_three": 36,
+    "threading": 23,
+}
 # robot0_eef_pos (3) + robot0_eef_quat (4) + robot0_gripper_qpos (2), the proprioception used by default.
 ROBOT_OBS_DIM = 9
 LOW_DIM_OBS_DIMS = {task: dim + ROBOT_OBS_DIM for task, dim in OBJECT_OBS_DIMS.items()}

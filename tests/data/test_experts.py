@@ -83,8 +83,8 @@ def test_square_plan_keeps_handle_towards_robot_and_gripper_near_home(handle_yaw
 
 
 def test_make_expert_rejects_unknown_task():
-    with pytest.raises(ValueError, match="no scripted expert for task 'threading'"):
-        experts.make_expert("threading", env=None)
+    with pytest.raises(ValueError, match="no scripted expert for task 'peg_in_hole'"):
+        experts.make_expert("peg_in_hole", env=None)
 
 
 def run_expert(task: str, controller: str, seeds) -> list[tuple[bool, int, np.ndarray]]:

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from carp import simulation
-from carp.evaluation.insertion_offset import InsertionOffset
+from carp.evaluation.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
@@ -101,11 +101,13 @@ def square_env():
     env.close()
 
 
-def test_the_nut_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_nothing():
+def test_the_insertion_tasks_measure_their_insertion_offsets_and_the_other_arm_tasks_nothing():
     square = get_task("square")
     assert isinstance(square.measure(), InsertionOffset)
     assert square.measure() is not square.measure()  # one per episode
     assert isinstance(get_task("nut_assembly").measure(), InsertionOffset)
+    threading = get_task("threading").measure()
+    assert isinstance(threading, InsertionOffset) and threading.pairs == THREADING_PAIRS
     for task in ("lift", "can", "stack", "stack_three"):
         assert isinstance(get_task(task).measure(), NoMeasure) and get_task(task).measure().values() == {}
 
@@ -219,14 +221,17 @@ def test_a_pair_untouched_stays_nan_and_the_episode_takes_the_pairs_that_touched
 
     measure = InsertionOffset(NUT_ASSEMBLY_PAIRS)
     # Geoms 0-1 the square nut, 2 its peg, 3 the round nut, 4 its peg; bodies 1-4 in the same order.
-    measure._nut_geoms = np.array([[1, 1, 0, 0, 0], [0, 0, 0, 1, 0]], dtype=bool)
-    measure._peg_geoms = np.array([[0, 0, 1, 0, 0], [0, 0, 0, 0, 1]], dtype=bool)
-    measure._nut_bodies, measure._peg_bodies = np.array([1, 3]), np.array([2, 4])
     positions = np.zeros((5, 3))
     positions[1] = [0.003, 0.004, 0.9]  # 5 mm from the square peg at the origin
     env = type("Env", (), {})()
+    env.nuts = [type("Nut", (), {"name": name})() for name in ("SquareNut", "RoundNut")]
+    env.obj_body_id = {"SquareNut": 1, "RoundNut": 3}
+    env.obj_geom_id = {"SquareNut": [0, 1], "RoundNut": [3]}
+    env.peg1_body_id, env.peg2_body_id = 2, 4
     env.sim = type("Sim", (), {})()
+    env.sim.model = type("Model", (), {"ngeom": 5, "geom_bodyid": np.array([1, 1, 2, 3, 4])})()
     env.sim.data = _Contacts(positions)
+    measure.reset(env)
     measure.observe(env, 1)  # no contact yet
     env.sim.data.ncon, env.sim.data.contact.geom = 1, np.array([[2, 1]])  # peg before nut: either order counts
     measure.observe(env, 2)

@@ -10,7 +10,7 @@ from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS, DELTA_ACTIONS
 
 
 def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
-    assert set(TASK_NAMES) == {"lift", "can", "square", "stack", "nut_assembly", "stack_three", "pusht"}
+    assert set(TASK_NAMES) == {"lift", "can", "square", "stack", "nut_assembly", "stack_three", "threading", "pusht"}
     for name in TASK_NAMES:
         task = get_task(name)
         assert task.name == name
@@ -19,11 +19,11 @@ def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
 
 
 def test_unknown_tasks_and_envs_are_refused_naming_them():
-    known = r"\['lift', 'can', 'square', 'stack', 'nut_assembly', 'stack_three', 'pusht'\]"
-    with pytest.raises(ValueError, match=rf"unknown task 'threading'; expected one of {known}"):
-        get_task("threading")
-    with pytest.raises(ValueError, match="env_args name env 'Threading', which no task runs"):
-        task_for_env_args({"env_name": "Threading"})
+    known = r"\['lift', 'can', 'square', 'stack', 'nut_assembly', 'stack_three', 'threading', 'pusht'\]"
+    with pytest.raises(ValueError, match=rf"unknown task 'peg_in_hole'; expected one of {known}"):
+        get_task("peg_in_hole")
+    with pytest.raises(ValueError, match="env_args name env 'PegInHole', which no task runs"):
+        task_for_env_args({"env_name": "PegInHole"})
     with pytest.raises(ValueError, match="pusht: controller 'delta': the agent takes absolute targets only"):
         get_task("pusht").action_format("delta")
 

@@ -1,11 +1,22 @@
-"""The nut tasks' precision measure: how far off its peg's centre a nut is when it first touches the peg.
+"""The insertion tasks' precision measure: how far off its target's centre a tool is when it first touches the target.
 
 CARP's supplementary Tables 4-5 report, for nut assembly, the distance between the peg's insertion centre and the
-nut's centre at their first contact. Here both centres are the points robosuite's own on-peg check compares
-(`NutAssembly.on_peg`): the peg body's position (``peg1`` square, ``peg2`` round) and the nut's root body's
-position, which is the centre of its hole (the square nut's four walls and the round nut's eight sit symmetrically
-around it; the handle shifts the centre of mass off it, not the body's origin). The distance is horizontal (x, y), in
-millimetres. Square has one nut and peg; NutAssembly has two pairs, each measured on its own.
+nut's centre at their first contact. The same measure serves every task that inserts one thing into another: a pair
+(`InsertionPair`) names the tool's and the target's geoms and the offset between their centres, measured in the plane
+across the insertion's axis; `InsertionOffset` watches the simulator's contacts and records each pair's offset at its
+first contact, in millimetres.
+
+- Square and NutAssembly (`NutOnPeg`): the centres are the points robosuite's own on-peg check compares
+  (`NutAssembly.on_peg`): the peg body's position (``peg1`` square, ``peg2`` round) and the nut's root body's
+  position, which is the centre of its hole (the square nut's four walls and the round nut's eight sit symmetrically
+  around it; the handle shifts the centre of mass off it, not the body's origin). The pegs stand upright, so the
+  plane is the horizontal one and the distance is in x and y. Square has one nut and peg; NutAssembly has two pairs,
+  each measured on its own.
+- Threading (`NeedleInRing`): the ring's centre, and the point where the needle's axis (through the bar, from the
+  handle to the tip) meets the ring's mid-plane; the plane is the ring's, upright, across its horizontal axis. A
+  needle at first contact is usually still in front of the ring, and its axis extended to the plane is where it
+  would pass; a needle lying within 6 degrees of the ring's plane meets it nowhere near the ring, and is measured by
+  its tip's distance from the ring's axis instead.
 
 Deviations and consequences of robosuite's geometry:
 
@@ -17,11 +28,36 @@ Deviations and consequences of robosuite's geometry:
   comes within 6.75 mm of the peg's, turned to match it, slides down around the peg without touching it: robosuite
   counts it as on the peg, and it has no measure (NaN). Only the episodes whose nut touched the peg are measured.
   The round nut's hole (62.4 mm across its flats) leaves 11.2 mm of room around its peg (40 mm across).
+- Likewise the ring (40 mm across inside) leaves 16 mm of room around the needle's bar (8 mm across): a needle that
+  passes within 16 mm of the ring's centre, along its axis, never touches it and has no measure.
 """
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
+
+NEEDLE_IN_RING_PLANE_COSINE = 0.1
+"""Below this cosine between the needle and the ring's axis (about 84 degrees) the needle is measured by its tip."""
+
+
+class InsertionPair(Protocol):
+    """A tool and the target it goes into.
+
+    Attributes:
+        prefix: prefix of this pair's own columns (e.g. ``square_nut_``); empty for a task with one pair, whose
+            offset is the episode's.
+    """
+
+    prefix: str
+
+    def geoms(self, env) -> tuple[np.ndarray, np.ndarray]:
+        """The tool's and the target's geom ids (1-D int arrays) in the env's current model."""
+        ...
+
+    def offset_m(self, env) -> float:
+        """The distance (m) between the target's centre and the tool's, in the plane across the insertion's axis."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -38,6 +74,47 @@ class NutOnPeg:
     nut: int
     prefix: str = ""
 
+    def _bodies(self, env) -> tuple[int, int]:
+        return env.obj_body_id[env.nuts[self.nut].name], (env.peg1_body_id, env.peg2_body_id)[self.nut]
+
+    def geoms(self, env) -> tuple[np.ndarray, np.ndarray]:
+        """The nut's geoms and the peg body's."""
+        _, peg = self._bodies(env)
+        nut_geoms = np.asarray(env.obj_geom_id[env.nuts[self.nut].name])
+        return nut_geoms, np.flatnonzero(np.asarray(env.sim.model.geom_bodyid) == peg)
+
+    def offset_m(self, env) -> float:
+        """Horizontal (x, y) distance between the nut's root body and the peg's body."""
+        nut, peg = self._bodies(env)
+        positions = env.sim.data.body_xpos
+        return float(np.linalg.norm(positions[nut][:2] - positions[peg][:2]))
+
+
+@dataclass(frozen=True)
+class NeedleInRing:
+    """Threading's needle and ring (`carp.tasks.threading`); contacts with the tripod's legs do not count.
+
+    Attributes:
+        prefix: as `InsertionPair`'s.
+    """
+
+    prefix: str = ""
+
+    def geoms(self, env) -> tuple[np.ndarray, np.ndarray]:
+        """The needle's handle and bar, and the ring's segments."""
+        return np.asarray(env.needle_geom_ids), np.asarray(env.ring_geom_ids)
+
+    def offset_m(self, env) -> float:
+        """Distance from the ring's centre to where the needle's axis meets the ring's mid-plane (module docstring)."""
+        center, axis = env.ring_center(), env.ring_axis()
+        tip, needle = env.needle_tip(), env.needle_axis()
+        tip_depth = float(np.dot(tip - center, axis))
+        cosine = float(np.dot(needle, axis))
+        if abs(cosine) < NEEDLE_IN_RING_PLANE_COSINE:
+            return float(np.linalg.norm(tip - center - tip_depth * axis))
+        crossing = tip - needle * (tip_depth / cosine)
+        return float(np.linalg.norm(crossing - center))
+
 
 SQUARE_PAIRS = (NutOnPeg(0),)
 """NutAssemblySquare: the square nut on the square peg."""
@@ -45,60 +122,55 @@ SQUARE_PAIRS = (NutOnPeg(0),)
 NUT_ASSEMBLY_PAIRS = (NutOnPeg(0, "square_nut_"), NutOnPeg(1, "round_nut_"))
 """NutAssembly: each nut on its own peg, each measured apart."""
 
+THREADING_PAIRS = (NeedleInRing(),)
+"""Threading: the needle through the ring."""
+
 
 class InsertionOffset:
-    """Each nut's horizontal offset from its peg's centre at their first contact, in millimetres.
+    """Each tool's offset from its target's centre at their first contact, in millimetres.
 
     The episode's ``insertion_offset_mm`` is the mean over the pairs that touched (one pair: its offset) and its
     ``insertion_contact_step`` the first step any pair touched; a pair with a prefix also has its own two columns.
 
     Args:
-        pairs: the nut and peg pairs to watch.
+        pairs: the tool and target pairs to watch.
     """
 
-    def __init__(self, pairs: tuple[NutOnPeg, ...] = SQUARE_PAIRS) -> None:
+    def __init__(self, pairs: tuple[InsertionPair, ...] = SQUARE_PAIRS) -> None:
         if not pairs:
-            raise ValueError("InsertionOffset needs at least one nut and peg pair")
+            raise ValueError("InsertionOffset needs at least one tool and target pair")
         self.pairs = pairs
-        self._nut_geoms = np.zeros((len(pairs), 0), dtype=bool)
-        self._peg_geoms = np.zeros((len(pairs), 0), dtype=bool)
-        self._nut_bodies = self._peg_bodies = np.zeros(len(pairs), dtype=np.int64)
+        self._tool_geoms = np.zeros((len(pairs), 0), dtype=bool)
+        self._target_geoms = np.zeros((len(pairs), 0), dtype=bool)
         self._offsets_mm = np.full(len(pairs), np.nan)
         self._contact_steps = np.full(len(pairs), np.nan)
 
     def reset(self, env) -> None:
-        """Find the nuts' and the pegs' bodies and geoms (every reset of robosuite's env builds a new model)."""
-        model = env.sim.model
-        peg_bodies = (env.peg1_body_id, env.peg2_body_id)
-        geom_bodies = np.asarray(model.geom_bodyid)
+        """Find each pair's geoms (every reset of robosuite's env builds a new model)."""
+        ngeom = env.sim.model.ngeom
         # Lookup tables over all geoms, (pairs, ngeom), so that a step's contacts are checked without a Python loop.
-        self._nut_geoms = np.zeros((len(self.pairs), model.ngeom), dtype=bool)
-        self._peg_geoms = np.zeros((len(self.pairs), model.ngeom), dtype=bool)
-        nut_bodies, pegs = [], []
+        self._tool_geoms = np.zeros((len(self.pairs), ngeom), dtype=bool)
+        self._target_geoms = np.zeros((len(self.pairs), ngeom), dtype=bool)
         for row, pair in enumerate(self.pairs):
-            nut = env.nuts[pair.nut]
-            nut_bodies.append(env.obj_body_id[nut.name])
-            pegs.append(peg_bodies[pair.nut])
-            self._nut_geoms[row, env.obj_geom_id[nut.name]] = True
-            self._peg_geoms[row] = geom_bodies == pegs[-1]
-        self._nut_bodies, self._peg_bodies = np.array(nut_bodies), np.array(pegs)
+            tool, target = pair.geoms(env)
+            self._tool_geoms[row, tool] = True
+            self._target_geoms[row, target] = True
         self._offsets_mm = np.full(len(self.pairs), np.nan)
         self._contact_steps = np.full(len(self.pairs), np.nan)
 
     def observe(self, env, step: int) -> None:
-        """At each pair's first step with a contact between its nut's and its peg's geoms, record offset and step."""
+        """At each pair's first step with a contact between its tool's and target's geoms, record offset and step."""
         waiting = np.isnan(self._contact_steps)
         if not waiting.any():
             return
         data = env.sim.data
-        pairs = np.asarray(data.contact.geom[: data.ncon])  # (ncon, 2) geom ids of the active contacts
-        first, second = pairs[:, 0], pairs[:, 1]
-        nut_peg = self._nut_geoms[:, first] & self._peg_geoms[:, second]  # (pairs, ncon)
-        peg_nut = self._peg_geoms[:, first] & self._nut_geoms[:, second]
-        touching = np.any(nut_peg | peg_nut, axis=1) & waiting
+        contacts = np.asarray(data.contact.geom[: data.ncon])  # (ncon, 2) geom ids of the active contacts
+        first, second = contacts[:, 0], contacts[:, 1]
+        tool_target = self._tool_geoms[:, first] & self._target_geoms[:, second]  # (pairs, ncon)
+        target_tool = self._target_geoms[:, first] & self._tool_geoms[:, second]
+        touching = np.any(tool_target | target_tool, axis=1) & waiting
         for row in np.flatnonzero(touching):
-            offset = data.body_xpos[self._nut_bodies[row]][:2] - data.body_xpos[self._peg_bodies[row]][:2]
-            self._offsets_mm[row] = float(np.linalg.norm(offset) * 1000.0)
+            self._offsets_mm[row] = self.pairs[row].offset_m(env) * 1000.0
             self._contact_steps[row] = float(step)
 
     def values(self) -> dict[str, float]:

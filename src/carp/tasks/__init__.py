@@ -16,6 +16,7 @@ TASK_MODULES: dict[str, str] = {
     "stack": "carp.tasks.robosuite_arms",
     "nut_assembly": "carp.tasks.robosuite_arms",
     "stack_three": "carp.tasks.robosuite_arms",
+    "threading": "carp.tasks.robosuite_arms",
     "pusht": "carp.tasks.pusht_task",
 }
 """Task name -> module whose ``TASKS`` mapping holds the task under that name."""

@@ -1,8 +1,8 @@
-"""robosuite's Panda arm tasks (Lift, Can, Square, Stack, NutAssembly, and carp's StackThree) behind the task seam.
+"""Panda arm tasks on the task seam: robosuite's Lift, Can, Square, Stack, NutAssembly; carp's StackThree, Threading.
 
 They run on `carp.simulation` and share everything but their env class, their scripted expert and (Square,
-NutAssembly) the insertion-offset measure. An action is the OSC controller's 7-D input; with ``data.controller:
-absolute`` the policy learns its 10-D form with a continuous 6-D rotation (`carp.data.rotation`).
+NutAssembly, Threading) the insertion-offset measure. An action is the OSC controller's 7-D input; with
+``data.controller: absolute`` the policy learns its 10-D form with a continuous 6-D rotation (`carp.data.rotation`).
 """
 
 from collections.abc import Callable, Mapping, Sequence
@@ -46,6 +46,12 @@ def _nut_assembly_offsets() -> EpisodeMeasure:
     from carp.evaluation.insertion_offset import NUT_ASSEMBLY_PAIRS, InsertionOffset
 
     return InsertionOffset(NUT_ASSEMBLY_PAIRS)
+
+
+def _threading_offset() -> EpisodeMeasure:
+    from carp.evaluation.insertion_offset import THREADING_PAIRS, InsertionOffset
+
+    return InsertionOffset(THREADING_PAIRS)
 
 
 VIDEO_SIZE = 256
@@ -160,7 +166,7 @@ class RobosuiteArmTask:
         return expert
 
     def measure(self) -> EpisodeMeasure:
-        """The nut tasks' insertion offsets; nothing for Lift, Can, Stack and StackThree."""
+        """The nut tasks' and Threading's insertion offsets; nothing for Lift, Can, Stack and StackThree."""
         return self.measure_factory()
 
     def video(self, env, camera: str) -> _StateFrames:
@@ -196,5 +202,11 @@ TASKS = {
         "stack_three",
         simulation.TASK_ENV_NAMES["stack_three"],
         paper_demos="any published demonstrations (the paper has no three-cube stack)",
+    ),
+    "threading": RobosuiteArmTask(
+        "threading",
+        simulation.TASK_ENV_NAMES["threading"],
+        measure_factory=_threading_offset,
+        paper_demos="any published demonstrations (the paper has no threading task)",
     ),
 }

@@ -1,7 +1,7 @@
 """Scripted experts that solve the robosuite arm tasks from privileged object state, one file per task.
 
-Lift, PickPlaceCan, NutAssemblySquare, NutAssembly, Stack and carp's StackThree; `carp.data.experts.base` holds what
-they share.
+Lift, PickPlaceCan, NutAssemblySquare, NutAssembly, Stack, and carp's StackThree and Threading;
+`carp.data.experts.base` holds what they share.
 """
 
 from carp.data.experts.base import (
@@ -24,6 +24,7 @@ from carp.data.experts.can import CanExpert
 from carp.data.experts.lift import LiftExpert
 from carp.data.experts.nut import NutAssemblyExpert, NutExpert, SquareExpert
 from carp.data.experts.stack import StackExpert, StackThreeExpert
+from carp.data.experts.threading import ThreadingExpert
 
 __all__ = [
     "CLOSE_GRIPPER_STEPS",
@@ -47,6 +48,7 @@ __all__ = [
     "SquareExpert",
     "StackExpert",
     "StackThreeExpert",
+    "ThreadingExpert",
     "EXPERTS",
     "make_expert",
 ]
@@ -58,6 +60,7 @@ EXPERTS: dict[str, type[ScriptedExpert]] = {
     "stack": StackExpert,
     "nut_assembly": NutAssemblyExpert,
     "stack_three": StackThreeExpert,
+    "threading": ThreadingExpert,
 }
 
 
