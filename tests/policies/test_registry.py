@@ -226,7 +226,8 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     policy = train_policy(STUB_FAMILY.name, StubConfig(), training, shapes, data, tmp_path / "state")
     path = tmp_path / "policy.pt"
     policy.save(path)
-    summary, results = evaluate_policy(
+    evaluate = functools.partial(
+        evaluate_policy,
         path,
         env_args=simulation.make_env_args("lift", controller="delta"),
         action_format=DELTA_ACTIONS,
@@ -237,22 +238,12 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
         max_steps=12,
         workers=1,
     )
+    summary, results = evaluate()
     assert summary["episodes"] == 1 and summary["policy_type"] == "stub" and summary["backend"] == "torch"
     assert summary["inference"] == "linear" and summary["model_calls_per_chunk"] == 1
     assert results[0].steps == 12 and not results[0].error and len(results[0].prediction_seconds) == 3
     # With temporal ensembling every control step predicts a chunk, and the summary says so.
-    summary, results = evaluate_policy(
-        path,
-        env_args=simulation.make_env_args("lift", controller="delta"),
-        action_format=DELTA_ACTIONS,
-        obs_keys=obs_keys,
-        obs_steps=2,
-        action_steps=4,
-        seeds=[100_000],
-        max_steps=12,
-        workers=1,
-        ensemble_m=0.0,
-    )
+    summary, results = evaluate(ensemble_m=0.0)
     assert (summary["ensemble_m"], summary["action_steps"]) == (0.0, 1)
     assert results[0].steps == 12 and not results[0].error and len(results[0].prediction_seconds) == 12
 
