@@ -40,6 +40,10 @@ class ObservationPadding:
             )
         if any(width < 1 or width > padded for width, padded in zip(self.widths, self.padded_widths)):
             raise ValueError(f"obs widths {list(self.widths)} do not fit in padded widths {list(self.padded_widths)}")
+        # Computed once: padding runs on every prediction of a multi-task policy.
+        starts = np.concatenate([[0], np.cumsum(self.padded_widths)[:-1]])
+        positions = [start + np.arange(width) for start, width in zip(starts, self.widths)]
+        object.__setattr__(self, "_positions", np.concatenate(positions).astype(np.int64))
 
     @property
     def input_dim(self) -> int:
@@ -58,8 +62,7 @@ class ObservationPadding:
 
     def positions(self) -> np.ndarray:
         """(input_dim,) int64: the padded column of each of the task's features."""
-        starts = np.concatenate([[0], np.cumsum(self.padded_widths)[:-1]])
-        return np.concatenate([start + np.arange(width) for start, width in zip(starts, self.widths)]).astype(np.int64)
+        return self._positions.copy()
 
     def matrix(self) -> np.ndarray:
         """(input_dim, output_dim) float32 0/1 matrix with `obs @ matrix` = the padded observations (exact)."""
@@ -77,7 +80,7 @@ class ObservationPadding:
             raise ValueError(f"observations have {values.shape[-1]} features, this task has {self.input_dim}")
         if not self.pads:
             return values
-        positions = self.positions()
+        positions = self._positions
         if isinstance(values, np.ndarray):
             padded = np.zeros((*values.shape[:-1], self.output_dim), dtype=values.dtype)
         else:

@@ -74,7 +74,9 @@ class PolicyTasks:
                 raise ValueError(f"obs widths are for tasks {sorted(self.obs_widths)}, not {list(self.names)}")
             widths = {task: tuple(int(width) for width in self.obs_widths[task]) for task in self.names}
             object.__setattr__(self, "obs_widths", widths)
-            padded_dim = padded_layout(widths)[self.names[0]].output_dim
+            # Kept: the selected task's padding is looked up on every prediction.
+            object.__setattr__(self, "_paddings", padded_layout(widths))
+            padded_dim = self._paddings[self.names[0]].output_dim
             obs_dim = self.obs_normalizers[self.names[0]].num_features
             if padded_dim != obs_dim:
                 raise ValueError(f"obs widths {widths} pad to {padded_dim} features, the obs statistics have {obs_dim}")
@@ -105,7 +107,7 @@ class PolicyTasks:
         """How `task`'s (default: the selected task's) own observations are padded; None when no task is padded."""
         if self.obs_widths is None:
             return None
-        return padded_layout(self.obs_widths)[self.selected if task is None else task]
+        return self._paddings[self.selected if task is None else task]
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-types view, as the metadata stores it."""
