@@ -96,7 +96,7 @@ def main() -> None:
         git_commit=git_commit(),
         params_yaml=args.params.read_text(),
     )
-    title = f"carp report: {', '.join(params.tasks)} ({', '.join(params.policies)})"
+    title = f"carp report: {', '.join(params.tasks)} ({', '.join(own_labels)})"
     markdown, html = write_report(inputs, REPORTS_DIR, title=title)
     print(f"wrote {markdown.relative_to(PROJECT_DIR)} and {html.relative_to(PROJECT_DIR)}")
 

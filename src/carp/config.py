@@ -756,6 +756,8 @@ class Params:
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.
+            Empty only when ``multitask`` lists a family: the run then trains multi-task policies alone, and its
+            report compares them with single-task policies of other runs (``comparison.references``).
         seeds: Training seeds: every family is trained and evaluated once per seed on every task (``train_policy``
             and ``evaluate`` fan out over tasks x policies x seeds); integers >= 0, each at most once. The tokenizer
             stays one per pipeline.
@@ -816,7 +818,12 @@ class Params:
             _require(task in TASK_NAMES, "tasks", self.tasks, f"every task must be one of {TASK_NAMES}")
         _require(len(set(self.tasks)) == len(self.tasks), "tasks", self.tasks, "must not repeat a task")
         known = family_sections()
-        _require(len(self.policies) >= 1, "policies", list(self.policies), "must list at least one policy family")
+        _require(
+            len(self.policies) >= 1 or len(self.multitask) >= 1,
+            "policies",
+            list(self.policies),
+            "must list at least one policy family (empty only when multitask lists one)",
+        )
         for name in self.policies:
             _require(name in known, "policies", list(self.policies), f"every family must be one of {list(known)}")
         _require(len(set(self.policies)) == len(self.policies), "policies", self.policies, "must not repeat a family")
