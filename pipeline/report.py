@@ -23,7 +23,13 @@ from stage_support import (
 from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
-from carp.reporting.comparison import add_referenced_runs, pooled_metrics, read_run_results, split_multitask
+from carp.reporting.comparison import (
+    MULTITASK_SUFFIX,
+    add_referenced_runs,
+    pooled_metrics,
+    read_run_results,
+    split_multitask,
+)
 from carp.reporting.report import ReportInputs, write_report
 from carp.tasks import get_task
 
@@ -48,7 +54,7 @@ def main() -> None:
         runs, reference_notes = add_referenced_runs(runs, references, params.tasks)
     except (OSError, ValueError) as error:
         fail(f"{args.params}: comparison.references: {error}")
-    single_task, multitask = split_multitask(runs, multitask_label(""))
+    single_task, multitask = split_multitask(runs, MULTITASK_SUFFIX)
     # The training curves of each family's first seed; the others' histories sit beside them.
     first_seed = params.seeds[0]
     inputs = ReportInputs(
@@ -61,6 +67,7 @@ def main() -> None:
             task: {policy: pooled_metrics(seed_runs) for policy, seed_runs in families.items()}
             for task, families in multitask.items()
         },
+        multitask_runs=multitask,
         max_steps={task: params.max_steps_for(task) for task in params.tasks},
         demo_notes={task: scripted_demo_note(task) for task in params.tasks if task not in params.data.raw_files},
         reference_notes=reference_notes,

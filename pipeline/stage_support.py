@@ -128,7 +128,9 @@ MULTITASK_DIRNAME = "multitask"
 
 def multitask_label(policy: str) -> str:
     """``<policy>-multitask``: a family's multi-task policy in evaluation paths and the report, beside ``<policy>``."""
-    return f"{policy}-{MULTITASK_DIRNAME}"
+    from carp.reporting.comparison import MULTITASK_SUFFIX  # the report's plotting imports only where a label is made
+
+    return policy + MULTITASK_SUFFIX
 
 
 def stage_policy_paths(args: argparse.Namespace) -> tuple[Path, Path, str]:

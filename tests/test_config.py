@@ -90,7 +90,7 @@ def test_defaults_follow_the_design():
             "policies=['carp', 'lstm']: every family must be one of ['carp', 'diffusion_unet',",
         ),
         ({"policies": ["carp", "carp"]}, "policies=('carp', 'carp'): must not repeat a family"),
-        ({"policies": []}, "policies=[]: must list at least one policy family"),
+        ({"policies": []}, "policies=[]: must list at least one policy family (empty only when multitask lists one)"),
         (
             {"tasks": ["can", "square"], "multitask": ["carp", "lstm"]},
             "multitask=['carp', 'lstm']: every family must be one of ['carp', 'diffusion_unet',",
@@ -365,6 +365,9 @@ def test_multitask_families_need_not_be_single_task_families():
     params = params_from_dict({"tasks": ["can", "square"], "policies": ["carp"], "multitask": ["diffusion_unet"]})
     assert params.multitask == ("diffusion_unet",)
     assert params.family_config("diffusion_unet") is not None
+    # A run of multi-task policies alone: no single-task family.
+    alone = params_from_dict({"tasks": ["can", "square"], "policies": [], "multitask": ["carp"]})
+    assert alone.policies == () and alone.multitask == ("carp",)
 
 
 def test_registered_families_are_a_subset_of_the_trained_ones_with_a_hyphenated_alias():

@@ -1,12 +1,14 @@
 """End to end with a multi-task policy: `dvc repro` on tiny params over Lift and Can (a 10-wide and a 14-wide `object`
 observation, padded inside the policy) trains the single-task CARPs and one multi-task CARP over both tasks,
 evaluates it on each task beside them, and the report sets them side by side; a second run runs nothing but the
-input check."""
+input check. A run of the multi-task policy alone, referencing the single-task evaluations, reruns only the report."""
 
 import json
+import shutil
 import sys
 
 import pytest
+import yaml
 
 from carp.policies.registry import load_policy
 from carp.serving.startup import load_served_model
@@ -65,9 +67,29 @@ def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp
         assert summary["episodes"] == 1 and summary["policy_type"] == "carp"
     report = (workspace / "reports/report.md").read_text()
     section = report.split("## Multi-task", 1)[1].split("\n## ", 1)[0]
-    rows = [line for line in section.splitlines() if line.startswith(("| lift ", "| can "))]
-    assert len(rows) == 2 and all("| carp " in row and "/1 (" in row for row in rows)
+    rows = [line for line in section.splitlines() if line.startswith(("| lift ", "| can ")) and "| carp " in line]
+    assert len(rows) == 2 and all("/1 (" in row for row in rows)
+    pairs = [line for line in section.splitlines() if "| carp-multitask vs carp " in line]
+    assert [pair.split("|")[1].strip() for pair in pairs] == TASKS
 
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert second.returncode == 0, second.stderr[-3000:]
     assert stages_run(second.stdout) == {"check_inputs"}
+
+    # The single-task evaluations kept apart, a run of the multi-task policy alone (`policies: []`) referencing them:
+    # nothing trains again, and the report still pairs the multi-task policy with each single-task one.
+    for task in TASKS:
+        shutil.copytree(workspace / f"reports/eval/{task}/carp", workspace / f"earlier/eval/{task}/carp")
+    params_file = workspace / "params.yaml"
+    params = yaml.safe_load(params_file.read_text())
+    params["policies"] = []
+    params["comparison"]["references"] = ["earlier/eval"]
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    alone = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    assert stages_run(alone.stdout) == {"check_inputs", "report"}
+    report = (workspace / "reports/report.md").read_text()
+    section = report.split("## Multi-task", 1)[1].split("\n## ", 1)[0]
+    pairs = [line for line in section.splitlines() if "carp-multitask vs carp" in line and line.startswith("| ")]
+    assert [pair.split("|")[1].strip() for pair in pairs] == TASKS
+    assert all(f"{task}, " in section for task in TASKS) and "carp (training seeds 0) from earlier/eval" in report

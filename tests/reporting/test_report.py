@@ -13,7 +13,7 @@ import pytest
 from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EpisodeResult
 from carp.evaluation.runner import write_episode_videos
-from carp.reporting.comparison import RunResults, pooled_metrics, seed_table
+from carp.reporting.comparison import RunResults, compare_multitask, pooled_metrics, seed_table
 from carp.reporting.report import (
     ReportInputs,
     comparison_table,
@@ -369,3 +369,56 @@ def test_a_multi_task_policy_is_set_next_to_the_single_task_policy_of_its_family
     markdown = write_report(dataclasses.replace(inputs, multitask={"lift": {"carp": multi}}), tmp_path / "multi")[0]
     section = markdown.read_text().split("## Multi-task", 1)[1].split("\n## ", 1)[0]
     assert "| lift " in section and "30/50 (60.0%)" in section and "45/50 (90.0%)" in section
+
+
+def test_each_multi_task_policy_is_tested_against_its_single_task_policy_on_the_shared_episodes(tmp_path, inputs):
+    single = {"lift": {"carp": _runs({0: 0.95}, 3.0)}, "can": {"carp": _runs({0: 0.80}, 3.0)}}
+    multi = {
+        "lift": {"carp": _runs({0: 0.95}, 3.0, flip=2)},  # the same rate on other episodes
+        "can": {"carp": _runs({0: 0.40}, 3.0)},  # 40 episodes fewer, every one of them paired
+        "stack": {"carp": _runs({0: 0.70}, 3.0)},  # no single-task policy: no pair
+    }
+    for run in multi["can"]["carp"].values():
+        run.episodes["insertion_offset_mm"] = np.linspace(1.0, 3.0, 100)
+    decided = compare_multitask(single, multi, "-multitask", margin=0.05, alpha=0.05)
+    assert {task: len(pairs) for task, pairs in decided.items()} == {"lift": 1, "can": 1, "stack": 0}
+    can = decided["can"][0]
+    assert (can.first, can.second, can.episodes) == ("carp-multitask", "carp", 100)
+    assert (can.mcnemar.first_only, can.mcnemar.second_only) == (0, 40)
+    assert can.verdict == "carp better"
+    assert decided["lift"][0].mcnemar.first_only == decided["lift"][0].mcnemar.second_only == 2
+    # Holm over the two multi-task pairs: Lift's p (1.0) stays, Can's doubles.
+    assert decided["can"][0].adjusted_p_value == pytest.approx(min(1.0, 2 * can.mcnemar.p_value))
+
+    # A run that trained only the multi-task policies: no section per task, the pairs and measures still reported.
+    evaluation = {
+        task: {family: pooled_metrics(runs) for family, runs in families.items()} for task, families in single.items()
+    }
+    report = dataclasses.replace(
+        inputs,
+        evaluation={"lift": {}, "can": {}, "stack": {}},
+        runs=single,
+        multitask={
+            task: {family: pooled_metrics(runs) for family, runs in families.items()}
+            for task, families in multi.items()
+        },
+        multitask_runs=multi,
+    )
+    markdown = write_report(
+        dataclasses.replace(report, evaluation={**report.evaluation, **evaluation}), tmp_path / "a"
+    )[0]
+    section = markdown.read_text().split("## Multi-task", 1)[1].split("\n## ", 1)[0]
+    cells = [
+        [cell.strip() for cell in line.split("|")[1:-1]]
+        for line in section.splitlines()
+        if line.startswith("| ") and "vs carp |" in line
+    ]
+    assert [row[:3] for row in cells] == [
+        ["lift", "carp-multitask vs carp", "100"],
+        ["can", "carp-multitask vs carp", "100"],
+    ]
+    assert "can, carp better:" in section and "lift, on par within" in section
+    assert re.search(r"\| insertion_offset_mm +\| carp-multitask +\| 100 ", section)
+    alone = write_report(dataclasses.replace(report, runs={}), tmp_path / "b")[0].read_text()
+    assert "## Policies on" not in alone and "## Comparison on" not in alone
+    assert re.search(r"\| stack +\| carp +\| 70/100 \(70.0%\)", alone)

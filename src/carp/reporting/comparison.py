@@ -41,6 +41,9 @@ class RunResults:
 Runs = Mapping[int, RunResults]
 """Training seed -> that seed's results, for one family on one task."""
 
+MULTITASK_SUFFIX = "-multitask"
+"""Appended to a family's name to name its multi-task policy (``carp-multitask``) in evaluation paths and reports."""
+
 PAPER_CLAIMS = (
     ("CARP's success is on par with DP-C", "carp", "diffusion_unet", "on par"),
     ("CARP's success is better than next-token's", "carp", "next_token", "better"),
@@ -350,25 +353,69 @@ def compare_families(
     Returns:
         task -> its pairs' comparisons, verdicts decided (`statistics.decide_pairs`).
     """
-    pairs: list[tuple[str, statistics.PairComparison]] = []
-    for task, task_runs in evaluations.items():
-        for first, second in combinations(task_runs, 2):
-            shared = _shared_episode_seeds(task_runs[first], task_runs[second])
-            comparison = statistics.compare_pair(
-                first,
-                outcomes_by_seed(task_runs[first], shared),
-                second,
-                outcomes_by_seed(task_runs[second], shared),
-                first_steps_by_seed=steps_by_seed(task_runs[first], shared),
-                second_steps_by_seed=steps_by_seed(task_runs[second], shared),
-                margin=margin,
-                alpha=alpha,
-                level=level,
-            )
-            pairs.append((task, comparison))
-    decided = statistics.decide_pairs([comparison for _, comparison in pairs], margin=margin, alpha=alpha)
-    by_task: dict[str, list[statistics.PairComparison]] = {task: [] for task in evaluations}
-    for (task, _), comparison in zip(pairs, decided):
+    pairs = [
+        (task, first, task_runs[first], second, task_runs[second])
+        for task, task_runs in evaluations.items()
+        for first, second in combinations(task_runs, 2)
+    ]
+    return _decide(pairs, list(evaluations), margin, alpha, level)
+
+
+def compare_multitask(
+    single_task: Mapping[str, Mapping[str, Runs]],
+    multitask: Mapping[str, Mapping[str, Runs]],
+    suffix: str,
+    margin: float,
+    alpha: float,
+    level: float = 0.95,
+) -> dict[str, list["statistics.PairComparison"]]:
+    """Each family's multi-task policy against its single-task policy on every task both were evaluated on.
+
+    The pairs are compared like `compare_families` (episodes by episode seed, training seeds by number), with Holm's
+    correction over every multi-task pair of the run; a task where the family has no single-task policy has no pair.
+
+    Args:
+        single_task: task -> family -> runs of the single-task policies.
+        multitask: task -> family -> runs of the family's multi-task policy on the task.
+        suffix: appended to a family's name to name its multi-task policy in the comparisons (as `split_multitask`).
+        margin: equivalence margin of the verdicts, in success rate.
+        alpha: family-wise significance level (Holm over the multi-task pairs).
+        level: confidence level of the intervals.
+
+    Returns:
+        task -> its (multi-task, single-task) comparisons, multi-task first, verdicts decided.
+    """
+    pairs = [
+        (task, family + suffix, runs, family, single_task[task][family])
+        for task, families in multitask.items()
+        for family, runs in families.items()
+        if family in single_task.get(task, {})
+    ]
+    return _decide(pairs, list(multitask), margin, alpha, level)
+
+
+def _decide(
+    pairs: Sequence[tuple[str, str, Runs, str, Runs]], tasks: Sequence[str], margin: float, alpha: float, level: float
+) -> dict[str, list["statistics.PairComparison"]]:
+    """Compare each (task, first, its runs, second, its runs) on their shared episodes; Holm over all of them."""
+    compared = []
+    for task, first, first_runs, second, second_runs in pairs:
+        shared = _shared_episode_seeds(first_runs, second_runs)
+        comparison = statistics.compare_pair(
+            first,
+            outcomes_by_seed(first_runs, shared),
+            second,
+            outcomes_by_seed(second_runs, shared),
+            first_steps_by_seed=steps_by_seed(first_runs, shared),
+            second_steps_by_seed=steps_by_seed(second_runs, shared),
+            margin=margin,
+            alpha=alpha,
+            level=level,
+        )
+        compared.append((task, comparison))
+    decided = statistics.decide_pairs([comparison for _, comparison in compared], margin=margin, alpha=alpha)
+    by_task: dict[str, list[statistics.PairComparison]] = {task: [] for task in tasks}
+    for (task, _), comparison in zip(compared, decided):
         by_task[task].append(comparison)
     return by_task
 

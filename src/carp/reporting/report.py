@@ -22,7 +22,7 @@ import pandas as pd  # noqa: E402
 from carp.evaluation import statistics  # noqa: E402
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
 from carp.reporting import comparison  # noqa: E402
-from carp.reporting.comparison import Runs  # noqa: E402
+from carp.reporting.comparison import MULTITASK_SUFFIX, Runs  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
 from carp.tokenizer.task_metrics import task_errors  # noqa: E402
@@ -62,6 +62,9 @@ class ReportInputs:
             trained over every task of the run) on the task, pooled over its seeds like `evaluation`
             (``reports/eval/<task>/<policy>-multitask/``); the report sets it next to the single-task policy of the
             same family where `evaluation` has one.
+        multitask_runs: task -> policy family -> training seed -> the multi-task policy's results on the task, like
+            `runs`; with it the report compares each multi-task policy with the family's single-task policy on the
+            same episodes (paired difference, McNemar, Holm, verdict) and gives its task measures.
         max_steps: task -> episode step limit (the curves' horizon).
         demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
             demos where the paper trained on human ones); shown under the task's policies.
@@ -84,6 +87,7 @@ class ReportInputs:
     videos: Mapping[str, Sequence[Path]] = field(default_factory=dict)
     runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
     multitask: Mapping[str, Mapping[str, Mapping]] = field(default_factory=dict)
+    multitask_runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
     max_steps: Mapping[str, int] = field(default_factory=dict)
     demo_notes: Mapping[str, str] = field(default_factory=dict)
     reference_notes: Mapping[str, str] = field(default_factory=dict)
@@ -400,20 +404,10 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
             tables=[comparison_table(policies, inputs.policy_histories.get(task))],
         )
         for task, policies in inputs.evaluation.items()
+        if policies
     ]
     if inputs.multitask:
-        sections.append(
-            Section(
-                "Multi-task",
-                paragraphs=[
-                    "One policy per family trained over every task of the run, told the task by a learned task "
-                    "embedding, evaluated on each task on the same episode seeds as the single-task policies; next "
-                    "to it the single-task policy of the same family on that task. Successes are pooled over the "
-                    "training seeds, with their 95% Wilson intervals."
-                ],
-                tables=[multitask_table(inputs.multitask, inputs.evaluation)],
-            )
-        )
+        sections.append(multitask_section(inputs))
     if inputs.runs:
         sections += comparison_sections(inputs, figures_dir)
     sections += [
@@ -529,12 +523,48 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     return sections
 
 
+def multitask_section(inputs: ReportInputs) -> Section:
+    """Each multi-task policy beside its family's single-task policy per task; paired verdicts and task measures."""
+    section = Section(
+        "Multi-task",
+        paragraphs=[
+            "One policy per family trained over every task of the run, told the task by a learned task "
+            "embedding, evaluated on each task on the same episode seeds as the single-task policies; next "
+            "to it the single-task policy of the same family on that task. Successes are pooled over the "
+            "training seeds, with their 95% Wilson intervals."
+        ],
+        tables=[multitask_table(inputs.multitask, inputs.evaluation)],
+    )
+    decided = comparison.compare_multitask(
+        inputs.runs, inputs.multitask_runs, MULTITASK_SUFFIX, margin=inputs.margin, alpha=inputs.alpha
+    )
+    pairs = [(task, pair) for task, task_pairs in decided.items() for pair in task_pairs]
+    if pairs:
+        section.paragraphs.append(
+            "Each multi-task policy against its single-task policy on the episodes they share, tested as the pairs "
+            f"of families are (Holm's correction over the multi-task pairs of the run at alpha {inputs.alpha}; "
+            f'"on par" means within +-{100 * inputs.margin:.0f} points).'
+        )
+        section.paragraphs += [f"{task}, {pair.verdict}: {pair.explanation}" for task, pair in pairs]
+        table = statistics.comparison_table([pair for _, pair in pairs])
+        table.insert(0, "task", [task for task, _ in pairs])
+        section.tables.append(table)
+    for task, families in inputs.multitask_runs.items():
+        measures = comparison.measure_table({family + MULTITASK_SUFFIX: runs for family, runs in families.items()})
+        if not measures.empty:
+            section.paragraphs.append(f"The multi-task policies' own measures on {task} (as in the task's comparison).")
+            section.tables.append(measures)
+    return section
+
+
 def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     """The comparison sections: per task the seeds, families, paired verdicts and steps to success; then the claims."""
     decided = comparison.compare_families(inputs.runs, margin=inputs.margin, alpha=inputs.alpha)
     margin_points = 100 * inputs.margin
     sections = []
     for task, task_runs in inputs.runs.items():
+        if not task_runs:
+            continue
         section = Section(
             f"Comparison on {task}",
             paragraphs=[
