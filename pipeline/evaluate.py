@@ -19,6 +19,7 @@ from stage_support import (
     EVAL_VIDEO_DIR,
     PROCESSED_DIR,
     camera_settings,
+    episode_runner,
     evaluation_report,
     fail,
     mlflow_stage,
@@ -28,7 +29,7 @@ from stage_support import (
 )
 
 from carp.data.dataset import load_task_windows
-from carp.evaluation.runner import buffer_latency, episodes_table, evaluate_policy, write_episode_videos
+from carp.evaluation.runner import buffer_latency, episodes_table, write_episode_videos
 from carp.evaluation.selection import (
     AVERAGED_POLICY_NAME,
     evaluate_with_selection,
@@ -63,7 +64,6 @@ def main() -> None:
             "snapshots (training.snapshot_every, training.snapshot_last) or average fewer"
         )
     windows = load_task_windows(PROCESSED_DIR / args.task, data.action_horizon, data.obs_steps, data.action_steps)
-    workers = config.workers or os.cpu_count() or 1
     inference = params.inference_settings(args.policy, args.task)
     tags = {
         "carp.policy_run_id": policy.metadata.get("mlflow_run_id", ""),
@@ -81,26 +81,10 @@ def main() -> None:
             # The averaged policy is evaluated, not kept: the snapshots it comes from are the stage's inputs.
             return save_averaged_policy(candidates, Path(scratch) / AVERAGED_POLICY_NAME)
 
-        def run_episodes(checkpoint, seeds):
-            return evaluate_policy(
-                checkpoint,
-                env_args=windows.buffer.attrs["env_args"],
-                action_format=params.action_format,
-                obs_keys=params.obs_keys_for(args.task),
-                obs_steps=data.obs_steps,
-                action_steps=data.action_steps,
-                seeds=seeds,
-                max_steps=params.max_steps_for(args.task),
-                workers=min(workers, len(seeds)),
-                inference=inference,
-                # Only the test episodes are recorded: they are the ones the report shows.
-                video_episodes=config.video_episodes if config.video and seeds == config.test_seeds() else 0,
-                backend=config.backend,
-                cameras=cameras,
-                task=args.task,
-                ensemble_m=config.ensemble_m,
-            )
-
+        # Only the test episodes are recorded: they are the ones the report shows.
+        run_episodes = episode_runner(
+            params, args.task, args.policy, windows.buffer.attrs["env_args"], video_seeds=config.test_seeds()
+        )
         evaluated = evaluate_with_selection(
             candidates,
             config.selection,

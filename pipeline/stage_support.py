@@ -10,7 +10,7 @@ import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -107,6 +107,47 @@ def camera_settings(params: Params) -> "RenderSettings | None":
     return RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
 
 
+def episode_runner(
+    params: Params,
+    task: str,
+    family: str,
+    env_args: dict,
+    video_seeds: list[int] | None = None,
+) -> Callable[[Path, list[int]], tuple[dict, list]]:
+    """Runs a checkpoint of `family` on `task`'s episode seeds as the evaluate stage does: (checkpoint, seeds) ->
+    (summary, episodes) of `carp.evaluation.runner.evaluate_policy`.
+
+    `env_args` are the task's environment arguments (its replay buffer's ``env_args``); episodes on exactly
+    `video_seeds` are recorded when ``eval.video`` is on.
+    """
+    from carp.evaluation.runner import evaluate_policy
+
+    config, cameras = params.eval, camera_settings(params)
+    workers = config.workers or os.cpu_count() or 1
+    inference = params.inference_settings(family, task)
+
+    def run_episodes(checkpoint: Path, seeds: list[int]) -> tuple[dict, list]:
+        return evaluate_policy(
+            checkpoint,
+            env_args=env_args,
+            action_format=params.action_format,
+            obs_keys=params.obs_keys_for(task),
+            obs_steps=params.data.obs_steps,
+            action_steps=params.data.action_steps,
+            seeds=seeds,
+            max_steps=params.max_steps_for(task),
+            workers=min(workers, len(seeds)),
+            inference=inference,
+            video_episodes=config.video_episodes if config.video and seeds == video_seeds else 0,
+            backend=config.backend,
+            cameras=cameras,
+            task=task,
+            ensemble_m=config.ensemble_m,
+        )
+
+    return run_episodes
+
+
 def seed_name(seed: int) -> str:
     """``seed<seed>``: the path part of one training seed's outputs."""
     return f"seed{seed}"
@@ -139,17 +180,19 @@ def stage_policy_paths(args: argparse.Namespace) -> tuple[Path, Path, str]:
     A single-task policy's are ``policy_dir``, ``policy_report_dir`` and the family; a multi-task one's
     (``--multitask``) sit under ``multitask/`` in place of the task, and its label is ``multitask_label``.
     """
-    if args.multitask:
+    return policy_paths(args.task, args.policy, args.seed, args.multitask)
+
+
+def policy_paths(task: str | None, family: str, seed: int, multitask: bool) -> tuple[Path, Path, str]:
+    """The checkpoint directory, training report directory and label of `family`'s policy at training `seed`: its
+    single-task policy on `task`, or with `multitask` its multi-task policy (`task` unused)."""
+    if multitask:
         return (
-            POLICY_DIR / MULTITASK_DIRNAME / args.policy / seed_name(args.seed),
-            POLICY_REPORT_DIR / MULTITASK_DIRNAME / args.policy / seed_name(args.seed),
-            multitask_label(args.policy),
+            POLICY_DIR / MULTITASK_DIRNAME / family / seed_name(seed),
+            POLICY_REPORT_DIR / MULTITASK_DIRNAME / family / seed_name(seed),
+            multitask_label(family),
         )
-    return (
-        policy_dir(args.task, args.policy, args.seed),
-        policy_report_dir(args.task, args.policy, args.seed),
-        args.policy,
-    )
+    return policy_dir(task, family, seed), policy_report_dir(task, family, seed), family
 
 
 def evaluation_report(task: str, policy: str, seed: int) -> Path:

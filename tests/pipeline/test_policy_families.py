@@ -95,6 +95,40 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
     assert resolve_alias(uri, "models:/carp-policy-lift-carp@candidate").version == references[0]["version"]
     assert not (workspace / "models/policy_ref/lift/diffusion_transformer").exists()
 
+    # A duel extends the two evaluated policies' test episodes in rounds: the evaluated seeds count, new ones run.
+    duel = [
+        sys.executable,
+        "pipeline/duel.py",
+        "--task",
+        "lift",
+        "--first",
+        "carp",
+        "--second",
+        "diffusion_transformer",
+    ]
+    dueled = run([*duel, "--seed", "1", "--episodes", "4", "--round-episodes", "1"], workspace)
+    assert dueled.returncode == 0, dueled.stderr[-3000:]
+    assert "lift, training seed 1: not decided in 4 episodes" in dueled.stdout
+    duel_dir = workspace / "reports/duel/lift/carp_vs_diffusion_transformer/seed1"
+    verdict = json.loads((duel_dir / "verdict.json").read_text())
+    assert (verdict["episodes"], verdict["rounds"], verdict["verdict"]) == (4, 3, "not decided")
+    for policy in FAMILIES["policies"]:
+        duel_episodes = pd.read_csv(duel_dir / f"{policy}_episodes.csv")
+        evaluated = pd.read_csv(workspace / f"reports/eval/lift/{policy}/seed1_episodes.csv")
+        assert duel_episodes["seed"].tolist() == [100_000, 100_001, 100_002, 100_003]
+        assert duel_episodes.head(2)["success"].tolist() == evaluated["success"].tolist()
+    assert verdict["first_successes"] == pd.read_csv(duel_dir / "carp_episodes.csv")["success"].sum()
+    # Run again, it resumes finished: nothing new runs and the verdict stands.
+    again = run([*duel, "--seed", "1", "--episodes", "4"], workspace)
+    resumed = json.loads((duel_dir / "verdict.json").read_text())
+    assert again.returncode == 0 and resumed == verdict | {"rounds": 1}  # the kept episodes count as one round
+    assert len(pd.read_csv(duel_dir / "carp_episodes.csv")) == 4
+    refused = run([*duel[:-1], "next_token"], workspace)
+    assert refused.returncode == 1
+    assert (
+        refused.stderr.strip().splitlines()[-1].startswith("error: ") and "next_token is not listed" in refused.stderr
+    )
+
     second = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert second.returncode == 0, second.stderr[-3000:]
     assert stages_run(second.stdout) == {"check_inputs"}, second.stdout
