@@ -422,3 +422,56 @@ def test_each_multi_task_policy_is_tested_against_its_single_task_policy_on_the_
     alone = write_report(dataclasses.replace(report, runs={}), tmp_path / "b")[0].read_text()
     assert "## Policies on" not in alone and "## Comparison on" not in alone
     assert re.search(r"\| stack +\| carp +\| 70/100 \(70.0%\)", alone)
+
+
+def test_multi_task_policies_of_two_families_are_compared_with_each_other_and_the_claims_checked(tmp_path, inputs):
+    single = {"lift": {"carp": _runs({0: 0.90}, 3.0)}}
+    multi = {
+        "lift": {"carp": _runs({0: 0.90}, 3.0, flip=1), "diffusion_unet": _runs({0: 0.90}, 45.0, flip=3)},
+        "can": {"carp": _runs({0: 0.80}, 3.0), "diffusion_unet": _runs({0: 0.40}, 45.0)},
+    }
+    decided = compare_multitask(single, multi, "-multitask", margin=0.05, alpha=0.05)
+    # Lift: carp's multi-task policy against its single-task one, then the two multi-task policies; Can: only the
+    # two multi-task policies (no single-task policy there).
+    assert [(pair.first, pair.second) for pair in decided["lift"]] == [
+        ("carp-multitask", "carp"),
+        ("carp-multitask", "diffusion_unet-multitask"),
+    ]
+    can = decided["can"][0]
+    assert (can.first, can.second, can.mcnemar.first_only, can.mcnemar.second_only) == (
+        "carp-multitask",
+        "diffusion_unet-multitask",
+        40,
+        0,
+    )
+    assert can.verdict == "carp-multitask better"
+    # Holm over the three multi-task pairs: the smallest p is tripled.
+    assert can.adjusted_p_value == pytest.approx(min(1.0, 3 * can.mcnemar.p_value))
+
+    report = dataclasses.replace(
+        inputs,
+        evaluation={task: {} for task in multi},
+        runs=single,
+        multitask={
+            task: {family: pooled_metrics(runs) for family, runs in families.items()}
+            for task, families in multi.items()
+        },
+        multitask_runs=multi,
+        max_steps={"lift": 400, "can": 400},
+    )
+    markdown = write_report(report, tmp_path / "reports")[0].read_text()
+    section = markdown.split("## Multi-task", 1)[1].split("\n## ", 1)[0]
+    assert "can, carp-multitask better:" in section
+    claims = {
+        (cells[0], cells[1]): cells[2]
+        for cells in (
+            [cell.strip() for cell in line.split("|")[1:-1]] for line in section.splitlines() if line.startswith("| ")
+        )
+        if len(cells) == 4 and cells[1].startswith("CARP")
+    }
+    assert claims == {
+        ("lift", "CARP's success is on par with DP-C"): "holds",
+        ("can", "CARP's success is on par with DP-C"): "holds",
+        ("lift", "CARP is about 10x faster per chunk than DP-C"): "holds",
+        ("can", "CARP is about 10x faster per chunk than DP-C"): "holds",
+    }

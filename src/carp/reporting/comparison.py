@@ -369,10 +369,12 @@ def compare_multitask(
     alpha: float,
     level: float = 0.95,
 ) -> dict[str, list["statistics.PairComparison"]]:
-    """Each family's multi-task policy against its single-task policy on every task both were evaluated on.
+    """Each multi-task policy against its family's single-task policy, and against the other families' multi-task ones.
 
-    The pairs are compared like `compare_families` (episodes by episode seed, training seeds by number), with Holm's
-    correction over every multi-task pair of the run; a task where the family has no single-task policy has no pair.
+    On every task: a family's multi-task policy against its single-task policy where the task has one, then every pair
+    of multi-task policies of different families (the comparison of the paper's Table 4). The pairs are compared like
+    `compare_families` (episodes by episode seed, training seeds by number), with Holm's correction over every
+    multi-task pair of the run, of both kinds.
 
     Args:
         single_task: task -> family -> runs of the single-task policies.
@@ -383,15 +385,21 @@ def compare_multitask(
         level: confidence level of the intervals.
 
     Returns:
-        task -> its (multi-task, single-task) comparisons, multi-task first, verdicts decided.
+        task -> its comparisons, verdicts decided: the (multi-task, single-task) pairs first, multi-task first in each,
+        then the pairs of multi-task policies in the order of `multitask`'s families.
     """
-    pairs = [
+    against_single = [
         (task, family + suffix, runs, family, single_task[task][family])
         for task, families in multitask.items()
         for family, runs in families.items()
         if family in single_task.get(task, {})
     ]
-    return _decide(pairs, list(multitask), margin, alpha, level)
+    between_families = [
+        (task, first + suffix, families[first], second + suffix, families[second])
+        for task, families in multitask.items()
+        for first, second in combinations(families, 2)
+    ]
+    return _decide(against_single + between_families, list(multitask), margin, alpha, level)
 
 
 def _decide(
@@ -481,6 +489,7 @@ def claims_table(
     evaluations: Mapping[str, Mapping[str, Runs]],
     comparisons: Mapping[str, Sequence["statistics.PairComparison"]],
     alpha: float = 0.05,
+    suffix: str = "",
 ) -> pd.DataFrame:
     """The paper's claims that this run can check, per task: the verdict and the numbers behind it.
 
@@ -488,23 +497,29 @@ def claims_table(
     better); a speed claim states the latency ratio with its interval and holds when the interval lies above 1; a
     precision claim compares the families' mean per-episode offset (Welch) and their variances, and holds when CARP's
     mean is lower at `alpha`. Claims about families the run did not train, or measures its task lacks, are left out.
+
+    Args:
+        evaluations: task -> family -> runs.
+        comparisons: task -> the pairs compared, each policy named by its family and `suffix`.
+        alpha: significance level of the precision claims.
+        suffix: appended to a family's name in `comparisons` (`MULTITASK_SUFFIX` for the multi-task policies' claims).
     """
     rows = []
     for task, task_runs in evaluations.items():
         pairs = comparisons.get(task, ())
-        rows += [{"task": task, **row} for row in _success_claims(pairs)]
+        rows += [{"task": task, **row} for row in _success_claims(pairs, suffix)]
         rows += [{"task": task, **row} for row in _precision_claims(task_runs, alpha)]
         rows += [{"task": task, **row} for row in _speed_claims(task_runs)]
     return pd.DataFrame(rows, columns=["task", "claim", "verdict", "evidence"])
 
 
-def _success_claims(pairs: Sequence["statistics.PairComparison"]) -> list[dict[str, str]]:
+def _success_claims(pairs: Sequence["statistics.PairComparison"], suffix: str) -> list[dict[str, str]]:
     rows = []
     for claim, family, rival, paper in PAPER_CLAIMS:
-        comparison = _find_pair(pairs, family, rival)
+        comparison = _find_pair(pairs, family + suffix, rival + suffix)
         if comparison is None:
             continue
-        verdict = _oriented_verdict(comparison, family, rival)
+        verdict = _oriented_verdict(comparison, family + suffix, rival + suffix)
         holds = verdict in ("on par", "better") if paper == "on par" else verdict == "better"
         status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
         rows.append({"claim": claim, "verdict": status, "evidence": comparison.explanation})
