@@ -490,6 +490,12 @@ def test_compare_means_matches_welchs_formula_and_skips_missing_measurements():
     half = stats.t.ppf(0.975, degrees) * standard_error
     assert (result.difference.low, result.difference.high) == pytest.approx((-3.5 - half, -3.5 + half))
     assert compare_means(np.array([1.0, np.nan]), second) is None
+    # Two measurements a side: the median-centred variance test degenerates (equal deviations), so it is not given.
+    pair = compare_means(np.array([10.0, 12.0]), np.array([15.0, 19.0]))
+    assert pair is not None and pair.variance_p_value is None and pair.p_value > 0.05
+    three = compare_means(np.array([10.0, 12.0, 11.0]), np.array([15.0, 19.0, 23.0]))
+    expected = stats.levene([10.0, 12.0, 11.0], [15.0, 19.0, 23.0], center="median").pvalue
+    assert three.variance_p_value == pytest.approx(expected)
 
 
 def test_wilson_bounds_are_exactly_0_and_1_at_no_and_all_successes():

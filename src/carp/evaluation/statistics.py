@@ -451,7 +451,8 @@ class MeanComparison:
         second_variance: sample variance (n - 1) of the second.
         difference: first mean minus second mean, with Welch's t interval.
         p_value: Welch's two-sided t-test of equal means.
-        variance_p_value: Brown-Forsythe (median-centred Levene) test of equal variances.
+        variance_p_value: Brown-Forsythe (median-centred Levene) test of equal variances; None when a sample has
+            fewer than 3 values (with 2, both deviations from the median are equal, so the test degenerates to p = 0).
     """
 
     first_mean: float
@@ -460,7 +461,7 @@ class MeanComparison:
     second_variance: float
     difference: Interval
     p_value: float
-    variance_p_value: float
+    variance_p_value: float | None
 
 
 def compare_means(first: np.ndarray, second: np.ndarray, level: float = 0.95) -> MeanComparison | None:
@@ -488,7 +489,9 @@ def compare_means(first: np.ndarray, second: np.ndarray, level: float = 0.95) ->
         second_variance=float(second.var(ddof=1)),
         difference=Interval(float(first.mean() - second.mean()), float(interval.low), float(interval.high)),
         p_value=float(test.pvalue),
-        variance_p_value=float(stats.levene(first, second, center="median").pvalue),
+        variance_p_value=(
+            float(stats.levene(first, second, center="median").pvalue) if min(first.size, second.size) >= 3 else None
+        ),
     )
 
 

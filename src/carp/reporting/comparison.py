@@ -544,12 +544,13 @@ def _precision_claims(task_runs: Mapping[str, Runs], alpha: float) -> list[dict[
                 ("holds" if better else "does not hold"),
                 f"{family} {'more' if better else 'less'} precise",
             )
+        variances = "n/a, too few episodes" if result.variance_p_value is None else f"{result.variance_p_value:.3g}"
         evidence = (
             f"{column}: {family} mean {result.first_mean:.2f}, variance {result.first_variance:.2f}; {rival} mean "
             f"{result.second_mean:.2f}, variance {result.second_variance:.2f}; {finding} (Welch p = "
             f"{result.p_value:.3g}, difference {result.difference.estimate:+.2f}, 95% interval "
             f"{result.difference.low:+.2f} to {result.difference.high:+.2f}; equal variances p = "
-            f"{result.variance_p_value:.3g})"
+            f"{variances})"
         )
         rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
     return rows
