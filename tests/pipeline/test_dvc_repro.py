@@ -4,6 +4,7 @@ VQ-BeT trains and evaluates beside CARP here, so the one pipeline run also cover
 test runs."""
 
 import json
+import re
 import sys
 
 import h5py
@@ -82,3 +83,29 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
     assert set(json.loads(status.stdout)) - {"check_inputs"} == {"train_policy@lift-vq_bet-0"}, status.stdout
+
+    # Inputs set back to values a stage has run with are restored from DVC's run cache, not run again: a CARP
+    # training of other params, then the original params, restore the first policy and its evaluation.
+    first_policy = (workspace / "models/policy/lift/carp/seed0/policy.pt").read_bytes()
+    first_evaluation = (workspace / "reports/eval/lift/carp/seed0.json").read_text()
+    first_episodes = (workspace / "reports/eval/lift/carp/seed0_episodes.csv").read_text()
+    params = yaml.safe_load(original)
+    params["carp"]["learning_rate"] = 3e-4
+    params_file.write_text(yaml.safe_dump(params, sort_keys=False))
+    other = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert other.returncode == 0, other.stderr[-3000:]
+    assert {"train_policy@lift-carp-0", "evaluate@lift-carp-0"} <= stages_run(other.stdout), other.stdout
+    assert (workspace / "models/policy/lift/carp/seed0/policy.pt").read_bytes() != first_policy
+    params_file.write_text(original)
+    back = run([sys.executable, "-m", "dvc", "repro"], workspace)
+    assert back.returncode == 0, back.stderr[-3000:]
+    restored = set(re.findall(r"Stage '([^']+)' is cached - skipping run", back.stdout))
+    assert {"train_policy@lift-carp-0", "evaluate@lift-carp-0"} <= restored, back.stdout
+    assert stages_run(back.stdout) == {"check_inputs", "report"}, back.stdout
+    assert (workspace / "models/policy/lift/carp/seed0/policy.pt").read_bytes() == first_policy
+    assert (workspace / "reports/eval/lift/carp/seed0.json").read_text() == first_evaluation
+    assert (workspace / "reports/eval/lift/carp/seed0_episodes.csv").read_text() == first_episodes
+    # The per-epoch and per-episode tables are the stages' plots.
+    plots = run([sys.executable, "-m", "dvc", "plots", "show", "--json"], workspace)
+    assert plots.returncode == 0, plots.stderr[-3000:]
+    assert "reports/policy/lift/carp/seed0/history.csv" in plots.stdout, plots.stdout[:3000]
