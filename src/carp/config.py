@@ -476,6 +476,14 @@ class TrainingConfig:
         )
 
 
+def _distinct_paths(key: str, paths: Any) -> tuple[str, ...]:
+    """`paths` as a tuple, refused at `key` unless every entry is a non-empty string named once."""
+    listed = list(paths)
+    _require(all(isinstance(path, str) and path for path in listed), key, listed, "must be non-empty paths")
+    _require(len(set(listed)) == len(listed), key, listed, "must name each once")
+    return tuple(listed)
+
+
 def _require_per_task_minimum(mapping: dict[str, int], name: str, constraint: str) -> None:
     """Refuse a task -> integer override whose task is unknown or whose value is below 1."""
     for task, value in mapping.items():
@@ -604,9 +612,17 @@ class StudyConfig:
         data_efficiency_sizes: Demo counts of the data-efficiency study (supplementary Fig. 5): one experiment per
             size with ``data.subset_size`` set to it and ``data.num_demos`` to the largest, so that every size draws
             from one collected file and the subsets are nested; at least two, strictly increasing integers >= 1.
+        references: Folders of other runs of the same study (their ``reports/studies/data_efficiency``, or a copy
+            kept with the project) whose families the study's report adds to its own at every size, so that a study
+            split over clones or machines (one family or training seed each) is reported as one. Each must hold a
+            finished ``size<N>/`` for every size; a training seed of a family on a task may come from one place
+            only, and the subsets must be the same (``data.num_demos``, ``data.subset_seed`` and the collection
+            alike). Paths relative to the project root, each at most once. Empty (the default): the study's own
+            experiments only.
     """
 
     data_efficiency_sizes: tuple[int, ...] = (30, 60, 100, 200)
+    references: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         sizes = list(self.data_efficiency_sizes)
@@ -616,6 +632,7 @@ class StudyConfig:
             sizes,
             "must hold at least two strictly increasing sizes >= 1",
         )
+        object.__setattr__(self, "references", _distinct_paths("study.references", self.references))
 
 
 @dataclass(frozen=True)
@@ -643,15 +660,7 @@ class ComparisonConfig:
     def __post_init__(self) -> None:
         _require(0 < self.margin < 1, "comparison.margin", self.margin, "must lie in (0, 1)")
         _require(0 < self.alpha < 0.5, "comparison.alpha", self.alpha, "must lie in (0, 0.5)")
-        references = list(self.references)
-        object.__setattr__(self, "references", tuple(references))
-        _require(
-            all(isinstance(path, str) and path for path in references),
-            "comparison.references",
-            references,
-            "must be non-empty paths",
-        )
-        _require(len(set(references)) == len(references), "comparison.references", references, "must name each once")
+        object.__setattr__(self, "references", _distinct_paths("comparison.references", self.references))
 
 
 @dataclass(frozen=True)

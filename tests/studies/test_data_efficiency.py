@@ -1,6 +1,7 @@
 """The data-efficiency study: one experiment per size, each size's evaluation kept, resumed, and reported."""
 
 import json
+import sys
 
 import numpy as np
 import pandas as pd
@@ -8,11 +9,13 @@ import pytest
 
 from carp.studies.data_efficiency import (
     StudyLayout,
+    add_referenced_studies,
     experiment_overrides,
     run_study,
     summary_path,
     write_study_report,
 )
+from tests.pipeline.workspace import make_workspace, run
 
 LAYOUT = StudyLayout(tasks=("lift",), policies=("carp", "diffusion_unet"), seeds=(0, 1, 2))
 SIZES = (30, 60, 100)
@@ -25,9 +28,10 @@ class FakeExperiments:
     Success grows with the demo count, faster for carp, so the study has something to show.
     """
 
-    def __init__(self, eval_dir, fail_at=None):
+    def __init__(self, eval_dir, fail_at=None, families=LAYOUT.policies):
         self.eval_dir = eval_dir
         self.fail_at = fail_at
+        self.families = families
         self.calls = []
 
     def __call__(self, name, overrides):
@@ -35,8 +39,11 @@ class FakeExperiments:
         size = int(overrides[1].split("=")[1])
         if size == self.fail_at:
             raise RuntimeError(f"experiment {name} failed")
-        generator = np.random.default_rng(size)
-        for family, scale in (("carp", 1.0), ("diffusion_unet", 0.6)):
+        for index, (family, scale) in enumerate((("carp", 1.0), ("diffusion_unet", 0.6))):
+            if family not in self.families:
+                continue
+            # One stream per family, so that a family's episodes do not depend on which others run beside it.
+            generator = np.random.default_rng([size, index])
             for seed in LAYOUT.seeds:
                 rate = min(0.95, scale * size / 100)
                 success = generator.random(EPISODES) < rate
@@ -86,3 +93,48 @@ def test_the_report_shows_each_familys_curve_and_the_verdicts_per_size(tmp_path)
         assert f"{size} demos, " in markdown
     # At 100 demos carp (95%) against diffusion_unet (60%) over 3 seeds of 150 paired episodes is decided.
     assert "100 demos, carp better" in markdown
+
+
+def test_a_study_split_by_family_over_two_folders_is_reported_as_one(tmp_path):
+    eval_dir = tmp_path / "reports/eval"
+    whole = run_study(SIZES, LAYOUT, eval_dir, tmp_path / "whole", FakeExperiments(eval_dir))
+    halves = {}
+    for family in LAYOUT.policies:
+        layout = StudyLayout(LAYOUT.tasks, (family,), LAYOUT.seeds)
+        folder = tmp_path / f"clone-{family}"
+        halves[family] = run_study(SIZES, layout, eval_dir, folder, FakeExperiments(eval_dir, families=(family,)))
+    merged, notes = add_referenced_studies(halves["carp"], {"clone-dp": tmp_path / "clone-diffusion_unet"}, ["lift"])
+    assert notes == {
+        "lift": "Evaluations of other runs (study.references): diffusion_unet (training seeds 0, 1, 2) from clone-dp."
+    }
+    for size in SIZES:
+        assert sorted(merged[size]["lift"]) == ["carp", "diffusion_unet"]
+        for family in LAYOUT.policies:
+            for seed in LAYOUT.seeds:
+                ours, theirs = merged[size]["lift"][family][seed], whole[size]["lift"][family][seed]
+                assert ours.metrics == theirs.metrics
+                pd.testing.assert_frame_equal(ours.episodes, theirs.episodes)
+    output = tmp_path / "combined"
+    markdown = write_study_report(merged, margin=0.05, alpha=0.05, output_dir=output, reference_notes=notes).read_text()
+    assert "diffusion_unet (training seeds 0, 1, 2) from clone-dp" in markdown
+    assert "100 demos, carp better" in markdown
+
+    # A reference without one of the sizes, or with a family's seed the study has already, is refused.
+    with pytest.raises(FileNotFoundError, match="size200: no finished evaluation of 200 demos in clone-dp"):
+        add_referenced_studies(
+            {**halves["carp"], 200: halves["carp"][100]}, {"clone-dp": tmp_path / "clone-diffusion_unet"}, ["lift"]
+        )
+    with pytest.raises(ValueError, match="clone-carp: lift/carp training seed 0 is already in the report"):
+        add_referenced_studies(halves["carp"], {"clone-carp": tmp_path / "clone-carp"}, ["lift"])
+
+
+def test_the_study_command_refuses_a_missing_reference_before_any_experiment(tmp_path):
+    workspace = make_workspace(tmp_path / "carp", {"study": {"references": ["results/no-such-study"]}})
+    params_before = (workspace / "params.yaml").read_text()
+    completed = run([sys.executable, "pipeline/study.py", "data_efficiency"], workspace, timeout=300)
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines()[-1] == (
+        f"error: {workspace / 'params.yaml'}: study.references: results/no-such-study: no such study folder"
+    )
+    assert (workspace / "params.yaml").read_text() == params_before
+    assert not (workspace / "reports").exists()

@@ -146,7 +146,10 @@ def merge_runs(
 
 
 def add_referenced_runs(
-    own: Mapping[str, Mapping[str, Runs]], references: Mapping[str, Path], tasks: Sequence[str]
+    own: Mapping[str, Mapping[str, Runs]],
+    references: Mapping[str, Path],
+    tasks: Sequence[str],
+    params_key: str = "comparison.references",
 ) -> tuple[dict[str, dict[str, dict[int, RunResults]]], dict[str, str]]:
     """The run's evaluations with those of other runs added (`comparison.references`), and what came from where.
 
@@ -154,6 +157,7 @@ def add_referenced_runs(
         own: the run's own evaluations, task -> label -> training seed -> results.
         references: name (as the params give it) -> that run's evaluation directory (:func:`referenced_runs`).
         tasks: the run's tasks; other tasks of a reference are left out.
+        params_key: the param that names the references, for the sentences.
 
     Returns:
         The merged evaluations (:func:`merge_runs`) and, per task with referenced evaluations, a sentence naming
@@ -172,10 +176,7 @@ def add_referenced_runs(
                 f"{label} (training seeds {', '.join(map(str, sorted(runs)))}) from {name}"
                 for label, runs in labels.items()
             )
-    notes = {
-        task: f"Evaluations of other runs (comparison.references): {'; '.join(found)}."
-        for task, found in sources.items()
-    }
+    notes = {task: f"Evaluations of other runs ({params_key}): {'; '.join(found)}." for task, found in sources.items()}
     return merged, notes
 
 

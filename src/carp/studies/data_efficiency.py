@@ -23,7 +23,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from carp.evaluation import statistics  # noqa: E402
-from carp.reporting.comparison import RunResults, Runs, compare_families, outcomes_by_seed  # noqa: E402
+from carp.reporting.comparison import (  # noqa: E402
+    RunResults,
+    Runs,
+    add_referenced_runs,
+    compare_families,
+    outcomes_by_seed,
+)
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.report import Section, write_sections  # noqa: E402
 
@@ -135,6 +141,38 @@ def run_study(
     return points
 
 
+def add_referenced_studies(
+    points: Mapping[int, Evaluations], references: Mapping[str, Path], tasks: Sequence[str]
+) -> tuple[dict[int, Evaluations], dict[str, str]]:
+    """Every size's evaluations with the families of other runs of the study added (``study.references``).
+
+    Args:
+        points: size -> the study's own evaluations (:func:`run_study`).
+        references: name (as the params give it) -> that study's folder, holding a finished ``size<N>/`` per size.
+        tasks: the study's tasks; other tasks of a reference are left out.
+
+    Returns:
+        The merged points and, per task with referenced families, a sentence naming each and where it came from.
+
+    Raises:
+        FileNotFoundError: a reference lacks a finished copy of one of the sizes (or an episodes file).
+        ValueError: a training seed of a family on a task is in the study and in a reference, or in two.
+    """
+    merged: dict[int, Evaluations] = {}
+    notes: dict[str, str] = {}
+    for size, evaluations in points.items():
+        size_dirs = {}
+        for name, folder in references.items():
+            size_dir = Path(folder) / f"size{size}"
+            if not (size_dir / COMPLETE_MARKER).is_file():
+                raise FileNotFoundError(f"{size_dir}: no finished evaluation of {size} demos in {name}")
+            size_dirs[name] = size_dir
+        merged[size], size_notes = add_referenced_runs(evaluations, size_dirs, tasks, "study.references")
+        for task, note in size_notes.items():
+            notes.setdefault(task, note)
+    return merged, notes
+
+
 def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, path: Path) -> Path:
     """Each family's mean success over seeds against the demo count, with its two-level bootstrap 95% band."""
     figure, axis = plt.subplots(figsize=(6, 3.4))
@@ -159,8 +197,17 @@ def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, pat
     return finish_figure(figure, axis, path)
 
 
-def study_sections(points: Mapping[int, Evaluations], margin: float, alpha: float, figures_dir: Path) -> list[Section]:
-    """Per task: the curves, a table of each family's success per size, and per size the paired verdicts."""
+def study_sections(
+    points: Mapping[int, Evaluations],
+    margin: float,
+    alpha: float,
+    figures_dir: Path,
+    reference_notes: Mapping[str, str] | None = None,
+) -> list[Section]:
+    """Per task: the curves, a table of each family's success per size, and per size the paired verdicts.
+
+    `reference_notes` (task -> sentence, :func:`add_referenced_studies`) says which families came from elsewhere.
+    """
     sizes = sorted(points)
     tasks = list(points[sizes[0]])
     verdicts = {size: compare_families(points[size], margin=margin, alpha=alpha) for size in sizes}
@@ -184,7 +231,8 @@ def study_sections(points: Mapping[int, Evaluations], margin: float, alpha: floa
                 "Each size trains every family on the same nested subset of one collected file (a smaller subset is "
                 "part of every larger one); the band is the two-level bootstrap 95% interval of the mean over "
                 "training seeds. Verdicts per size pair the families on the same episode seeds, with Holm's "
-                "correction over that size's pairs."
+                "correction over that size's pairs.",
+                *([reference_notes[task]] if reference_notes and task in reference_notes else []),
             ],
             tables=[pd.DataFrame(rows)],
             figures=[plot_success_against_demos(points, task, figures_dir / f"data_efficiency_{task}.png")],
@@ -197,8 +245,14 @@ def study_sections(points: Mapping[int, Evaluations], margin: float, alpha: floa
     return sections
 
 
-def write_study_report(points: Mapping[int, Evaluations], margin: float, alpha: float, output_dir: Path) -> Path:
+def write_study_report(
+    points: Mapping[int, Evaluations],
+    margin: float,
+    alpha: float,
+    output_dir: Path,
+    reference_notes: Mapping[str, str] | None = None,
+) -> Path:
     """``<output_dir>/report.md`` and ``report.html`` of the study; returns the Markdown path."""
-    sections = study_sections(points, margin, alpha, Path(output_dir) / "figures")
+    sections = study_sections(points, margin, alpha, Path(output_dir) / "figures", reference_notes)
     markdown, _ = write_sections(sections, output_dir, "carp study: data efficiency")
     return markdown
