@@ -172,3 +172,31 @@ def test_only_ingest_tracks_the_image_settings(stages):
     assert image_settings <= set(stages["ingest@lift"])
     assert [name for name, keys in stages.items() if image_settings & set(keys) and name != "ingest@lift"] == []
     assert [name for name, keys in stages.items() if "image_encoder" in keys] == ["train_policy@lift-carp-0"]
+
+
+def test_the_reports_statistics_are_no_dependency_of_the_evaluations(tmp_path):
+    # The paired tests and verdicts are the report's: a change to them reruns the report, never the hours of
+    # evaluation episodes. The evaluate stage imports nothing of carp.reporting, and depends on none of its files.
+    for name in ("dvc.yaml", "params.yaml"):
+        shutil.copy(REPO / name, tmp_path / name)
+    (tmp_path / ".dvc").mkdir()
+    with Repo(str(tmp_path), uninitialized=True) as repo:
+        deps = {stage.name: [dep.def_path for dep in stage.deps] for stage in repo.index.stages}
+    statistics = "src/carp/reporting/statistics.py"
+    for stage in ("evaluate@lift-carp-0", "train_policy@lift-carp-0"):
+        assert not [path for path in deps[stage] if statistics.startswith(path.rstrip("/") + "/")], deps[stage]
+    assert any(statistics.startswith(path + "/") for path in deps["report"]), deps["report"]
+    imported = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; sys.path.insert(0, 'pipeline'); import evaluate; "
+            "print(sorted(name for name in sys.modules if name.startswith('carp.reporting')))",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert imported.returncode == 0, imported.stderr[-3000:]
+    assert imported.stdout.strip().splitlines()[-1] == "[]"

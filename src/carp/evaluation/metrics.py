@@ -1,14 +1,41 @@
 """Summary statistics of an evaluation: success rate with its interval, episode lengths, latency, task measures.
 
-The success rate gets a Wilson score interval, a task's per-episode measures their mean and variance. The interval
-itself lives in ``carp.evaluation.statistics``; it is imported here for this module's users.
+The success rate gets a Wilson score interval, a task's per-episode measures their mean and variance. The report's
+comparisons of families (``carp.reporting.statistics``) build on the same interval.
 """
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from carp.evaluation.statistics import wilson_interval
+# Two-sided 95% normal quantile.
+Z_95 = 1.959963984540054
+
+
+def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (better than the normal interval near 0 and 1).
+
+    Args:
+        successes: number of successes, 0 <= successes <= trials.
+        trials: number of trials; 0 gives the uninformative (0, 1).
+        z: normal quantile of the confidence level (1.96 for 95%).
+
+    Returns:
+        (lower, upper) bounds in [0, 1].
+    """
+    if not 0 <= successes <= trials:
+        raise ValueError(f"successes={successes} must lie in [0, trials={trials}]")
+    if trials == 0:
+        return 0.0, 1.0
+    proportion = successes / trials
+    denominator = 1.0 + z * z / trials
+    center = (proportion + z * z / (2 * trials)) / denominator
+    half_width = z * math.sqrt(proportion * (1 - proportion) / trials + z * z / (4 * trials * trials)) / denominator
+    # At 0 (or all) successes the bound is exactly 0 (or 1); rounding would put it a hair above (or below).
+    lower = 0.0 if successes == 0 else max(0.0, center - half_width)
+    upper = 1.0 if successes == trials else min(1.0, center + half_width)
+    return lower, upper
 
 
 def latency_summary(seconds: Sequence[float], prefix: str) -> dict[str, float]:

@@ -1,6 +1,6 @@
 """Anytime-valid comparison of two policies evaluated in rounds on the same episode seeds, stopped once decided.
 
-A fixed-size comparison (`carp.evaluation.statistics`) spends every episode it planned, even when the first rounds
+A fixed-size comparison (`carp.reporting.statistics`) spends every episode it planned, even when the first rounds
 already separate two policies. Here both policies run round after round on shared seeds, and after every round a
 test whose error rate holds at *any* stopping time decides whether to go on.
 

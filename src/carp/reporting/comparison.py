@@ -1,6 +1,6 @@
 """The report's comparison of policy families: per-seed results, pooled figures, paired verdicts, the paper's claims.
 
-Every number comes from `carp.evaluation.statistics`; this module only arranges the evaluations (task -> family ->
+Every number comes from `carp.reporting.statistics`; this module only arranges the evaluations (task -> family ->
 training seed -> summary and test episodes) into what those functions take and into tables and figures. Episodes pair
 across families by their episode seed (the same initial state), and training seeds pair by number.
 """
@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from carp.evaluation import statistics  # noqa: E402
+from carp.reporting import statistics  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
 
 

@@ -22,7 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from carp.evaluation import statistics  # noqa: E402
+from carp.reporting import statistics  # noqa: E402
 from carp.reporting.comparison import (  # noqa: E402
     RunResults,
     Runs,

@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 from carp.evaluation import metrics
-from carp.evaluation.statistics import (
-    Z_95,
+from carp.evaluation.metrics import Z_95, wilson_interval
+from carp.reporting.statistics import (
     Interval,
     compare_means,
     compare_pair,
@@ -26,7 +26,6 @@ from carp.evaluation.statistics import (
     paired_two_level_bootstrap,
     seed_permutation_test,
     two_level_bootstrap,
-    wilson_interval,
     z_value,
 )
 

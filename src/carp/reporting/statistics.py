@@ -43,8 +43,9 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-# Two-sided 95% normal quantile.
-Z_95 = 1.959963984540054
+# The evaluate stage's own interval and quantile: kept in carp.evaluation so that the report's statistics are no
+# dependency of the evaluations (a change here reruns the report alone).
+from carp.evaluation.metrics import wilson_interval
 
 # The seed permutation test enumerates every split up to this many (9 seeds against 9 is C(18, 9) = 48,620, a few
 # tens of milliseconds) and draws this many random splits beyond, where enumeration would take seconds.
@@ -162,31 +163,6 @@ class PairComparison:
     verdict: str
     explanation: str
     pairing_note: str
-
-
-def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (better than the normal interval near 0 and 1).
-
-    Args:
-        successes: number of successes, 0 <= successes <= trials.
-        trials: number of trials; 0 gives the uninformative (0, 1).
-        z: normal quantile of the confidence level (1.96 for 95%).
-
-    Returns:
-        (lower, upper) bounds in [0, 1].
-    """
-    if not 0 <= successes <= trials:
-        raise ValueError(f"successes={successes} must lie in [0, trials={trials}]")
-    if trials == 0:
-        return 0.0, 1.0
-    proportion = successes / trials
-    denominator = 1.0 + z * z / trials
-    center = (proportion + z * z / (2 * trials)) / denominator
-    half_width = z * math.sqrt(proportion * (1 - proportion) / trials + z * z / (4 * trials * trials)) / denominator
-    # At 0 (or all) successes the bound is exactly 0 (or 1); rounding would put it a hair above (or below).
-    lower = 0.0 if successes == 0 else max(0.0, center - half_width)
-    upper = 1.0 if successes == trials else min(1.0, center + half_width)
-    return lower, upper
 
 
 def z_value(level: float) -> float:
