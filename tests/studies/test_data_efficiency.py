@@ -1,15 +1,18 @@
 """The data-efficiency study: one experiment per size, each size's evaluation kept, resumed, and reported."""
 
 import json
+import re
 import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from carp.reporting.comparison import RunResults, compare_families
 from carp.studies.data_efficiency import (
     StudyLayout,
     add_referenced_studies,
+    claims_table,
     experiment_overrides,
     run_study,
     summary_path,
@@ -93,6 +96,10 @@ def test_the_report_shows_each_familys_curve_and_the_verdicts_per_size(tmp_path)
         assert f"{size} demos, " in markdown
     # At 100 demos carp (95%) against diffusion_unet (60%) over 3 seeds of 150 paired episodes is decided.
     assert "100 demos, carp better" in markdown
+    # carp is ahead at every size (30% against 18% is the narrowest), so the paper's claim holds.
+    assert re.search(
+        r"\| CARP's success is higher than diffusion_unet's at every number of demos +\| holds +\|", markdown
+    )
 
 
 def test_a_study_split_by_family_over_two_folders_is_reported_as_one(tmp_path):
@@ -138,3 +145,54 @@ def test_the_study_command_refuses_a_missing_reference_before_any_experiment(tmp
     )
     assert (workspace / "params.yaml").read_text() == params_before
     assert not (workspace / "reports").exists()
+
+
+def simulated_sizes(rates_by_size, episodes=400, seeds=(0,)):
+    """size -> pair comparisons on "square": each episode succeeds with its family's rate at that size."""
+    points = {}
+    for size, rates in rates_by_size.items():
+        families = {}
+        for index, (family, rate) in enumerate(rates.items()):
+            generator = np.random.default_rng([size, index])
+            runs = {}
+            for seed in seeds:
+                success = generator.random(episodes) < rate
+                episodes_table = pd.DataFrame(
+                    {"seed": 100_000 + np.arange(episodes), "success": success, "steps": np.where(success, 150, 400)}
+                )
+                runs[seed] = RunResults({"successes": int(success.sum()), "episodes": episodes}, episodes_table)
+            families[family] = runs
+        points[size] = {"square": families}
+    return {size: compare_families(point, margin=0.05, alpha=0.05) for size, point in points.items()}
+
+
+@pytest.mark.parametrize(
+    ("rates_by_size", "expected"),
+    [
+        # Ahead by 30 points at both sizes over 400 paired episodes each: decided both times.
+        ({30: {"carp": 0.5, "diffusion_unet": 0.2}, 100: {"carp": 0.9, "diffusion_unet": 0.6}}, "holds"),
+        # The baseline ahead at the small size: one "worse" is enough to refute "at every size".
+        ({30: {"carp": 0.2, "diffusion_unet": 0.5}, 100: {"carp": 0.9, "diffusion_unet": 0.6}}, "does not hold"),
+        # Both solve every episode at 100 demos: on par within the margin is not "higher".
+        ({30: {"carp": 0.5, "diffusion_unet": 0.2}, 100: {"carp": 1.0, "diffusion_unet": 1.0}}, "does not hold"),
+        # One point apart at 100 demos settles neither way.
+        ({30: {"carp": 0.5, "diffusion_unet": 0.2}, 100: {"carp": 0.61, "diffusion_unet": 0.6}}, "not decided"),
+    ],
+)
+def test_the_data_efficiency_claim_holds_only_where_carp_is_better_at_every_size(rates_by_size, expected):
+    claims = claims_table(simulated_sizes(rates_by_size), "square")
+    assert list(claims["claim"]) == ["CARP's success is higher than diffusion_unet's at every number of demos"]
+    assert list(claims["verdict"]) == [expected]
+    evidence = claims["evidence"].item()
+    assert evidence.startswith("30 demos: ") and "; 100 demos: " in evidence
+
+
+def test_the_claim_is_checked_against_every_baseline_and_only_with_carp_in_the_study():
+    rates = {"carp": 0.9, "diffusion_unet": 0.5, "next_token": 0.88}
+    claims = claims_table(simulated_sizes({30: rates, 100: rates}), "square")
+    assert list(claims["verdict"]) == ["holds", "not decided"]
+    assert claims["claim"].str.contains("diffusion_unet|next_token").all()
+    without_carp = simulated_sizes(
+        {30: {"diffusion_unet": 0.5, "next_token": 0.8}, 100: {"diffusion_unet": 0.5, "next_token": 0.8}}
+    )
+    assert claims_table(without_carp, "square").empty

@@ -517,10 +517,10 @@ def claims_table(
 def _success_claims(pairs: Sequence["statistics.PairComparison"], suffix: str) -> list[dict[str, str]]:
     rows = []
     for claim, family, rival, paper in PAPER_CLAIMS:
-        comparison = _find_pair(pairs, family + suffix, rival + suffix)
+        comparison = find_pair(pairs, family + suffix, rival + suffix)
         if comparison is None:
             continue
-        verdict = _oriented_verdict(comparison, family + suffix, rival + suffix)
+        verdict = oriented_verdict(comparison, family + suffix, rival + suffix)
         holds = verdict in ("on par", "better") if paper == "on par" else verdict == "better"
         status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
         rows.append({"claim": claim, "verdict": status, "evidence": comparison.explanation})
@@ -573,14 +573,15 @@ def _speed_claims(task_runs: Mapping[str, Runs]) -> list[dict[str, str]]:
     return rows
 
 
-def _find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, rival: str):
+def find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, rival: str):
+    """The comparison of `family` and `rival` in either order, or None when the run did not pair them."""
     for comparison in comparisons:
         if {comparison.first, comparison.second} == {family, rival}:
             return comparison
     return None
 
 
-def _oriented_verdict(comparison: "statistics.PairComparison", family: str, rival: str) -> str:
+def oriented_verdict(comparison: "statistics.PairComparison", family: str, rival: str) -> str:
     """The pair's verdict from `family`'s side: "better", "worse", "on par" or "not decided"."""
     verdict = comparison.verdict
     if verdict.startswith("on par"):

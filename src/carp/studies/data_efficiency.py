@@ -28,6 +28,8 @@ from carp.reporting.comparison import (  # noqa: E402
     Runs,
     add_referenced_runs,
     compare_families,
+    find_pair,
+    oriented_verdict,
     outcomes_by_seed,
 )
 from carp.reporting.figures import finish_figure  # noqa: E402
@@ -37,6 +39,8 @@ logger = logging.getLogger(__name__)
 
 EXPERIMENT_PREFIX = "data-efficiency"
 COMPLETE_MARKER = "complete.json"
+CLAIM_FAMILY = "carp"
+"""The family of the paper's data-efficiency claim: higher success than every baseline at every demo count."""
 
 Evaluations = Mapping[str, Mapping[str, Runs]]
 """task -> family -> training seed -> results: what one size's experiment evaluated."""
@@ -197,6 +201,61 @@ def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, pat
     return finish_figure(figure, axis, path)
 
 
+def claims_table(verdicts: Mapping[int, Mapping[str, Sequence[statistics.PairComparison]]], task: str) -> pd.DataFrame:
+    """The paper's data-efficiency claim on `task`, against each other family of the study: one row per rival.
+
+    The claim ("CARP outperforms the baseline with any number of demos") holds against a rival when the paired verdict
+    is "carp better" at every size: an intersection-union test, which needs every size's test at alpha and no further
+    correction. It does not hold when the rival is better, or on par within the margin, at some size, and is not
+    decided otherwise. Without carp in the study the table is empty.
+
+    Args:
+        verdicts: size -> task -> the size's pair comparisons (`compare_families`).
+        task: the task of the rows.
+
+    Returns:
+        Columns claim, verdict and evidence (per size: both success rates and the pair's verdict).
+    """
+    sizes = sorted(verdicts)
+    rivals = sorted(
+        {family for pair in verdicts[sizes[0]].get(task, []) for family in (pair.first, pair.second)} - {CLAIM_FAMILY}
+    )
+    rows = []
+    for rival in rivals:
+        outcomes, evidence = [], []
+        for size in sizes:
+            pair = find_pair(verdicts[size].get(task, []), CLAIM_FAMILY, rival)
+            if pair is None:
+                break
+            outcome = oriented_verdict(pair, CLAIM_FAMILY, rival)
+            ours, theirs = (
+                (pair.first_rate, pair.second_rate)
+                if pair.first == CLAIM_FAMILY
+                else (
+                    pair.second_rate,
+                    pair.first_rate,
+                )
+            )
+            outcomes.append(outcome)
+            evidence.append(f"{size} demos: {100 * ours:.1f}% against {100 * theirs:.1f}%, {pair.verdict}")
+        if len(outcomes) < len(sizes):
+            continue
+        if all(outcome == "better" for outcome in outcomes):
+            verdict = "holds"
+        elif any(outcome in ("worse", "on par") for outcome in outcomes):
+            verdict = "does not hold"
+        else:
+            verdict = "not decided"
+        rows.append(
+            {
+                "claim": f"CARP's success is higher than {rival}'s at every number of demos",
+                "verdict": verdict,
+                "evidence": "; ".join(evidence),
+            }
+        )
+    return pd.DataFrame(rows, columns=["claim", "verdict", "evidence"])
+
+
 def study_sections(
     points: Mapping[int, Evaluations],
     margin: float,
@@ -225,6 +284,7 @@ def study_sections(
                         "mean success": f"{100 * mean.estimate:.1f}% ({100 * mean.low:.1f}-{100 * mean.high:.1f}%)",
                     }
                 )
+        claims = claims_table(verdicts, task)
         section = Section(
             f"Data efficiency on {task}",
             paragraphs=[
@@ -233,8 +293,16 @@ def study_sections(
                 "training seeds. Verdicts per size pair the families on the same episode seeds, with Holm's "
                 "correction over that size's pairs.",
                 *([reference_notes[task]] if reference_notes and task in reference_notes else []),
+                *(
+                    []
+                    if claims.empty
+                    else [
+                        "The second table checks the paper's data-efficiency claim against each baseline: it holds "
+                        "only where CARP is better at every size."
+                    ]
+                ),
             ],
-            tables=[pd.DataFrame(rows)],
+            tables=[pd.DataFrame(rows), *([] if claims.empty else [claims])],
             figures=[plot_success_against_demos(points, task, figures_dir / f"data_efficiency_{task}.png")],
         )
         for size in sizes:
