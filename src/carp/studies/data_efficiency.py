@@ -228,14 +228,9 @@ def claims_table(verdicts: Mapping[int, Mapping[str, Sequence[statistics.PairCom
             if pair is None:
                 break
             outcome = oriented_verdict(pair, CLAIM_FAMILY, rival)
-            ours, theirs = (
-                (pair.first_rate, pair.second_rate)
-                if pair.first == CLAIM_FAMILY
-                else (
-                    pair.second_rate,
-                    pair.first_rate,
-                )
-            )
+            ours, theirs = pair.first_rate, pair.second_rate
+            if pair.first != CLAIM_FAMILY:
+                ours, theirs = theirs, ours
             outcomes.append(outcome)
             evidence.append(f"{size} demos: {100 * ours:.1f}% against {100 * theirs:.1f}%, {pair.verdict}")
         if len(outcomes) < len(sizes):
