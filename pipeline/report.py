@@ -73,6 +73,7 @@ def main() -> None:
         reference_notes=reference_notes,
         margin=params.comparison.margin,
         alpha=params.comparison.alpha,
+        min_seeds=params.comparison.min_seeds,
         tokenizer_metrics=_json_or_none(TOKENIZER_REPORT_DIR / "metrics.json"),
         tokenizer_history=pd.read_csv(tokenizer_history) if tokenizer_history.exists() else None,
         policy_histories={

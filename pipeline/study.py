@@ -53,7 +53,9 @@ def main() -> None:
         points, notes = add_referenced_studies(points, references, params.tasks)
     except (FileNotFoundError, ValueError) as error:
         fail(f"{params_file}: study.references: {error}")
-    markdown = write_study_report(points, params.comparison.margin, params.comparison.alpha, output_dir, notes)
+    markdown = write_study_report(
+        points, params.comparison.margin, params.comparison.alpha, output_dir, notes, params.comparison.min_seeds
+    )
     print(f"wrote {markdown.relative_to(PROJECT_DIR)}")
 
 

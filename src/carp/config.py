@@ -641,9 +641,14 @@ class ComparisonConfig:
 
     Attributes:
         margin: Equivalence margin in success rate (0.05 = 5 percentage points): two families are "on par" when the
-            (1 - 2 alpha) intervals of their paired difference lie inside (-margin, margin); a number in (0, 1).
-        alpha: Significance level of every test, after Holm's correction over all pairs of the run; a number in
+            (1 - 2 alpha) interval over training seeds of their difference lies inside (-margin, margin); a number
+            in (0, 1).
+        alpha: Family-wise significance level of all the verdicts a report (or a study's report) states: every
+            pair's test of a difference and its test of equivalence go into one step-down correction; a number in
             (0, 0.5).
+        min_seeds: Training seeds per family that a family verdict needs (the training seed is the unit of a family
+            claim); a pair with fewer gets "not decided (n training seeds)" and its figures describe the trained
+            networks only; an integer >= 2.
         references: Evaluation directories of other runs (their ``reports/eval``, or a copy of it kept with the
             project) whose evaluations of this run's tasks the report adds to its own: more training seeds of a
             family, families trained elsewhere, the single-task policies beside a multi-task one. Paths relative to
@@ -655,11 +660,18 @@ class ComparisonConfig:
 
     margin: float = 0.05
     alpha: float = 0.05
+    min_seeds: int = 3
     references: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         _require(0 < self.margin < 1, "comparison.margin", self.margin, "must lie in (0, 1)")
         _require(0 < self.alpha < 0.5, "comparison.alpha", self.alpha, "must lie in (0, 0.5)")
+        _require(
+            isinstance(self.min_seeds, int) and not isinstance(self.min_seeds, bool) and self.min_seeds >= 2,
+            "comparison.min_seeds",
+            self.min_seeds,
+            "must be an integer >= 2 (one training seed says nothing about a family)",
+        )
         object.__setattr__(self, "references", _distinct_paths("comparison.references", self.references))
 
 

@@ -1,8 +1,10 @@
-"""The report's comparison of policy families: per-seed results, pooled figures, paired verdicts, the paper's claims.
+"""The report's comparison of policy families: per-seed results, family figures, paired verdicts, the paper's claims.
 
-Every number comes from `carp.reporting.statistics`; this module only arranges the evaluations (task -> family ->
-training seed -> summary and test episodes) into what those functions take and into tables and figures. Episodes pair
-across families by their episode seed (the same initial state), and training seeds pair by number.
+Every number comes from `carp.reporting.statistics` (episode-level figures of single networks),
+`carp.reporting.seed_inference` (family-level figures over training seeds) and `carp.reporting.verdicts`; this module
+only arranges the evaluations (task -> family -> training seed -> summary and test episodes) into what those functions
+take and into tables and figures. Episodes pair across families by their episode seed (the same initial state), and
+training seeds pair by number.
 """
 
 import json
@@ -21,8 +23,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from carp.reporting import statistics  # noqa: E402
+from carp.reporting import statistics, verdicts  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
+from carp.reporting.seed_inference import seed_level_estimate  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -270,11 +273,24 @@ def seed_table(task_runs: Mapping[str, Runs]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataFrame:
-    """One row per family: pooled and per-seed success, between-seed spread.
+def family_rate(runs: Runs, level: float = 0.95) -> "statistics.Interval | None":
+    """A family's success rate over its training seeds with its t interval (`seed_level_estimate`); None below 2 seeds.
 
-    The pooled rate with its Wilson interval, the mean over seeds with its two-level bootstrap interval, the
-    between-seed intra-class correlation and the effective number of episodes.
+    The seeds ran the same initial states (the episodes shared by all of them are used), so the interval carries the
+    states' shared difficulty as well as the spread between seeds.
+    """
+    outcomes = list(outcomes_by_seed(runs, _shared_episode_seeds(runs, {})).values())
+    if len(outcomes) < 2 or not outcomes[0].size:
+        return None
+    return seed_level_estimate([values.astype(float) for values in outcomes], shared_states=True).interval(level)
+
+
+def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataFrame:
+    """One row per family: its rate over training seeds with the family interval, and the networks' own figures.
+
+    The family's rate is the mean over training seeds with a t interval over seeds (n/a with one seed: one network
+    says nothing about the spread of its recipe). The pooled rate with its Wilson interval, the between-seed
+    intra-class correlation and the effective episodes describe the trained networks, not the family.
     """
     rows = []
     for family, runs in task_runs.items():
@@ -283,7 +299,7 @@ def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataF
         trials = [len(values) for values in outcomes]
         total = sum(trials)
         low, high = statistics.wilson_interval(sum(successes), total)
-        mean = statistics.two_level_bootstrap(outcomes, level=level)
+        rate = family_rate(runs, level)
         icc = statistics.intraclass_correlation(successes, trials)
         effective = statistics.effective_episodes(total, total / len(trials), icc)
         rows.append(
@@ -291,9 +307,13 @@ def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataF
                 "policy": family,
                 "seeds": len(trials),
                 "episodes": total,
-                "pooled rate": f"{100 * sum(successes) / total:.1f}% ({100 * low:.1f}-{100 * high:.1f}%)",
-                "mean over seeds": f"{100 * mean.estimate:.1f}% ({100 * mean.low:.1f}-{100 * mean.high:.1f}%)",
+                f"family rate, {level:.0%} interval over seeds": (
+                    f"{100 * rate.estimate:.1f}% ({100 * rate.low:.1f}-{100 * rate.high:.1f}%)"
+                    if rate is not None
+                    else f"{100 * np.mean([s / n for s, n in zip(successes, trials)]):.1f}% (n/a, 1 training seed)"
+                ),
                 "per seed": ", ".join(f"{100 * s / n:.0f}%" for s, n in zip(successes, trials)),
+                "networks pooled (Wilson)": f"{100 * sum(successes) / total:.1f}% ({100 * low:.1f}-{100 * high:.1f}%)",
                 "between-seed ICC": f"{icc:.3f}",
                 "effective episodes": f"{effective:.0f}",
             }
@@ -346,48 +366,23 @@ def measure_table(task_runs: Mapping[str, Runs]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def compare_families(
-    evaluations: Mapping[str, Mapping[str, Runs]], margin: float, alpha: float, level: float = 0.95
-) -> dict[str, list["statistics.PairComparison"]]:
-    """Every pair of families on every task, compared on the episodes they share, with Holm over all the pairs.
-
-    Returns:
-        task -> its pairs' comparisons, verdicts decided (`statistics.decide_pairs`).
-    """
-    pairs = [
+def family_pairs(evaluations: Mapping[str, Mapping[str, Runs]]) -> list[tuple[str, str, Runs, str, Runs]]:
+    """Every pair of families on every task: (task, first, its runs, second, its runs)."""
+    return [
         (task, first, task_runs[first], second, task_runs[second])
         for task, task_runs in evaluations.items()
         for first, second in combinations(task_runs, 2)
     ]
-    return _decide(pairs, list(evaluations), margin, alpha, level)
 
 
-def compare_multitask(
-    single_task: Mapping[str, Mapping[str, Runs]],
-    multitask: Mapping[str, Mapping[str, Runs]],
-    suffix: str,
-    margin: float,
-    alpha: float,
-    level: float = 0.95,
-) -> dict[str, list["statistics.PairComparison"]]:
-    """Each multi-task policy against its family's single-task policy, and against the other families' multi-task ones.
+def multitask_pairs(
+    single_task: Mapping[str, Mapping[str, Runs]], multitask: Mapping[str, Mapping[str, Runs]], suffix: str
+) -> list[tuple[str, str, Runs, str, Runs]]:
+    """Each multi-task policy against its family's single-task policy, then every pair of multi-task policies.
 
-    On every task: a family's multi-task policy against its single-task policy where the task has one, then every pair
-    of multi-task policies of different families (the comparison of the paper's Table 4). The pairs are compared like
-    `compare_families` (episodes by episode seed, training seeds by number), with Holm's correction over every
-    multi-task pair of the run, of both kinds.
-
-    Args:
-        single_task: task -> family -> runs of the single-task policies.
-        multitask: task -> family -> runs of the family's multi-task policy on the task.
-        suffix: appended to a family's name to name its multi-task policy in the comparisons (as `split_multitask`).
-        margin: equivalence margin of the verdicts, in success rate.
-        alpha: family-wise significance level (Holm over the multi-task pairs).
-        level: confidence level of the intervals.
-
-    Returns:
-        task -> its comparisons, verdicts decided: the (multi-task, single-task) pairs first, multi-task first in each,
-        then the pairs of multi-task policies in the order of `multitask`'s families.
+    On every task: a family's multi-task policy against its single-task policy where the task has one, multi-task
+    first, then every pair of multi-task policies of different families (the comparison of the paper's Table 4), in
+    the order of `multitask`'s families; each named by its family and `suffix`.
     """
     against_single = [
         (task, family + suffix, runs, family, single_task[task][family])
@@ -400,33 +395,87 @@ def compare_multitask(
         for task, families in multitask.items()
         for first, second in combinations(families, 2)
     ]
-    return _decide(against_single + between_families, list(multitask), margin, alpha, level)
+    return against_single + between_families
 
 
-def _decide(
-    pairs: Sequence[tuple[str, str, Runs, str, Runs]], tasks: Sequence[str], margin: float, alpha: float, level: float
-) -> dict[str, list["statistics.PairComparison"]]:
-    """Compare each (task, first, its runs, second, its runs) on their shared episodes; Holm over all of them."""
-    compared = []
-    for task, first, first_runs, second, second_runs in pairs:
-        shared = _shared_episode_seeds(first_runs, second_runs)
-        comparison = statistics.compare_pair(
-            first,
-            outcomes_by_seed(first_runs, shared),
-            second,
-            outcomes_by_seed(second_runs, shared),
-            first_steps_by_seed=steps_by_seed(first_runs, shared),
-            second_steps_by_seed=steps_by_seed(second_runs, shared),
-            margin=margin,
-            alpha=alpha,
-            level=level,
-        )
-        compared.append((task, comparison))
-    decided = statistics.decide_pairs([comparison for _, comparison in compared], margin=margin, alpha=alpha)
-    by_task: dict[str, list[statistics.PairComparison]] = {task: [] for task in tasks}
-    for (task, _), comparison in zip(compared, decided):
-        by_task[task].append(comparison)
-    return by_task
+def decide_groups(
+    groups: Sequence[tuple[Sequence[str], Sequence[tuple[str, str, Runs, str, Runs]]]],
+    margin: float,
+    alpha: float,
+    level: float = 0.95,
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
+) -> list[dict[str, list["verdicts.PairComparison"]]]:
+    """Compare several groups of pairs with one correction over all of them (every verdict a report states).
+
+    Args:
+        groups: (tasks, pairs) per group, e.g. the single-task families and the multi-task policies of one report, or
+            each size of a study; pairs as `family_pairs` gives them.
+        margin: equivalence margin of the verdicts, in success rate.
+        alpha: family-wise significance level over every verdict of every group.
+        level: confidence level of the intervals.
+        min_seeds: training seeds per family a family verdict needs.
+
+    Returns:
+        Per group, task -> its pairs' comparisons with verdicts, in the order of the pairs.
+    """
+    compared = [[(pair[0], _compare(pair, margin, alpha, level, min_seeds)) for pair in pairs] for _, pairs in groups]
+    decided = iter(verdicts.decide_pairs([pair for group in compared for _, pair in group], margin=margin, alpha=alpha))
+    results = []
+    for (tasks, _), group in zip(groups, compared):
+        by_task: dict[str, list[verdicts.PairComparison]] = {task: [] for task in tasks}
+        for task, _ in group:
+            by_task.setdefault(task, []).append(next(decided))
+        results.append(by_task)
+    return results
+
+
+def compare_families(
+    evaluations: Mapping[str, Mapping[str, Runs]],
+    margin: float,
+    alpha: float,
+    level: float = 0.95,
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
+) -> dict[str, list["verdicts.PairComparison"]]:
+    """Every pair of families on every task, compared on the episodes they share, corrected over all the pairs.
+
+    Returns:
+        task -> its pairs' comparisons, verdicts decided (`verdicts.decide_pairs`).
+    """
+    return decide_groups([(list(evaluations), family_pairs(evaluations))], margin, alpha, level, min_seeds)[0]
+
+
+def compare_multitask(
+    single_task: Mapping[str, Mapping[str, Runs]],
+    multitask: Mapping[str, Mapping[str, Runs]],
+    suffix: str,
+    margin: float,
+    alpha: float,
+    level: float = 0.95,
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
+) -> dict[str, list["verdicts.PairComparison"]]:
+    """The multi-task pairs (`multitask_pairs`) alone, compared like `compare_families` and corrected over them."""
+    pairs = multitask_pairs(single_task, multitask, suffix)
+    return decide_groups([(list(multitask), pairs)], margin, alpha, level, min_seeds)[0]
+
+
+def _compare(
+    pair: tuple[str, str, Runs, str, Runs], margin: float, alpha: float, level: float, min_seeds: int
+) -> "verdicts.PairComparison":
+    """One (task, first, its runs, second, its runs) compared on the episode seeds every run of both shares."""
+    _, first, first_runs, second, second_runs = pair
+    shared = _shared_episode_seeds(first_runs, second_runs)
+    return verdicts.compare_pair(
+        first,
+        outcomes_by_seed(first_runs, shared),
+        second,
+        outcomes_by_seed(second_runs, shared),
+        first_steps_by_seed=steps_by_seed(first_runs, shared),
+        second_steps_by_seed=steps_by_seed(second_runs, shared),
+        min_seeds=min_seeds,
+        margin=margin,
+        alpha=alpha,
+        level=level,
+    )
 
 
 def _shared_episode_seeds(first: Runs, second: Runs) -> list[int]:
@@ -488,33 +537,36 @@ def latency_ratio(slower: Runs, faster: Runs, level: float = 0.95, resamples: in
 
 def claims_table(
     evaluations: Mapping[str, Mapping[str, Runs]],
-    comparisons: Mapping[str, Sequence["statistics.PairComparison"]],
+    comparisons: Mapping[str, Sequence["verdicts.PairComparison"]],
     alpha: float = 0.05,
     suffix: str = "",
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
 ) -> pd.DataFrame:
     """The paper's claims that this run can check, per task: the verdict and the numbers behind it.
 
-    A success claim holds when the paired verdict says what the paper says ("on par" also holds when CARP comes out
-    better); a speed claim states the latency ratio with its interval and holds when the interval lies above 1; a
-    precision claim compares the families' mean per-episode offset (Welch) and their variances, and holds when CARP's
-    mean is lower at `alpha`. Claims about families the run did not train, or measures its task lacks, are left out.
+    A success claim holds when the pair's family verdict says what the paper says ("on par" also holds when CARP comes
+    out better), and is "not decided (n training seeds)" when the pair has too few seeds for a family verdict; a speed
+    claim states the latency ratio with its interval and holds when the interval lies above 1; a precision claim
+    compares the families' per-seed mean offsets (Welch over training seeds) and holds when CARP's is lower at
+    `alpha`. Claims about families the run did not train, or measures its task lacks, are left out.
 
     Args:
         evaluations: task -> family -> runs.
         comparisons: task -> the pairs compared, each policy named by its family and `suffix`.
         alpha: significance level of the precision claims.
         suffix: appended to a family's name in `comparisons` (`MULTITASK_SUFFIX` for the multi-task policies' claims).
+        min_seeds: training seeds per family a precision verdict needs.
     """
     rows = []
     for task, task_runs in evaluations.items():
         pairs = comparisons.get(task, ())
         rows += [{"task": task, **row} for row in _success_claims(pairs, suffix)]
-        rows += [{"task": task, **row} for row in _precision_claims(task_runs, alpha)]
+        rows += [{"task": task, **row} for row in _precision_claims(task_runs, alpha, min_seeds)]
         rows += [{"task": task, **row} for row in _speed_claims(task_runs)]
     return pd.DataFrame(rows, columns=["task", "claim", "verdict", "evidence"])
 
 
-def _success_claims(pairs: Sequence["statistics.PairComparison"], suffix: str) -> list[dict[str, str]]:
+def _success_claims(pairs: Sequence["verdicts.PairComparison"], suffix: str) -> list[dict[str, str]]:
     rows = []
     for claim, family, rival, paper in PAPER_CLAIMS:
         comparison = find_pair(pairs, family + suffix, rival + suffix)
@@ -522,39 +574,68 @@ def _success_claims(pairs: Sequence["statistics.PairComparison"], suffix: str) -
             continue
         verdict = oriented_verdict(comparison, family + suffix, rival + suffix)
         holds = verdict in ("on par", "better") if paper == "on par" else verdict == "better"
-        status = "holds" if holds else ("not decided" if verdict == "not decided" else "does not hold")
+        status = "holds" if holds else (comparison.verdict if verdict == "not decided" else "does not hold")
         rows.append({"claim": claim, "verdict": status, "evidence": comparison.explanation})
     return rows
 
 
-def _precision_claims(task_runs: Mapping[str, Runs], alpha: float) -> list[dict[str, str]]:
+def _precision_claims(task_runs: Mapping[str, Runs], alpha: float, min_seeds: int) -> list[dict[str, str]]:
+    """Precision claims over training seeds: Welch's test of the two families' per-seed mean offsets.
+
+    Each training seed contributes the mean of its measured episodes; with fewer than `min_seeds` seeds in either
+    family the claim is not decided, and the pooled episode figures are given as what they are, the networks'.
+    """
     rows = []
     for claim, family, rival, column in PRECISION_CLAIMS:
         if family not in task_runs or rival not in task_runs or column not in measure_columns(task_runs):
             continue
-        result = statistics.compare_means(
-            pooled_measure(task_runs[family], column), pooled_measure(task_runs[rival], column)
-        )
-        if result is None:
+        seed_means = [_seed_means(task_runs[name], column) for name in (family, rival)]
+        pooled = [pooled_measure(task_runs[name], column) for name in (family, rival)]
+        pooled = [values[np.isfinite(values)] for values in pooled]
+        if not all(values.size for values in pooled):
             continue
-        if result.p_value >= alpha:
-            verdict, finding = "not decided", "no difference in the means detected"
+        networks = (
+            f"{column} over the networks' measured episodes: {family} mean {pooled[0].mean():.2f} "
+            f"({pooled[0].size} episodes), {rival} mean {pooled[1].mean():.2f} ({pooled[1].size} episodes)"
+        )
+        counts = [means.size for means in seed_means]
+        if min(counts) < min_seeds:
+            verdict = f"not decided ({min(counts)} training seed{'s' if min(counts) != 1 else ''})"
+            evidence = f"{networks}; a family verdict needs {min_seeds} training seeds with measured episodes each"
+            rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
+            continue
+        result = stats.ttest_ind(seed_means[0], seed_means[1], equal_var=False)
+        difference = seed_means[0].mean() - seed_means[1].mean()
+        low, high = result.confidence_interval(0.95)
+        if result.pvalue >= alpha:
+            verdict, finding = "not decided", "no difference in the families' means detected"
         else:
-            better = result.difference.estimate < 0
-            verdict, finding = (
-                ("holds" if better else "does not hold"),
-                f"{family} {'more' if better else 'less'} precise",
-            )
-        variances = "n/a, too few episodes" if result.variance_p_value is None else f"{result.variance_p_value:.3g}"
+            better = difference < 0
+            verdict = "holds" if better else "does not hold"
+            finding = f"{family} {'more' if better else 'less'} precise"
         evidence = (
-            f"{column}: {family} mean {result.first_mean:.2f}, variance {result.first_variance:.2f}; {rival} mean "
-            f"{result.second_mean:.2f}, variance {result.second_variance:.2f}; {finding} (Welch p = "
-            f"{result.p_value:.3g}, difference {result.difference.estimate:+.2f}, 95% interval "
-            f"{result.difference.low:+.2f} to {result.difference.high:+.2f}; equal variances p = "
-            f"{variances})"
+            f"per-seed mean {column}: {family} {_listed(seed_means[0])}, {rival} {_listed(seed_means[1])}; {finding} "
+            f"(Welch over training seeds p = {result.pvalue:.3g}, difference {difference:+.2f}, 95% interval "
+            f"{low:+.2f} to {high:+.2f}); {networks}"
         )
         rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
     return rows
+
+
+def _seed_means(runs: Runs, column: str) -> np.ndarray:
+    """(k,) each training seed's mean of a per-episode measure over the episodes that took it; seeds with none out."""
+    means = []
+    for _, run in sorted(runs.items()):
+        if column in run.episodes:
+            values = run.episodes[column].to_numpy(dtype=float)
+            values = values[np.isfinite(values)]
+            if values.size:
+                means.append(values.mean())
+    return np.array(means)
+
+
+def _listed(values: np.ndarray) -> str:
+    return ", ".join(f"{value:.2f}" for value in values)
 
 
 def _speed_claims(task_runs: Mapping[str, Runs]) -> list[dict[str, str]]:
@@ -573,7 +654,7 @@ def _speed_claims(task_runs: Mapping[str, Runs]) -> list[dict[str, str]]:
     return rows
 
 
-def find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, rival: str):
+def find_pair(comparisons: Sequence["verdicts.PairComparison"], family: str, rival: str):
     """The comparison of `family` and `rival` in either order, or None when the run did not pair them."""
     for comparison in comparisons:
         if {comparison.first, comparison.second} == {family, rival}:
@@ -581,7 +662,7 @@ def find_pair(comparisons: Sequence["statistics.PairComparison"], family: str, r
     return None
 
 
-def oriented_verdict(comparison: "statistics.PairComparison", family: str, rival: str) -> str:
+def oriented_verdict(comparison: "verdicts.PairComparison", family: str, rival: str) -> str:
     """The pair's verdict from `family`'s side: "better", "worse", "on par" or "not decided"."""
     verdict = comparison.verdict
     if verdict.startswith("on par"):

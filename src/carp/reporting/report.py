@@ -22,7 +22,7 @@ import pandas as pd  # noqa: E402
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
 from carp.reporting import (
     comparison,  # noqa: E402
-    statistics,  # noqa: E402
+    verdicts,  # noqa: E402
 )
 from carp.reporting.comparison import MULTITASK_SUFFIX, Runs  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
@@ -66,14 +66,15 @@ class ReportInputs:
             same family where `evaluation` has one.
         multitask_runs: task -> policy family -> training seed -> the multi-task policy's results on the task, like
             `runs`; with it the report compares each multi-task policy with the family's single-task policy on the
-            same episodes (paired difference, McNemar, Holm, verdict) and gives its task measures.
+            same episodes (difference over training seeds, verdict) and gives its task measures.
         max_steps: task -> episode step limit (the curves' horizon).
         demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
             demos where the paper trained on human ones); shown under the task's policies.
         reference_notes: task -> which of its evaluations came from other runs (``comparison.references``); shown
             under the task's policies.
         margin: equivalence margin of the verdicts, in success rate.
-        alpha: significance level of the verdicts after Holm's correction.
+        alpha: family-wise significance level of all the report's verdicts (one correction over them).
+        min_seeds: training seeds per family a family verdict needs.
         sweep_trials: the Optuna sweep's trials table, when a sweep ran.
         versions: package -> version (robosuite, mujoco, torch, ...).
         git_commit: commit the pipeline ran at.
@@ -95,6 +96,7 @@ class ReportInputs:
     reference_notes: Mapping[str, str] = field(default_factory=dict)
     margin: float = 0.05
     alpha: float = 0.05
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS
     sweep_trials: pd.DataFrame | None = None
     versions: Mapping[str, str] = field(default_factory=dict)
     git_commit: str = "unknown"
@@ -408,10 +410,11 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         for task, policies in inputs.evaluation.items()
         if policies
     ]
+    single_pairs, multitask_pairs = decided_pairs(inputs)
     if inputs.multitask:
-        sections.append(multitask_section(inputs))
+        sections.append(multitask_section(inputs, multitask_pairs))
     if inputs.runs:
-        sections += comparison_sections(inputs, figures_dir)
+        sections += comparison_sections(inputs, single_pairs, figures_dir)
     sections += [
         Section(
             "Success rate",
@@ -525,7 +528,7 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     return sections
 
 
-def multitask_section(inputs: ReportInputs) -> Section:
+def multitask_section(inputs: ReportInputs, decided: Mapping[str, Sequence[verdicts.PairComparison]]) -> Section:
     """Each multi-task policy beside its family's single-task policy per task, with paired verdicts and task measures.
 
     The verdicts set each multi-task policy against its single-task policy and against the other families' multi-task
@@ -541,19 +544,16 @@ def multitask_section(inputs: ReportInputs) -> Section:
         ],
         tables=[multitask_table(inputs.multitask, inputs.evaluation)],
     )
-    decided = comparison.compare_multitask(
-        inputs.runs, inputs.multitask_runs, MULTITASK_SUFFIX, margin=inputs.margin, alpha=inputs.alpha
-    )
     pairs = [(task, pair) for task, task_pairs in decided.items() for pair in task_pairs]
     if pairs:
         section.paragraphs.append(
             "Each multi-task policy against its single-task policy, and the multi-task policies of different families "
-            "against each other, on the episodes they share, tested as the pairs of families are (Holm's correction "
-            f"over the multi-task pairs of the run at alpha {inputs.alpha}; "
+            "against each other, on the episodes they share, tested as the pairs of families are (one correction over "
+            f"every verdict of the report at alpha {inputs.alpha}; "
             f'"on par" means within +-{100 * inputs.margin:.0f} points).'
         )
         section.paragraphs += [f"{task}, {pair.verdict}: {pair.explanation}" for task, pair in pairs]
-        table = statistics.comparison_table([pair for _, pair in pairs])
+        table = verdicts.comparison_table([pair for _, pair in pairs])
         table.insert(0, "task", [task for task, _ in pairs])
         section.tables.append(table)
     for task, families in inputs.multitask_runs.items():
@@ -561,7 +561,9 @@ def multitask_section(inputs: ReportInputs) -> Section:
         if not measures.empty:
             section.paragraphs.append(f"The multi-task policies' own measures on {task} (as in the task's comparison).")
             section.tables.append(measures)
-    claims = comparison.claims_table(inputs.multitask_runs, decided, alpha=inputs.alpha, suffix=MULTITASK_SUFFIX)
+    claims = comparison.claims_table(
+        inputs.multitask_runs, decided, alpha=inputs.alpha, suffix=MULTITASK_SUFFIX, min_seeds=inputs.min_seeds
+    )
     if not claims.empty:
         section.paragraphs.append(
             "The paper's claims checked on the multi-task policies (its Table 4 sets a multi-task CARP against a "
@@ -571,9 +573,20 @@ def multitask_section(inputs: ReportInputs) -> Section:
     return section
 
 
-def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
+def decided_pairs(inputs: ReportInputs) -> tuple[dict, dict]:
+    """The report's single-task and multi-task pairs (task -> comparisons), decided under one correction."""
+    groups = [
+        (list(inputs.runs), comparison.family_pairs(inputs.runs)),
+        (list(inputs.multitask_runs), comparison.multitask_pairs(inputs.runs, inputs.multitask_runs, MULTITASK_SUFFIX)),
+    ]
+    single, multi = comparison.decide_groups(groups, inputs.margin, inputs.alpha, min_seeds=inputs.min_seeds)
+    return single, multi
+
+
+def comparison_sections(
+    inputs: ReportInputs, decided: Mapping[str, Sequence[verdicts.PairComparison]], figures_dir: Path
+) -> list[Section]:
     """The comparison sections: per task the seeds, families, paired verdicts and steps to success; then the claims."""
-    decided = comparison.compare_families(inputs.runs, margin=inputs.margin, alpha=inputs.alpha)
     margin_points = 100 * inputs.margin
     sections = []
     for task, task_runs in inputs.runs.items():
@@ -586,24 +599,27 @@ def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section
                 "episodes, the best validation success over the candidates (what selecting on the test seeds would "
                 "report, as Diffusion Policy and robomimic do) and the mean of the best few stand next to it; the gap "
                 "is the optimism that selection on the test seeds would have added.",
-                "Each family over its seeds: the pooled rate with its Wilson interval, the mean over seeds with a "
-                "two-level bootstrap interval (seeds, then episodes), the between-seed intra-class correlation and "
-                "the episodes it is worth once seeds are taken into account.",
+                "Each family over its training seeds: the family's rate is the mean over seeds with a t interval over "
+                "seeds that also carries the difficulty of the shared initial states (from 2 seeds; one network says "
+                "nothing about its recipe's spread). The pooled rate with its Wilson interval, the between-seed "
+                "intra-class correlation and the effective episodes describe the trained networks, not the family.",
             ],
             tables=[comparison.seed_table(task_runs), comparison.family_table(task_runs)],
         )
         pairs = decided.get(task, [])
         if pairs:
             section.paragraphs.append(
-                "Pairs of families on the same episode seeds (and training seeds paired by number): the paired "
-                "difference with Newcombe's interval and the two-level bootstrap interval, the exact McNemar test on "
-                "the discordant episodes, a permutation test over seeds (from two seeds per family), a logrank test "
-                f"of the steps to success, and Holm's correction over every pair of the run at alpha {inputs.alpha}. "
-                f'"On par" means both 90% intervals lie within +-{margin_points:.0f} points; the verdict never ranks '
-                "what the data does not rank."
+                "Pairs of families on the same episode seeds, training seeds paired by number. The training seed is "
+                "the unit of a family verdict: the difference is the mean over seed pairs of each pair's difference, "
+                "with a t interval over seeds; a pair with fewer than "
+                f"{inputs.min_seeds} training seeds gets no family verdict. Every verdict of the report is tested "
+                f"inside one step-down correction at alpha {inputs.alpha} (each pair's test of a difference and its "
+                f'two one-sided tests of equivalence). "On par" means the 90% interval lies within '
+                f"+-{margin_points:.0f} points. The per-network column (McNemar on each seed pair's episodes, "
+                "uncorrected) describes the trained networks only."
             )
             section.paragraphs += [f"{pair.verdict}: {pair.explanation}" for pair in pairs]
-            section.tables.append(statistics.comparison_table(pairs))
+            section.tables.append(verdicts.comparison_table(pairs))
         measures = comparison.measure_table(task_runs)
         if not measures.empty:
             section.paragraphs.append(
@@ -621,7 +637,7 @@ def comparison_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section
                 )
             )
         sections.append(section)
-    claims = comparison.claims_table(inputs.runs, decided, alpha=inputs.alpha)
+    claims = comparison.claims_table(inputs.runs, decided, alpha=inputs.alpha, min_seeds=inputs.min_seeds)
     if not claims.empty:
         sections.append(
             Section(

@@ -5,7 +5,7 @@ the largest size, so that collection runs once (DVC keeps its output) and every 
 same file (`carp.data.subsets`), identical for every family. After each experiment its evaluation files (each
 training seed's summary and test episodes) are copied into ``<output>/size<N>/``; a size whose copy is complete is
 not run again, so an interrupted study resumes where it stopped. The study's report then shows each family's curve
-with its two-level bootstrap band and, per size, the paired verdicts of the families.
+with its band over training seeds and, per size, the paired verdicts of the families, all sizes under one correction.
 """
 
 import json
@@ -20,14 +20,17 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from carp.reporting import statistics  # noqa: E402
+from carp.reporting import verdicts as verdicts_module  # noqa: E402
 from carp.reporting.comparison import (  # noqa: E402
     RunResults,
     Runs,
     add_referenced_runs,
-    compare_families,
+    decide_groups,
+    family_pairs,
+    family_rate,
     find_pair,
     oriented_verdict,
     outcomes_by_seed,
@@ -178,22 +181,24 @@ def add_referenced_studies(
 
 
 def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, path: Path) -> Path:
-    """Each family's mean success over seeds against the demo count, with its two-level bootstrap 95% band."""
+    """Each family's mean success over seeds against the demo count, with its 95% band over training seeds.
+
+    A size with a single training seed has its point but no band (one network says nothing about the spread).
+    """
     figure, axis = plt.subplots(figsize=(6, 3.4))
     sizes = sorted(points)
     for family in points[sizes[0]][task]:
-        intervals = [
-            statistics.two_level_bootstrap(list(outcomes_by_seed(points[size][task][family]).values()))
-            for size in sizes
-        ]
-        line = axis.plot(sizes, [100 * i.estimate for i in intervals], marker="o", label=family)[0]
-        axis.fill_between(
-            sizes,
-            [100 * i.low for i in intervals],
-            [100 * i.high for i in intervals],
-            color=line.get_color(),
-            alpha=0.2,
-        )
+        means, bands = [], []
+        for size in sizes:
+            runs = points[size][task][family]
+            means.append(100 * float(np.mean([values.mean() for values in outcomes_by_seed(runs).values()])))
+            interval = family_rate(runs)
+            if interval is not None:
+                bands.append((size, 100 * interval.low, 100 * interval.high))
+        line = axis.plot(sizes, means, marker="o", label=family)[0]
+        if bands:
+            band_sizes, lows, highs = zip(*bands)
+            axis.fill_between(band_sizes, lows, highs, color=line.get_color(), alpha=0.2)
     axis.set_xlabel("demos")
     axis.set_ylabel("success rate (%)")
     axis.set_ylim(0, 105)
@@ -201,13 +206,16 @@ def plot_success_against_demos(points: Mapping[int, Evaluations], task: str, pat
     return finish_figure(figure, axis, path)
 
 
-def claims_table(verdicts: Mapping[int, Mapping[str, Sequence[statistics.PairComparison]]], task: str) -> pd.DataFrame:
+def claims_table(
+    verdicts: Mapping[int, Mapping[str, Sequence["verdicts_module.PairComparison"]]], task: str
+) -> pd.DataFrame:
     """The paper's data-efficiency claim on `task`, against each other family of the study: one row per rival.
 
-    The claim ("CARP outperforms the baseline with any number of demos") holds against a rival when the paired verdict
-    is "carp better" at every size: an intersection-union test, which needs every size's test at alpha and no further
-    correction. It does not hold when the rival is better, or on par within the margin, at some size, and is not
-    decided otherwise. Without carp in the study the table is empty.
+    The claim ("CARP outperforms the baseline with any number of demos") holds against a rival when the family verdict
+    is "carp better" at every size: an intersection-union test, for which each size's verdict at alpha suffices (the
+    study's verdicts are corrected over every size and pair, which only makes it stricter). It does not hold when the
+    rival is better, or on par within the margin, at some size, and is not decided otherwise (a size with too few
+    training seeds for a family verdict among them). Without carp in the study the table is empty.
 
     Args:
         verdicts: size -> task -> the size's pair comparisons (`compare_families`).
@@ -257,6 +265,7 @@ def study_sections(
     alpha: float,
     figures_dir: Path,
     reference_notes: Mapping[str, str] | None = None,
+    min_seeds: int = verdicts_module.DEFAULT_MIN_SEEDS,
 ) -> list[Section]:
     """Per task: the curves, a table of each family's success per size, and per size the paired verdicts.
 
@@ -264,19 +273,28 @@ def study_sections(
     """
     sizes = sorted(points)
     tasks = list(points[sizes[0]])
-    verdicts = {size: compare_families(points[size], margin=margin, alpha=alpha) for size in sizes}
+    decided = decide_groups(
+        [(list(points[size]), family_pairs(points[size])) for size in sizes], margin, alpha, min_seeds=min_seeds
+    )
+    verdicts = dict(zip(sizes, decided))
     sections = []
     for task in tasks:
         rows = []
         for size in sizes:
             for family, runs in points[size][task].items():
-                mean = statistics.two_level_bootstrap(list(outcomes_by_seed(runs).values()))
+                rate = family_rate(runs)
+                seed_rates = [values.mean() for values in outcomes_by_seed(runs).values()]
                 rows.append(
                     {
                         "demos": size,
                         "policy": family,
                         "seeds": len(runs),
-                        "mean success": f"{100 * mean.estimate:.1f}% ({100 * mean.low:.1f}-{100 * mean.high:.1f}%)",
+                        "per seed": ", ".join(f"{100 * rate:.1f}%" for rate in seed_rates),
+                        "family rate, 95% interval over seeds": (
+                            f"{100 * rate.estimate:.1f}% ({100 * rate.low:.1f}-{100 * rate.high:.1f}%)"
+                            if rate is not None
+                            else f"{100 * seed_rates[0]:.1f}% (n/a, 1 training seed)"
+                        ),
                     }
                 )
         claims = claims_table(verdicts, task)
@@ -284,9 +302,10 @@ def study_sections(
             f"Data efficiency on {task}",
             paragraphs=[
                 "Each size trains every family on the same nested subset of one collected file (a smaller subset is "
-                "part of every larger one); the band is the two-level bootstrap 95% interval of the mean over "
-                "training seeds. Verdicts per size pair the families on the same episode seeds, with Holm's "
-                "correction over that size's pairs.",
+                "part of every larger one); the band is the 95% t interval over training seeds of the family's rate "
+                "(sizes with one seed have none). Verdicts per size pair the families on the same episode seeds with "
+                f"the training seed as the unit (at least {min_seeds} seeds per family), under one correction over "
+                "every size and pair of the study.",
                 *([reference_notes[task]] if reference_notes and task in reference_notes else []),
                 *(
                     []
@@ -314,8 +333,9 @@ def write_study_report(
     alpha: float,
     output_dir: Path,
     reference_notes: Mapping[str, str] | None = None,
+    min_seeds: int = verdicts_module.DEFAULT_MIN_SEEDS,
 ) -> Path:
     """``<output_dir>/report.md`` and ``report.html`` of the study; returns the Markdown path."""
-    sections = study_sections(points, margin, alpha, Path(output_dir) / "figures", reference_notes)
+    sections = study_sections(points, margin, alpha, Path(output_dir) / "figures", reference_notes, min_seeds)
     markdown, _ = write_sections(sections, output_dir, "carp study: data efficiency")
     return markdown
