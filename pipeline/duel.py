@@ -10,6 +10,10 @@ the episodes the evaluate stages already ran on those seeds count as the first r
 (`carp.evaluation.sequential`) decides or goes on. Writes reports/duel/<task>/<first>_vs_<second>/seed<k>/: each
 side's episodes (<label>_episodes.csv, appended after each round, so a killed duel resumes where it stopped) and
 verdict.json. Not a DVC stage: it adds episodes beside what the pipeline evaluated and changes none of its outputs.
+
+A duel compares two trained networks (one training seed of each family), never the families: its verdict names
+them by seed. The duels behind one report share its error rate: --duels N splits alpha over them (Bonferroni), and
+the verdict records N.
 """
 
 import argparse
@@ -66,6 +70,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=None, help="most paired episodes (default: eval.episodes)")
     parser.add_argument("--round-episodes", type=int, default=20, help="new seeds per round; >= 1")
     parser.add_argument("--alpha", type=float, default=None, help="false-positive rate (default: comparison.alpha)")
+    parser.add_argument(
+        "--duels", type=int, default=1, help="duels reported together; each runs at alpha / duels (default 1)"
+    )
     args = parser.parse_args()
     params = load(args.params)
     seed = params.seeds[0] if args.seed is None else args.seed
@@ -80,8 +87,13 @@ def main() -> None:
     alpha = params.comparison.alpha if args.alpha is None else args.alpha
     if not 0 < alpha < 1:
         fail(f"--alpha {alpha}: must be in (0, 1)")
+    if args.duels < 1:
+        fail(f"--duels {args.duels}: must be >= 1")
     try:
-        seeds = dataclasses.replace(params.eval, episodes=args.episodes or params.eval.episodes).test_seeds()
+        # The whole params are checked again, so an extended test range must stay clear of the collection and
+        # validation seeds.
+        extended = dataclasses.replace(params.eval, episodes=args.episodes or params.eval.episodes)
+        seeds = dataclasses.replace(params, eval=extended).eval.test_seeds()
     except ConfigError as error:
         fail(f"--episodes {args.episodes}: {error}")
     sides = [side_of(params, args.params, args.task, label, seed) for label in (args.first, args.second)]
@@ -114,16 +126,20 @@ def main() -> None:
             return first, second
 
         verdict, _, _ = run_duel(
-            args.first,
-            args.second,
+            f"{args.first} (training seed {seed})",
+            f"{args.second} (training seed {seed})",
             run_round,
             seeds,
             args.round_episodes,
-            alpha,
+            alpha / args.duels,
             done=(done[0]["success"].astype(bool).tolist(), done[1]["success"].astype(bool).tolist()),
         )
-    write_json(out_dir / "verdict.json", dataclasses.asdict(verdict) | {"task": args.task, "training_seed": seed})
-    print(f"{args.task}, training seed {seed}: {verdict.explanation}")
+    scope = {"task": args.task, "training_seed": seed, "duels": args.duels, "family_alpha": alpha}
+    write_json(out_dir / "verdict.json", dataclasses.asdict(verdict) | scope)
+    print(
+        f"{args.task}: {verdict.explanation} This compares two trained networks, not the families; alpha {alpha:g} "
+        f"split over {args.duels} duel(s)."
+    )
 
 
 def side_of(params: Params, params_path: Path, task: str, label: str, seed: int) -> Side:

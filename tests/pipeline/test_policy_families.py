@@ -106,12 +106,14 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
         "--second",
         "diffusion_transformer",
     ]
-    dueled = run([*duel, "--seed", "1", "--episodes", "4", "--round-episodes", "1"], workspace)
+    dueled = run([*duel, "--seed", "1", "--episodes", "4", "--round-episodes", "1", "--duels", "2"], workspace)
     assert dueled.returncode == 0, dueled.stderr[-3000:]
-    assert "lift, training seed 1: not decided in 4 episodes" in dueled.stdout
+    assert "lift: not decided in 4 episodes" in dueled.stdout
+    assert "two trained networks, not the families; alpha 0.05 split over 2 duel(s)" in dueled.stdout
     duel_dir = workspace / "reports/duel/lift/carp_vs_diffusion_transformer/seed1"
     verdict = json.loads((duel_dir / "verdict.json").read_text())
     assert (verdict["episodes"], verdict["rounds"], verdict["verdict"]) == (4, 3, "not decided")
+    assert (verdict["first"], verdict["alpha"], verdict["duels"]) == ("carp (training seed 1)", 0.025, 2)
     for policy in FAMILIES["policies"]:
         duel_episodes = pd.read_csv(duel_dir / f"{policy}_episodes.csv")
         evaluated = pd.read_csv(workspace / f"reports/eval/lift/{policy}/seed1_episodes.csv")
@@ -119,10 +121,17 @@ def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
         assert duel_episodes.head(2)["success"].tolist() == evaluated["success"].tolist()
     assert verdict["first_successes"] == pd.read_csv(duel_dir / "carp_episodes.csv")["success"].sum()
     # Run again, it resumes finished: nothing new runs and the verdict stands.
-    again = run([*duel, "--seed", "1", "--episodes", "4"], workspace)
+    again = run([*duel, "--seed", "1", "--episodes", "4", "--duels", "2"], workspace)
     resumed = json.loads((duel_dir / "verdict.json").read_text())
     assert again.returncode == 0 and resumed == verdict | {"rounds": 1}  # the kept episodes count as one round
     assert len(pd.read_csv(duel_dir / "carp_episodes.csv")) == 4
+    # A test range extended into the collection seeds is refused before anything runs.
+    shifted = yaml.safe_load((workspace / "params.yaml").read_text())
+    shifted["data"]["collection_seed"] = 100_010
+    (workspace / "shifted-params.yaml").write_text(yaml.safe_dump(shifted))
+    overlapping = run([*duel, "--params", "shifted-params.yaml", "--seed", "1", "--episodes", "20"], workspace)
+    last_line = overlapping.stderr.strip().splitlines()[-1]
+    assert overlapping.returncode == 1 and last_line.startswith("error: ") and "collection seeds" in last_line
     refused = run([*duel[:-1], "next_token"], workspace)
     assert refused.returncode == 1
     assert (

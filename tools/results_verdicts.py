@@ -1,0 +1,77 @@
+"""Recompute the verdicts of the stored evaluations under `results/` with the report's own rules.
+
+Each group below is what one README / docs/results.md row compares: the evaluation folders whose families are set
+side by side. The verdicts are decided as a report decides them (the training seed as the unit, one correction over
+the group's pairs), so a row's published verdict can be checked against its episodes at any time.
+
+    .venv/bin/python tools/results_verdicts.py [--min-seeds 3] [--alpha 0.05] [--margin 0.05]
+"""
+
+import argparse
+from pathlib import Path
+
+from carp.reporting.comparison import (
+    MULTITASK_SUFFIX,
+    decide_groups,
+    family_pairs,
+    merge_runs,
+    multitask_pairs,
+    referenced_runs,
+    split_multitask,
+)
+
+RESULTS = Path(__file__).resolve().parents[1] / "results"
+GROUPS = {
+    "Square, CARP and DP-C": ["square/eval"],
+    "Square data efficiency, 30 demos": [
+        "square-data-efficiency-carp/size30",
+        "square-data-efficiency-diffusion_unet/size30",
+    ],
+    "Square data efficiency, 100 demos": [
+        "square-data-efficiency-carp/size100",
+        "square-data-efficiency-diffusion_unet/size100",
+    ],
+    "Square data efficiency, 200 demos": ["square/eval"],
+    "NutAssembly, CARP and DP-C": ["nut_assembly-carp/eval", "nut_assembly-diffusion_unet/eval"],
+    "Four tasks, multi-task and single-task": [
+        "four-tasks-carp/eval",
+        "four-tasks-carp-multitask/eval",
+        "four-tasks-dpc/eval",
+        "four-tasks-dpc-multitask/eval",
+    ],
+    "Lift, VQ-BeT sampled and greedy codes": ["lift-vq_bet/eval"],
+    "Can, VQ-BeT and Consistency Policy": ["can-vq_bet/eval", "can-consistency_policy/eval"],
+    "Push-T, VQ-BeT, Consistency Policy and DP-T": [
+        "pusht-vq_bet/eval",
+        "pusht-consistency_policy/eval",
+        "pusht-diffusion_transformer/eval",
+    ],
+}
+TASKS = ("lift", "can", "square", "stack", "nut_assembly", "stack_three", "threading", "pusht")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--min-seeds", type=int, default=3)
+    parser.add_argument("--alpha", type=float, default=0.05)
+    parser.add_argument("--margin", type=float, default=0.05)
+    arguments = parser.parse_args()
+    for title, folders in GROUPS.items():
+        runs: dict = {}
+        for folder in folders:
+            runs = merge_runs(runs, referenced_runs(RESULTS / folder, TASKS), folder)
+        single, multi = split_multitask(runs, MULTITASK_SUFFIX)
+        groups = [(list(single), family_pairs(single)), (list(multi), multitask_pairs(single, multi, MULTITASK_SUFFIX))]
+        decided = decide_groups(groups, arguments.margin, arguments.alpha, min_seeds=arguments.min_seeds)
+        print(f"## {title}")
+        for by_task in decided:
+            for task, pairs in by_task.items():
+                for pair in pairs:
+                    rates = f"{100 * pair.first_rate:.1f}% vs {100 * pair.second_rate:.1f}%"
+                    print(f"- {task}: {pair.first} vs {pair.second}, {pair.seeds} seed(s), {rates}: {pair.verdict}")
+                    print(f"  {pair.explanation}")
+        print()
+
+
+if __name__ == "__main__":
+    main()
