@@ -38,10 +38,9 @@ from carp.evaluation.progress import PROGRESS_VARIABLE, ProgressFile, ValidatedC
 from carp.evaluation.runner import buffer_latency, episodes_table, write_episode_videos
 from carp.evaluation.selection import (
     AVERAGED_POLICY_NAME,
-    evaluate_with_selection,
+    evaluate_as_configured,
     find_candidates,
     save_averaged_policy,
-    validate_and_select,
     validation_only_summary,
 )
 from carp.outputs import write_json
@@ -93,43 +92,28 @@ def main() -> None:
         run_episodes = episode_runner(
             params, args.task, args.policy, windows.buffer.attrs["env_args"], video_seeds=config.test_seeds()
         )
-        on_validated = progress_reporter(f"{args.task}/{label}/seed{args.seed}")
         try:
-            if config.run_test:
-                evaluated = evaluate_with_selection(
-                    candidates,
-                    config.selection,
-                    run_episodes,
-                    lambda outcome: [result.success for result in outcome[1]],
-                    config.validation_seeds(),
-                    config.test_seeds(),
-                    config.average_last,
-                    average,
-                    on_validated,
-                )
-                summary, results = evaluated.test
-                tested = evaluated.tested
-            else:
-                evaluated = validate_and_select(
-                    candidates,
-                    config.selection,
-                    run_episodes,
-                    lambda outcome: [result.success for result in outcome[1]],
-                    config.validation_seeds(),
-                    config.average_last,
-                    on_validated,
-                )
-                summary, results = validation_only_summary(evaluated.validation[evaluated.selection.chosen.epoch]), []
-                tested = evaluated.selection.chosen.path
+            evaluated = evaluate_as_configured(
+                config,
+                candidates,
+                run_episodes,
+                lambda outcome: [result.success for result in outcome[1]],
+                average,
+                progress_reporter(f"{args.task}/{label}/seed{args.seed}"),
+            )
         except ValidationStopped as error:
             fail(f"{args.task} {label} seed {args.seed}: {error}")
+        if evaluated.test is None:
+            summary, results = validation_only_summary(evaluated.validation[evaluated.selection.chosen.epoch]), []
+        else:
+            summary, results = evaluated.test
         summary.update(evaluated.selection.validation_summary(config.validation_top_k))
         summary["selection"] = evaluated.selection.rule
         summary["candidates"] = len(candidates)
         summary["training_seed"] = args.seed
         if "validation_max_success_rate" in summary and config.run_test:
             summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
-        policy = load_policy(tested)
+        policy = load_policy(evaluated.tested)
         policy.select_task(args.task)
         policy.configure_inference(**inference)
         summary.update(

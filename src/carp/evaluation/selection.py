@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from carp.config import SELECTION_RULES
+from carp.config import SELECTION_RULES, EvalConfig
 
 Outcome = TypeVar("Outcome")
 
@@ -172,13 +172,15 @@ class SelectedEvaluation(Generic[Outcome]):
     Attributes:
         selection: the chosen candidate and the validation scores.
         validation: epoch -> that candidate's validation outcome (as `run_episodes` returned it).
-        test: the chosen candidate's outcome on the test seeds.
-        tested: the checkpoint that ran on the test seeds (the chosen candidate's, or the averaged policy's).
+        test: the chosen candidate's outcome on the test seeds; None when no test episode ran
+            (`evaluate_as_configured` with ``eval.run_test: false``).
+        tested: the checkpoint that ran on the test seeds (the chosen candidate's, or the averaged policy's); without
+            test episodes, the chosen candidate's.
     """
 
     selection: Selection
     validation: dict[int, Outcome]
-    test: Outcome
+    test: Outcome | None
     tested: Path
 
 
@@ -279,6 +281,52 @@ def evaluate_with_selection(
         tested = average(selection.averaged)
     test = run_episodes(tested, list(test_seeds))
     return SelectedEvaluation(selection, validated.validation, test, Path(tested))
+
+
+def evaluate_as_configured(
+    config: EvalConfig,
+    candidates: Sequence[Candidate],
+    run_episodes: Callable[[Path, list[int]], Outcome],
+    successes_of: Callable[[Outcome], list[bool]],
+    average: Callable[[Sequence[Candidate]], Path] | None = None,
+    on_validated: Callable[[Candidate, Outcome], None] | None = None,
+) -> SelectedEvaluation[Outcome]:
+    """The evaluate stage's episodes as the ``eval`` section asks for them.
+
+    That is `evaluate_with_selection`, or with ``run_test: false`` `validate_and_select` alone: then the result's
+    ``test`` is None and no test seed runs.
+
+    Args:
+        config: the ``eval`` section (selection rule, seeds, ``average_last``, ``run_test``).
+        candidates: see `evaluate_with_selection`.
+        run_episodes: see `evaluate_with_selection`.
+        successes_of: see `evaluate_with_selection`.
+        average: see `evaluate_with_selection`.
+        on_validated: see `validate_and_select`.
+    """
+    if config.run_test:
+        return evaluate_with_selection(
+            candidates,
+            config.selection,
+            run_episodes,
+            successes_of,
+            config.validation_seeds(),
+            config.test_seeds(),
+            config.average_last,
+            average,
+            on_validated,
+        )
+    validated = validate_and_select(
+        candidates,
+        config.selection,
+        run_episodes,
+        successes_of,
+        config.validation_seeds(),
+        config.average_last,
+        on_validated,
+    )
+    chosen = validated.selection.chosen
+    return SelectedEvaluation(validated.selection, validated.validation, None, Path(chosen.path))
 
 
 # Figures of the selected candidate's validation episodes that a validation-only summary carries, renamed so that
