@@ -17,8 +17,8 @@ from carp.sweep.space import TrialSettings
 
 EVAL = EvalConfig(episodes=8, seed=100_000, validation_episodes=4, validation_seed=200_000)
 """The pipeline's ``eval`` section the fake evaluations start from; each run applies the sweep's overrides to it."""
-EPOCHS = (2, 4, 6)
-"""Epochs of each fake training's candidates (two snapshots and the final policy)."""
+EPOCHS = (1, 2, 3, 4, 5, 6)
+"""Epochs of each fake training's candidates (five snapshots and the final policy)."""
 
 
 class _Stopped(Exception):

@@ -13,10 +13,12 @@ trials differ only in the tokenizer's settings); its value is the mean, over the
 one's best validation score so far, i.e. what the trial would score if it stopped there. Its last value is the
 trial's objective whenever the selection picks the best-scoring candidate.
 
-Pruners: successive halving keeps at each rung (steps 1, 3, 9, ...) the trials in the top third of those that
-reached it; Hyperband runs several such brackets with different first rungs, so that some trials are judged only
-late. Both leave the first ``BOOTSTRAP_TRIALS`` trials at every rung alone, since a validation score of a few dozen
-episodes is noisy and an early snapshot says little about the final policy.
+Pruners (Optuna's asynchronous versions): successive halving keeps at each rung (steps 1, 3, 9, ...) the trials in
+the top third of those that reached it so far; while fewer than three have, only a trial at least as good as the
+best of them goes on, so early in a study it prunes hard. Hyperband runs several such brackets with different first
+rungs, so that some trials are judged only late, and prunes nothing until one trial has finished (it learns the
+number of steps from it). A validation score of a few dozen episodes is noisy and an early snapshot says little
+about the final policy: pruning trades some chance of losing a good trial for compute, which ``none`` does not.
 """
 
 from dataclasses import dataclass, field
@@ -27,19 +29,14 @@ from carp.config import SweepConfig
 from carp.evaluation.progress import ValidatedCandidate
 
 REDUCTION_FACTOR = 3
-BOOTSTRAP_TRIALS = 2
 
 
 def make_pruner(config: SweepConfig) -> optuna.pruners.BasePruner:
     """The pruner that ``sweep.pruner`` names."""
     if config.pruner == "successive_halving":
-        return optuna.pruners.SuccessiveHalvingPruner(
-            min_resource=1, reduction_factor=REDUCTION_FACTOR, bootstrap_count=BOOTSTRAP_TRIALS
-        )
+        return optuna.pruners.SuccessiveHalvingPruner(min_resource=1, reduction_factor=REDUCTION_FACTOR)
     if config.pruner == "hyperband":
-        return optuna.pruners.HyperbandPruner(
-            min_resource=1, reduction_factor=REDUCTION_FACTOR, bootstrap_count=BOOTSTRAP_TRIALS
-        )
+        return optuna.pruners.HyperbandPruner(min_resource=1, reduction_factor=REDUCTION_FACTOR)
     return optuna.pruners.NopPruner()
 
 
