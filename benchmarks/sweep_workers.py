@@ -50,7 +50,11 @@ def configure(template: Path, storage: str, tracking_uri: str, study: str, point
         codebook_sizes=[8],
         prune_factor=1000.0,
         heartbeat_seconds=2,
+        pruner="none",
+        confirm_seeds=[0, 1],
     )
+    # Trials select and score on validation episodes only; the sweep refuses to run without them.
+    params["eval"]["validation_episodes"] = max(params["eval"].get("validation_episodes", 0), 1)
     (template / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     for command in (["git", "add", "params.yaml"], ["git", "commit", "-qm", f"study {study}"]):
         if run(command, template).returncode != 0:

@@ -5,6 +5,11 @@ snapshots) runs on the validation seeds first; `eval.selection` then fixes one, 
 seeds. Writes the summary `seed<seed>.json`, the test episodes `seed<seed>_episodes.csv` and the validation episodes
 `seed<seed>_validation.csv` (empty without validation).
 
+With `eval.run_test: false` (the sweep's trials) no test episode runs: the summary holds the selected candidate's
+validation figures (`validation_score`, `validation_success_rate`, `test_episodes: 0`) and the episodes table is
+empty. When the environment names a progress file (`carp.evaluation.progress`), each candidate's validation is
+appended to it as it finishes, and the stage stops with an error once a stop file appears beside it.
+
 With --multitask (the evaluate_multitask stage) it evaluates the family's multi-task policy,
 models/policy/multitask/<policy>/seed<seed>/, on --task, with that task's statistics and task id, and writes
 reports/eval/<task>/<policy>-multitask/seed<seed>*.
@@ -29,12 +34,14 @@ from stage_support import (
 )
 
 from carp.data.dataset import load_task_windows
+from carp.evaluation.progress import PROGRESS_VARIABLE, ProgressFile, ValidatedCandidate, ValidationStopped
 from carp.evaluation.runner import buffer_latency, episodes_table, write_episode_videos
 from carp.evaluation.selection import (
     AVERAGED_POLICY_NAME,
-    evaluate_with_selection,
+    evaluate_as_configured,
     find_candidates,
     save_averaged_policy,
+    validation_only_summary,
 )
 from carp.outputs import write_json
 from carp.policies.registry import load_policy
@@ -85,22 +92,26 @@ def main() -> None:
         run_episodes = episode_runner(
             params, args.task, args.policy, windows.buffer.attrs["env_args"], video_seeds=config.test_seeds()
         )
-        evaluated = evaluate_with_selection(
-            candidates,
-            config.selection,
-            run_episodes,
-            lambda outcome: [result.success for result in outcome[1]],
-            config.validation_seeds(),
-            config.test_seeds(),
-            config.average_last,
-            average,
-        )
-        summary, results = evaluated.test
+        try:
+            evaluated = evaluate_as_configured(
+                config,
+                candidates,
+                run_episodes,
+                lambda outcome: [result.success for result in outcome[1]],
+                average,
+                progress_reporter(f"{args.task}/{label}/seed{args.seed}"),
+            )
+        except ValidationStopped as error:
+            fail(f"{args.task} {label} seed {args.seed}: {error}")
+        if evaluated.test is None:
+            summary, results = validation_only_summary(evaluated.validation[evaluated.selection.chosen.epoch]), []
+        else:
+            summary, results = evaluated.test
         summary.update(evaluated.selection.validation_summary(config.validation_top_k))
         summary["selection"] = evaluated.selection.rule
         summary["candidates"] = len(candidates)
         summary["training_seed"] = args.seed
-        if "validation_max_success_rate" in summary:
+        if "validation_max_success_rate" in summary and config.run_test:
             summary["validation_max_test_gap"] = summary["validation_max_success_rate"] - summary["success_rate"]
         policy = load_policy(evaluated.tested)
         policy.select_task(args.task)
@@ -120,7 +131,7 @@ def main() -> None:
         report.parent.mkdir(parents=True, exist_ok=True)
         write_json(report, summary)
         episodes = report.with_name(f"{report.stem}_episodes.csv")
-        episodes_table(results).to_csv(episodes, index=False)
+        (episodes_table(results) if results else pd.DataFrame(columns=EPISODE_COLUMNS)).to_csv(episodes, index=False)
         validation = report.with_name(f"{report.stem}_validation.csv")
         validation_table(evaluated.validation).to_csv(validation, index=False)
         run.log_metrics(summary)
@@ -128,19 +139,49 @@ def main() -> None:
         run.log_artifact(validation)
         for video in write_episode_videos(results, EVAL_VIDEO_DIR, f"{args.task}_{label}-{args.seed}"):
             run.log_artifact(video)
+    if config.run_test:
+        figures = (
+            f"success {summary['successes']}/{summary['episodes']} ({100 * summary['success_rate']:.1f}%, 95% CI "
+            f"{100 * summary['success_rate_ci_low']:.1f}-{100 * summary['success_rate_ci_high']:.1f}%)"
+        )
+    else:
+        figures = (
+            f"validation only (eval.run_test: false): success {100 * summary['validation_success_rate']:.1f}% "
+            f"of {summary['validation_episodes']}, score {summary['validation_score']:.3f}"
+        )
     print(
         f"{args.task} {label} seed {args.seed} (epoch {summary['selected_epoch']}, {config.selection}, "
-        f"{summary['backend']}): success {summary['successes']}/{summary['episodes']} "
-        f"({100 * summary['success_rate']:.1f}%, 95% CI {100 * summary['success_rate_ci_low']:.1f}-"
-        f"{100 * summary['success_rate_ci_high']:.1f}%), latency per chunk "
+        f"{summary['backend']}): {figures}, latency per chunk "
         f"{summary['latency_predict_ms_median']:.2f} ms predict + {summary['latency_decode_ms_median']:.2f} ms decode"
     )
+
+
+EPISODE_COLUMNS = ["seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]
+
+
+def progress_reporter(evaluation: str):
+    """The `on_validated` hook that writes each candidate's validation to the progress file the environment names.
+
+    None when it names none (the pipeline outside a sweep).
+    """
+    path = os.environ.get(PROGRESS_VARIABLE)
+    if not path:
+        return None
+    progress = ProgressFile(Path(path))
+
+    def report(candidate, outcome) -> None:
+        summary = outcome[0]
+        progress.append(ValidatedCandidate(evaluation, candidate.epoch, summary["score"], summary["success_rate"]))
+        if progress.stop_requested():
+            raise ValidationStopped(f"stopped after epoch {candidate.epoch}'s validation: the sweep pruned the trial")
+
+    return report
 
 
 def validation_table(validation: dict) -> pd.DataFrame:
     """The validation episodes of every candidate: epoch, then the per-episode records."""
     frames = [episodes_table(results).assign(epoch=epoch) for epoch, (_, results) in sorted(validation.items())]
-    columns = ["epoch", "seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]
+    columns = ["epoch", *EPISODE_COLUMNS]
     return pd.concat(frames, ignore_index=True)[columns] if frames else pd.DataFrame(columns=columns)
 
 

@@ -49,6 +49,14 @@ def main() -> None:
         }
         for task in params.tasks
     }
+    for task in params.tasks:
+        for label in own_labels:
+            for seed in params.seeds:
+                if runs[task][label][seed].metrics.get("test_episodes") == 0:
+                    fail(
+                        f"{evaluation_report(task, label, seed)}: evaluated without test episodes "
+                        f"(eval.run_test: false); set eval.run_test: true to report"
+                    )
     try:
         references = {name: PROJECT_DIR / name for name in params.comparison.references}
         runs, reference_notes = add_referenced_runs(runs, references, params.tasks)

@@ -2,13 +2,16 @@
 
     python pipeline/sweep.py [--trials N] [--params params.yaml]
 
-Reads the `sweep` section (and `tasks`) of the params file, runs trials one at a time until the budget
-(`sweep.num_trials`, or --trials) counts that many finished trials in the study's storage, and writes
-reports/sweep/trials.csv and reports/sweep/best_params.txt. Killed or interrupted, it resumes where it stopped.
-Each trial first sets its values in params.yaml and reproduces only `train_tokenizer` (for the pruning check),
-then runs `dvc exp run -n sweep-<study>-t<number> -S scales=... -S codebook_size=...`, which skips the stages
-already done, and pushes that experiment to `sweep.git_remote` when one is set. The workspace is left holding the
-last trial's params and outputs.
+Reads the `sweep` section (and `tasks`, `policies`, `seeds`, `eval`, `comparison`) of the params file, runs trials
+one at a time until the budget (`sweep.num_trials`, or --trials) counts that many finished trials in the study's
+storage, then confirms the best one on the test seeds, and writes reports/sweep/trials.csv and
+reports/sweep/best_params.txt. Killed or interrupted, it resumes where it stopped. Each trial first sets its values
+in params.yaml and reproduces only `train_tokenizer` (for the pruning check), then runs `dvc exp run -n
+sweep-<study>-t<number> -S scales=... -S codebook_size=... -S eval.run_test=false ... evaluate`: validation
+episodes only (`eval.validation_episodes`, which must be >= 1), pruned by `sweep.pruner` as they come in. The
+confirmation trains the best trial's settings and the params file's own on `sweep.confirm_seeds` as two more
+experiments and compares them on the test seeds. Experiments are pushed to `sweep.git_remote` when one is set. The
+workspace is left holding the last experiment's params and outputs.
 
 Several workers: start this same command in several workspaces (clones of one commit, on any machines) whose
 `sweep.storage` names one PostgreSQL database; they share the study, each grid point runs once, and the budget
@@ -19,6 +22,7 @@ import argparse
 import dataclasses
 import fcntl
 import os
+import socket
 from pathlib import Path
 
 from stage_support import (
@@ -34,8 +38,10 @@ from stage_support import (
     tracking_uri,
 )
 
+from carp.sweep.confirmation import ConfirmationPlan
 from carp.sweep.dvc_runner import DvcExperimentRunner
-from carp.sweep.study import SweepStateError, run_sweep
+from carp.sweep.space import TrialSettings
+from carp.sweep.study import ExperimentFailedError, SweepStateError, run_sweep
 from carp.sweep.tracking import SweepTracker
 from carp.tracking.runs import resolve_tracking_uri
 
@@ -66,6 +72,13 @@ def main() -> None:
         fail(f"--trials={args.trials}: must be at least 1")
     if project_root() != PROJECT_DIR:
         fail("run the sweep in the project workspace, not inside a DVC temporary workspace")
+    if params.eval.validation_episodes < 1:
+        fail(
+            f"{args.params}: eval.validation_episodes={params.eval.validation_episodes}: the sweep selects on the "
+            "validation seeds only; set it >= 1 (and keep snapshots, training.snapshot_every, to prune on)"
+        )
+    if not params.policies:
+        fail(f"{args.params}: policies=[]: the sweep trains and evaluates single-task policies; list a family")
     lock = _hold_workspace_lock()
     config = dataclasses.replace(
         params.sweep,
@@ -80,18 +93,23 @@ def main() -> None:
     runner = DvcExperimentRunner(
         PROJECT_DIR,
         TOKENIZER_REPORT_DIR / "metrics.json",
-        [
-            evaluation_report(task, policy, seed)
-            for task in params.tasks
-            for policy in params.policies
-            for seed in params.seeds
-        ],
+        evaluation_report,
+        params.tasks,
+        params.policies,
+        params.seeds,
         config.git_remote,
         os.environ,
     )
+    plan = ConfirmationPlan(
+        default=TrialSettings(tuple(params.scales), params.codebook_size),
+        seeds=tuple(config.confirm_seeds),
+        margin=params.comparison.margin,
+        alpha=params.comparison.alpha,
+        worker=f"{socket.gethostname()}:{PROJECT_DIR}",
+    )
     try:
-        result = run_sweep(config, runner, REPORTS_DIR / "sweep", tracker)
-    except SweepStateError as error:
+        result = run_sweep(config, runner, REPORTS_DIR / "sweep", tracker, plan)
+    except (SweepStateError, ExperimentFailedError) as error:
         fail(str(error))
     finally:
         lock.close()

@@ -26,6 +26,7 @@ EVAL_BACKENDS = ("onnxruntime", "torch")
 TRAINING_PRECISIONS = ("auto", "float32", "bfloat16")
 OBSERVATION_KINDS = ("state", "image")
 SELECTION_RULES = ("final", "best_validation", "lowest_loss", "average_last")
+SWEEP_PRUNERS = ("successive_halving", "hyperband", "none")
 SET_BY_PIPELINE = "set_by_pipeline"
 """Field metadata of a setting that the pipeline derives for each run and that ``params.yaml`` must not hold."""
 REGISTRY_URI_PREFIX = "models:/"
@@ -540,6 +541,12 @@ class EvalConfig:
             every control step and executes the temporal ensemble of the overlapping chunks (ACT's weights
             ``exp(-m * i)``, i = 0 the oldest prediction; 0 = their plain mean, VQ-BeT's Push-T inference), every
             family alike. Costs ``Ta`` times the predictions per episode.
+        run_test: Whether the selected candidate runs on the test seeds; true or false. False runs the validation
+            episodes only and writes a summary of the selected candidate's validation figures (``validation_score``,
+            ``validation_success_rate``) with no test figure, no test episode and nothing for the report stage to
+            compare; it needs ``validation_episodes >= 1`` and a rule that selects one candidate (not
+            ``average_last``). The sweep sets it false for its trials, so that choosing settings never touches the
+            test seeds; leave it true in the pipeline.
     """
 
     episodes: int = 50
@@ -555,6 +562,7 @@ class EvalConfig:
     validation_top_k: int = 3
     average_last: int = 3
     ensemble_m: float | None = None
+    run_test: bool = True
 
     def validation_seeds(self) -> list[int]:
         """The seeds of the validation episodes, which select a checkpoint."""
@@ -591,6 +599,19 @@ class EvalConfig:
             "eval.ensemble_m",
             self.ensemble_m,
             "must be null or a number >= 0",
+        )
+        _require(isinstance(self.run_test, bool), "eval.run_test", self.run_test, "must be true or false")
+        _require(
+            self.run_test or self.validation_episodes >= 1,
+            "eval.run_test",
+            self.run_test,
+            "false needs validation episodes: set eval.validation_episodes >= 1",
+        )
+        _require(
+            self.run_test or self.selection != "average_last",
+            "eval.run_test",
+            self.run_test,
+            "false needs a rule that selects one validated candidate, not average_last",
         )
         validation_end = self.validation_seed + self.validation_episodes
         _require(
@@ -722,6 +743,13 @@ class SweepConfig:
         git_remote: Git remote (a name such as ``origin``, or a URL) that every completed trial's DVC experiment is
             pushed to (``dvc exp push``, which also pushes its outputs to the default DVC remote when there is one),
             so that the experiments of every worker can be pulled into any workspace; empty: nothing is pushed.
+        pruner: How Optuna stops a trial early from its snapshots' validation scores, which the trial reports as the
+            evaluate stage produces them (see ``carp.sweep.pruning``): ``successive_halving``, ``hyperband`` or
+            ``none``. The tokenizer check (``prune_factor``) applies whatever the choice.
+        confirm_seeds: Training seeds of the confirmation that ends the sweep: the selected trial's settings and the
+            default ones (``scales`` and ``codebook_size`` of the params file) are each trained once per seed and
+            evaluated on the test seeds, and their paired comparison is the sweep's result; at least two distinct
+            integers >= 0.
     """
 
     study_name: str = "carp-sweep"
@@ -732,6 +760,8 @@ class SweepConfig:
     prune_factor: float = 2.0
     heartbeat_seconds: int = 10
     git_remote: str = ""
+    pruner: str = "successive_halving"
+    confirm_seeds: tuple[int, ...] = (0, 1, 2)
 
     def __post_init__(self) -> None:
         _require(self.num_trials >= 1, "sweep.num_trials", self.num_trials, "must be >= 1")
@@ -745,6 +775,16 @@ class SweepConfig:
             "sweep.git_remote",
             self.git_remote,
             "must be a git remote name or URL, without surrounding spaces or a leading '-'",
+        )
+        _require(self.pruner in SWEEP_PRUNERS, "sweep.pruner", self.pruner, f"must be one of {SWEEP_PRUNERS}")
+        seeds = list(self.confirm_seeds)
+        _require(
+            len(seeds) >= 2
+            and all(isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0 for seed in seeds)
+            and len(set(seeds)) == len(seeds),
+            "sweep.confirm_seeds",
+            seeds,
+            "must hold at least two distinct integer seeds >= 0",
         )
 
 

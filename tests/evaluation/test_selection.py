@@ -1,5 +1,7 @@
 """Checkpoint selection: candidates on disk, the rules, and that no test seed runs before the choice is fixed."""
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -11,6 +13,8 @@ from carp.evaluation.selection import (
     find_candidates,
     save_averaged_policy,
     select_candidate,
+    validate_and_select,
+    validation_only_summary,
 )
 from carp.policies.registry import load_policy
 from tests.policies.carp.factories import tiny_policy
@@ -107,6 +111,50 @@ def test_no_test_seed_runs_before_the_checkpoint_is_fixed(rule):
     assert evaluated.selection.chosen.path == expected
     assert evaluated.test == {"a": [True, True, True], "c": [True, True, False]}[expected]
     assert sorted(evaluated.validation) == [2, 4, 5]
+
+
+def test_validation_alone_runs_no_test_seed_and_reports_each_candidate_as_it_finishes():
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2})
+    reported = []
+    validated = validate_and_select(
+        CANDIDATES,
+        "best_validation",
+        evaluator,
+        lambda outcome: outcome,
+        VALIDATION_SEEDS,
+        on_validated=lambda candidate, outcome: reported.append((candidate.epoch, len(evaluator.calls), sum(outcome))),
+    )
+    assert all(seeds == VALIDATION_SEEDS for _, seeds in evaluator.calls)
+    assert reported == [(2, 1, 4), (4, 2, 1), (5, 3, 2)]  # each one right after its own episodes, by epoch
+    assert validated.selection.chosen.path == "a" and sorted(validated.validation) == [2, 4, 5]
+
+
+def test_an_exception_from_the_validation_hook_stops_the_later_candidates():
+    evaluator = RecordingEvaluator({"a": 4, "b": 1, "c": 2})
+
+    def stop(candidate, outcome):
+        raise RuntimeError(f"pruned at {candidate.epoch}")
+
+    with pytest.raises(RuntimeError, match="pruned at 2"):
+        evaluate_with_selection(
+            CANDIDATES, "final", evaluator, lambda o: o, VALIDATION_SEEDS, TEST_SEEDS, on_validated=stop
+        )
+    assert evaluator.calls == [("a", VALIDATION_SEEDS)]
+
+
+def test_a_validation_only_summary_names_its_figures_as_validation_and_has_no_test_figure():
+    validation = {"score": 0.7, "success_rate": 0.6, "episodes": 10, "successes": 6, "latency_predict_ms_median": 2.0}
+    summary = validation_only_summary((validation, []))
+    assert summary == {
+        "validation_score": 0.7,
+        "validation_success_rate": 0.6,
+        "validation_episodes": 10,
+        "validation_successes": 6,
+        "latency_predict_ms_median": 2.0,
+        "test_episodes": 0,
+    }
+    with pytest.raises(ValueError, match="ran no test episode"):
+        confirmed_checkpoint(CANDIDATES, {**summary, "selected_epoch": 2}, Path("."))
 
 
 def test_without_validation_seeds_only_the_test_episodes_run():

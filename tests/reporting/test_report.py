@@ -72,7 +72,11 @@ def inputs(tmp_path):
         policy_histories={"lift": {"carp": history}},
         reconstruction_figure=figure,
         sweep_trials=pd.DataFrame(
-            {"num_scales": [2, 4, 2, 4], "codebook_size": [64, 64, 256, 256], "success_rate": [0.5, 0.9, 0.6, 0.95]}
+            {
+                "num_scales": [2, 4, 2, 4],
+                "codebook_size": [64, 64, 256, 256],
+                "validation_success_rate": [0.5, 0.9, 0.6, 0.95],
+            }
         ),
         versions={"robosuite": "1.5.2", "mujoco": "3.3.7", "torch": "2.13.0"},
         git_commit="abc123",

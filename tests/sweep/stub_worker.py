@@ -31,12 +31,12 @@ class SleepingRunner:
     def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
         return 10.0
 
-    def run_experiment(self, name: str, settings: TrialSettings) -> ExperimentResult:
+    def run_experiment(self, name: str, settings: TrialSettings, on_validated) -> ExperimentResult:
         self._write("start", settings)
         time.sleep(self.seconds)
         self._write("end", settings)
         return ExperimentResult(
-            success_rate=settings.codebook_size / 100,
+            validation_success_rate=settings.codebook_size / 100,
             latency_ms=float(settings.num_scales),
             tokenizer_rmse_percent=10.0,
         )

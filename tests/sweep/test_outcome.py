@@ -8,9 +8,9 @@ from carp.sweep.outcome import (
     TrialRecord,
     best_record,
     best_tokenizer_error,
+    pareto_front,
     ranking_key,
     should_prune,
-    write_best_params,
     write_trials_csv,
 )
 from carp.sweep.space import TrialSettings
@@ -48,12 +48,12 @@ def test_objective_tie_break_success_then_latency_then_number():
         record(5, "FAIL"),
     ]
     assert best_record(records).number == 2
-    ordered = sorted((r for r in records if r.success_rate is not None), key=ranking_key)
+    ordered = sorted((r for r in records if r.validation_success_rate is not None), key=ranking_key)
     assert [r.number for r in ordered] == [2, 3, 1, 0]
     assert best_record(records[4:]) is None
 
 
-def test_the_score_ranks_first_and_success_breaks_its_ties():
+def test_the_validation_score_ranks_first_and_validation_success_breaks_its_ties():
     # Push-T-like trials: rarely a success, but the coverage they reach tells them apart.
     records = [
         record(0, success=0.0, latency=1.0, score=0.55),
@@ -64,6 +64,18 @@ def test_the_score_ranks_first_and_success_breaks_its_ties():
     assert [r.number for r in sorted(records, key=ranking_key)] == [1, 2, 0, 3]
     # A record without a score (an arm task's, or one stored before scores) ranks by its success rate.
     assert record(4, success=0.3, latency=1.0).objective == 0.3
+
+
+def test_the_pareto_front_keeps_the_trials_no_other_beats_on_score_and_latency_at_once():
+    records = [
+        record(0, success=0.8, latency=5.0),  # the best score
+        record(1, success=0.6, latency=2.0),  # faster than 0, worse score: on the front
+        record(2, success=0.6, latency=3.0),  # beaten by 1
+        record(3, success=0.4, latency=1.0),  # the fastest
+        record(4, success=0.8, latency=5.0),  # equal to 0: neither beats the other
+        record(5, "PRUNED", error=9.0),
+    ]
+    assert [r.number for r in pareto_front(records)] == [0, 4, 1, 3]
 
 
 def test_trials_csv_has_the_report_columns(tmp_path):
@@ -78,16 +90,10 @@ def test_trials_csv_has_the_report_columns(tmp_path):
     assert tuple(table.columns) == TRIALS_COLUMNS
     assert table["trial"].tolist() == [0, 1, 2]
     assert table.loc[0, "scales"] == "[1,2,4]" and table.loc[0, "num_scales"] == 3
-    assert table.loc[0, "success_rate"] == pytest.approx(0.5) and table.loc[0, "latency_ms"] == pytest.approx(3.25)
-    assert table.loc[0, "score"] == pytest.approx(0.5)  # no score of its own: the success rate
-    assert table.loc[1, "state"] == "PRUNED" and math.isnan(table.loc[1, "success_rate"])
+    assert table.loc[0, "validation_success_rate"] == pytest.approx(0.5)
+    assert table.loc[0, "latency_ms"] == pytest.approx(3.25)
+    assert table.loc[0, "validation_score"] == pytest.approx(0.5)  # no score of its own: the success rate
+    assert table.loc[1, "state"] == "PRUNED" and math.isnan(table.loc[1, "validation_success_rate"])
+    assert table["pareto"].tolist() == [True, False, False]
     assert table.loc[1, "tokenizer_rmse_percent"] == pytest.approx(40.0)
     assert table.loc[0, "dvc_experiment"] == "sweep-s-t0"
-
-
-def test_best_params_file_is_dvc_arguments(tmp_path):
-    path = tmp_path / "best_params.txt"
-    write_best_params(record(3, success=1.0, latency=2.0, settings=TrialSettings((1, 4), 256)), path)
-    assert path.read_text() == "-S 'scales=[1,4]' -S codebook_size=256\n"
-    write_best_params(None, path)
-    assert not path.exists()

@@ -32,7 +32,7 @@ def test_budget_pruning_and_reports(sweep_config, tmp_path):
     assert len(tried) == 6  # brute force never repeats a grid point
     for record in result.records:
         if record.settings.codebook_size == 8 and record.state == "PRUNED":
-            assert record.success_rate is None and record.tokenizer_rmse_percent == 25.0
+            assert record.validation_success_rate is None and record.tokenizer_rmse_percent == 25.0
     pruned = [r for r in result.records if r.state == "PRUNED"]
     # V=8 is pruned whenever a V=4 trial ran before it.
     first_small = min(r.number for r in result.records if r.settings.codebook_size == 4)
@@ -46,12 +46,14 @@ def test_budget_pruning_and_reports(sweep_config, tmp_path):
         assert name == experiment_name("unit", number) == f"sweep-unit-t{number}"
 
     best = result.best
-    assert best.success_rate == 1.0
+    assert best.validation_success_rate == 1.0
     # [1,4] and [1,2,4] tie on success (fake caps at K=2); the lower latency ([1,4]) wins.
     assert best.settings.scales == (1, 4)
     table = pd.read_csv(tmp_path / "reports" / "trials.csv")
     assert len(table) == 6 and set(table["state"]) <= {"COMPLETE", "PRUNED"}
-    assert (tmp_path / "reports" / "best_params.txt").read_text().strip() == best.settings.command_line()
+    best_params = (tmp_path / "reports" / "best_params.txt").read_text().splitlines()
+    assert best_params[0] == best.settings.command_line()
+    assert best_params[1:] == ["# not confirmed on the test seeds (the sweep ran without a confirmation)"]
 
 
 def test_budget_holds_across_resumes_and_grid_exhaustion(sweep_config, tmp_path):
@@ -124,7 +126,7 @@ def test_trial_of_a_killed_sweep_is_retried_after_its_heartbeat_expires(sweep_co
     # The orphan's point ran once, as the retry (claimed for the orphan, so never handed out as a new point).
     orphan_settings = TrialSettings(parse_schedule_label(orphan.params["scales"]), orphan.params["codebook_size"])
     assert runner.tokenizer_calls.count(orphan_settings) == 1 and len(set(runner.tokenizer_calls)) == 3
-    assert retry.user_attrs["success_rate"] == expected_success(orphan_settings)
+    assert retry.user_attrs["validation_success_rate"] == expected_success(orphan_settings)
 
 
 @pytest.mark.slow
@@ -156,12 +158,13 @@ def test_summary_names_the_best_trial_and_how_to_fetch_it(sweep_config):
     best = TrialRecord(3, "COMPLETE", TrialSettings((1, 2), 8), 0.75, 1.25, 2.0, "sweep-s-t3")
     records = [best, TrialRecord(4, "PRUNED", TrialSettings((1, 2), 4)), TrialRecord(5, "COMPLETE", None)]
     config = dataclasses.replace(sweep_config, num_trials=4, git_remote="origin")
-    lines = SweepResult(records, best, 3).summary_lines(config)
+    lines = SweepResult(records, best, 3, ("confirmation line",)).summary_lines(config)
     assert lines == [
         f"study {config.study_name}: 3/4 trials finished {{'COMPLETE': 2, 'PRUNED': 1}}",
-        "best: trial 3 (sweep-s-t3), score 0.750, success 75.0%, latency 1.25 ms; reproduce with: dvc exp run "
-        "-S 'scales=[1,2]' -S codebook_size=8",
+        "best: trial 3 (sweep-s-t3), validation score 0.750, validation success 75.0%, latency 1.25 ms; reproduce "
+        "with: dvc exp run -S 'scales=[1,2]' -S codebook_size=8",
         "in any workspace: dvc exp pull origin sweep-s-t3 && dvc exp apply sweep-s-t3",
+        "confirmation line",
     ]
     no_remote = dataclasses.replace(config, git_remote="")
     assert SweepResult(records, None, 3).summary_lines(no_remote) == lines[:1]

@@ -34,7 +34,7 @@ def test_one_parent_run_per_study_and_one_child_per_trial(sweep_config, tmp_path
     assert parent.info.status == "FINISHED" and parent.data.tags["k"] == "v"
     assert parent.data.params["codebook_sizes"] == "[4, 8]"
     assert parent.data.tags["carp.best_params"] == result.best.settings.command_line()
-    assert parent.data.metrics["best_success_rate"] == result.best.success_rate
+    assert parent.data.metrics["best_validation_success_rate"] == result.best.validation_success_rate
 
     by_number = {int(run.data.tags["carp.trial_number"]): run for run in children}
     for record in result.records:
@@ -46,11 +46,11 @@ def test_one_parent_run_per_study_and_one_child_per_trial(sweep_config, tmp_path
         assert run.data.metrics["tokenizer_rmse_percent"] == record.tokenizer_rmse_percent
         if record.state == "COMPLETE":
             assert run.info.status == "FINISHED"
-            assert run.data.metrics["success_rate"] == record.success_rate
+            assert run.data.metrics["validation_success_rate"] == record.validation_success_rate
             assert run.data.tags["carp.dvc_experiment"] == record.dvc_experiment
         else:
             assert record.state == "PRUNED" and run.info.status == "KILLED"
-            assert "success_rate" not in run.data.metrics
+            assert "validation_success_rate" not in run.data.metrics
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from carp.config import SELECTION_RULES
+from carp.config import SELECTION_RULES, EvalConfig
 
 Outcome = TypeVar("Outcome")
 
@@ -172,14 +172,66 @@ class SelectedEvaluation(Generic[Outcome]):
     Attributes:
         selection: the chosen candidate and the validation scores.
         validation: epoch -> that candidate's validation outcome (as `run_episodes` returned it).
-        test: the chosen candidate's outcome on the test seeds.
-        tested: the checkpoint that ran on the test seeds (the chosen candidate's, or the averaged policy's).
+        test: the chosen candidate's outcome on the test seeds; None when no test episode ran
+            (`evaluate_as_configured` with ``eval.run_test: false``).
+        tested: the checkpoint that ran on the test seeds (the chosen candidate's, or the averaged policy's); without
+            test episodes, the chosen candidate's.
     """
 
     selection: Selection
     validation: dict[int, Outcome]
-    test: Outcome
+    test: Outcome | None
     tested: Path
+
+
+@dataclass(frozen=True)
+class ValidatedSelection(Generic[Outcome]):
+    """What `validate_and_select` ran: the choice and every candidate's validation outcome, no test episode.
+
+    Attributes:
+        selection: the chosen candidate and the validation scores.
+        validation: epoch -> that candidate's validation outcome (as `run_episodes` returned it).
+    """
+
+    selection: Selection
+    validation: dict[int, Outcome]
+
+
+def validate_and_select(
+    candidates: Sequence[Candidate],
+    rule: str,
+    run_episodes: Callable[[Path, list[int]], Outcome],
+    successes_of: Callable[[Outcome], list[bool]],
+    validation_seeds: Sequence[int],
+    average_last: int = 1,
+    on_validated: Callable[[Candidate, Outcome], None] | None = None,
+) -> ValidatedSelection[Outcome]:
+    """Score every candidate on the validation seeds, by epoch, and apply `rule`; runs no test episode.
+
+    Args:
+        candidates: the run's candidates (`find_candidates`).
+        rule: see `select_candidate`.
+        run_episodes: runs a checkpoint on seeds, one episode each, and returns an outcome.
+        successes_of: the per-episode successes of an outcome, in seed order.
+        validation_seeds: episodes per candidate; may be empty (then no validation runs).
+        average_last: see `select_candidate`.
+        on_validated: called after each candidate's validation, in epoch order, e.g. to report it to a sweep; an
+            exception it raises stops the validation there (the later candidates never run).
+
+    Raises:
+        ValueError: the rule cannot be applied.
+    """
+    validation: dict[int, Outcome] = {}
+    scores = []
+    if validation_seeds:
+        for candidate in sorted(candidates, key=lambda candidate: candidate.epoch):
+            outcome = run_episodes(candidate.path, list(validation_seeds))
+            successes = successes_of(outcome)
+            validation[candidate.epoch] = outcome
+            scores.append(CandidateScore(candidate, int(sum(bool(s) for s in successes)), len(successes)))
+            if on_validated is not None:
+                on_validated(candidate, outcome)
+    return ValidatedSelection(select_candidate(candidates, rule, scores, average_last), validation)
 
 
 def evaluate_with_selection(
@@ -191,6 +243,7 @@ def evaluate_with_selection(
     test_seeds: Sequence[int],
     average_last: int = 1,
     average: Callable[[Sequence[Candidate]], Path] | None = None,
+    on_validated: Callable[[Candidate, Outcome], None] | None = None,
 ) -> SelectedEvaluation[Outcome]:
     """Score every candidate on the validation seeds, fix the choice, then run the chosen one on the test seeds.
 
@@ -207,6 +260,7 @@ def evaluate_with_selection(
         average_last: see `select_candidate`.
         average: with ``average_last``, writes the policy whose weights are the mean of the given candidates' and
             returns its checkpoint, which then runs on the test seeds.
+        on_validated: see `validate_and_select`.
 
     Raises:
         ValueError: the two seed lists share a seed, there is no test seed, or the rule cannot be applied.
@@ -216,22 +270,86 @@ def evaluate_with_selection(
         raise ValueError(f"validation and test seeds must be disjoint; both hold {shared[:5]}")
     if not test_seeds:
         raise ValueError("there is no test seed")
-    validation: dict[int, Outcome] = {}
-    scores = []
-    if validation_seeds:
-        for candidate in candidates:
-            outcome = run_episodes(candidate.path, list(validation_seeds))
-            successes = successes_of(outcome)
-            validation[candidate.epoch] = outcome
-            scores.append(CandidateScore(candidate, int(sum(bool(s) for s in successes)), len(successes)))
-    selection = select_candidate(candidates, rule, scores, average_last)
+    validated = validate_and_select(
+        candidates, rule, run_episodes, successes_of, validation_seeds, average_last, on_validated
+    )
+    selection = validated.selection
     tested = selection.chosen.path
     if selection.averaged:
         if average is None:
             raise ValueError("average_last needs a way to average the candidates' weights")
         tested = average(selection.averaged)
     test = run_episodes(tested, list(test_seeds))
-    return SelectedEvaluation(selection, validation, test, Path(tested))
+    return SelectedEvaluation(selection, validated.validation, test, Path(tested))
+
+
+def evaluate_as_configured(
+    config: EvalConfig,
+    candidates: Sequence[Candidate],
+    run_episodes: Callable[[Path, list[int]], Outcome],
+    successes_of: Callable[[Outcome], list[bool]],
+    average: Callable[[Sequence[Candidate]], Path] | None = None,
+    on_validated: Callable[[Candidate, Outcome], None] | None = None,
+) -> SelectedEvaluation[Outcome]:
+    """The evaluate stage's episodes as the ``eval`` section asks for them.
+
+    That is `evaluate_with_selection`, or with ``run_test: false`` `validate_and_select` alone: then the result's
+    ``test`` is None and no test seed runs.
+
+    Args:
+        config: the ``eval`` section (selection rule, seeds, ``average_last``, ``run_test``).
+        candidates: see `evaluate_with_selection`.
+        run_episodes: see `evaluate_with_selection`.
+        successes_of: see `evaluate_with_selection`.
+        average: see `evaluate_with_selection`.
+        on_validated: see `validate_and_select`.
+    """
+    if config.run_test:
+        return evaluate_with_selection(
+            candidates,
+            config.selection,
+            run_episodes,
+            successes_of,
+            config.validation_seeds(),
+            config.test_seeds(),
+            config.average_last,
+            average,
+            on_validated,
+        )
+    validated = validate_and_select(
+        candidates,
+        config.selection,
+        run_episodes,
+        successes_of,
+        config.validation_seeds(),
+        config.average_last,
+        on_validated,
+    )
+    chosen = validated.selection.chosen
+    return SelectedEvaluation(validated.selection, validated.validation, None, Path(chosen.path))
+
+
+# Figures of the selected candidate's validation episodes that a validation-only summary carries, renamed so that
+# nothing reads them as test figures.
+VALIDATION_FIGURES = ("score", "success_rate", "success_rate_ci_low", "success_rate_ci_high", "successes", "episodes")
+
+
+def validation_only_summary(outcome: tuple[dict[str, Any], list]) -> dict[str, Any]:
+    """The summary of an evaluation without test episodes (``eval.run_test: false``): the selected candidate's.
+
+    Args:
+        outcome: the selected candidate's validation outcome, (summary, episodes) of
+            `carp.evaluation.runner.evaluate_policy`.
+
+    Returns:
+        Its latency, policy facts and backend as the validation episodes gave them; its success figures with the
+        ``validation_`` prefix, and ``test_episodes`` 0.
+    """
+    validation, _ = outcome
+    summary = {key: value for key, value in validation.items() if key not in VALIDATION_FIGURES}
+    summary.update({f"validation_{key}": validation[key] for key in VALIDATION_FIGURES if key in validation})
+    summary["test_episodes"] = 0
+    return summary
 
 
 def save_averaged_policy(candidates: Sequence[Candidate], path: Path) -> Path:
@@ -261,8 +379,11 @@ def confirmed_checkpoint(candidates: Sequence[Candidate], summary: Mapping[str, 
         scratch: an existing directory for the averaged policy; the caller removes it.
 
     Raises:
-        ValueError: the summary names no selected epoch, or one (or averaged candidates) that the run does not hold.
+        ValueError: the summary ran no test episode or names no selected epoch, or one (or averaged candidates) that
+            the run does not hold.
     """
+    if summary.get("test_episodes") == 0:
+        raise ValueError("the evaluation ran no test episode (eval.run_test: false): it confirmed no checkpoint")
     if "selected_epoch" not in summary:
         raise ValueError("the evaluation summary names no selected_epoch (evaluate it again)")
     epoch = int(summary["selected_epoch"])

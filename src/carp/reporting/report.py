@@ -381,13 +381,13 @@ def plot_curves(history: pd.DataFrame, columns: Sequence[str], title: str, path:
 
 
 def plot_sweep(trials: pd.DataFrame, path: Path) -> Path:
-    """Success against the number of scales K, one line per codebook size (like the paper's ablation on K)."""
+    """Validation success against the number of scales K, one line per codebook size (the paper's ablation on K)."""
     figure, axis = plt.subplots(figsize=(5, 3.2))
     for size, group in trials.groupby("codebook_size"):
         ordered = group.sort_values("num_scales")
-        axis.plot(ordered["num_scales"], 100 * ordered["success_rate"], marker="o", label=f"V={size}")
+        axis.plot(ordered["num_scales"], 100 * ordered["validation_success_rate"], marker="o", label=f"V={size}")
     axis.set_xlabel("number of scales K")
-    axis.set_ylabel("success rate (%)")
+    axis.set_ylabel("validation success rate (%)")
     axis.set_ylim(0, 105)
     return finish_figure(figure, axis, path)
 
@@ -513,7 +513,7 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
 
     if inputs.sweep_trials is not None and not inputs.sweep_trials.empty:
         sweep = Section("Sweep over scales and codebook size", tables=[inputs.sweep_trials])
-        if {"num_scales", "codebook_size", "success_rate"} <= set(inputs.sweep_trials.columns):
+        if {"num_scales", "codebook_size", "validation_success_rate"} <= set(inputs.sweep_trials.columns):
             sweep.figures.append(plot_sweep(inputs.sweep_trials, figures_dir / "sweep_scales.png"))
         sections.append(sweep)
 

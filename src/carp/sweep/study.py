@@ -1,4 +1,10 @@
-"""The Optuna study: claim a grid point, train its tokenizer, prune or run the whole experiment, record it.
+"""The Optuna study: claim a grid point, train its tokenizer, prune or run the experiment, record it; then confirm.
+
+A trial never runs a test episode: its experiment evaluates on the validation seeds only (``eval.run_test: false``,
+``eval.selection: best_validation``), reporting each candidate's validation to Optuna's pruner as it finishes
+(:mod:`carp.sweep.pruning`). When every trial is finished, one worker trains the selected settings and the default
+ones on ``sweep.confirm_seeds`` and compares them on the test seeds (:mod:`carp.sweep.confirmation`);
+``best_params.txt`` and the MLflow parent run record that verdict beside the winner's validation figures.
 
 Any number of sweep processes, each in its own workspace, may work on one study at once through its RDB storage;
 how they share it (claimed grid points, retries of trials whose worker died, heartbeats) is
@@ -11,7 +17,7 @@ Within a workspace trials run one at a time: each owns the workspace (params, ou
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -20,16 +26,18 @@ import optuna
 from optuna.trial import FrozenTrial, TrialState
 
 from carp.config import SweepConfig
+from carp.evaluation.progress import ValidatedCandidate
 from carp.sweep.claims import ClaimStore
+from carp.sweep.confirmation import ConfirmationPlan, ConfirmationResult, LabelledRuns, confirm
 from carp.sweep.outcome import (
     ExperimentResult,
     TrialRecord,
     best_record,
     best_tokenizer_error,
     should_prune,
-    write_best_params,
     write_trials_csv,
 )
+from carp.sweep.pruning import ValidationCurve, make_pruner
 from carp.sweep.space import (
     CODEBOOK_PARAM,
     SCALES_PARAM,
@@ -58,10 +66,17 @@ logger = logging.getLogger(__name__)
 PARENT_RUN_ATTR = "mlflow_parent_run_id"
 TRIALS_FILE = "trials.csv"
 BEST_PARAMS_FILE = "best_params.txt"
+# The workspace that runs the confirmation (first writer wins), and its lines once done, kept with the study.
+CONFIRMATION_WORKER_KEY = "confirmation_worker"
+CONFIRMATION_ATTR = "confirmation"
 
 
 class ExperimentFailedError(RuntimeError):
     """An experiment (or its tokenizer stage) exited with an error; the trial fails and the sweep goes on."""
+
+
+class ExperimentStoppedError(RuntimeError):
+    """An experiment stopped because the sweep's pruner asked it to (the trial is pruned)."""
 
 
 class SweepStateError(RuntimeError):
@@ -78,8 +93,18 @@ class ExperimentRunner(Protocol):
         """
         ...
 
-    def run_experiment(self, name: str, settings: TrialSettings) -> ExperimentResult:
-        """Run the whole pipeline as an experiment called ``name``; return its metrics."""
+    def run_experiment(
+        self, name: str, settings: TrialSettings, on_validated: Callable[[ValidatedCandidate], bool]
+    ) -> ExperimentResult:
+        """Run the trial as an experiment called ``name``, on the validation seeds only; return its metrics.
+
+        ``on_validated`` gets each candidate's validation as it finishes and returns whether to stop; a stopped
+        experiment raises :class:`ExperimentStoppedError`.
+        """
+        ...
+
+    def run_confirmation(self, name: str, settings: TrialSettings, seeds: Sequence[int]) -> LabelledRuns:
+        """Train ``settings`` once per training seed as the experiment ``name`` and evaluate on the test seeds."""
         ...
 
 
@@ -91,11 +116,14 @@ class SweepResult:
         records: every trial of the study so far, by number.
         best: the best completed trial (see :mod:`carp.sweep.outcome` for the ordering), if any.
         finished_trials: trials that count against the budget.
+        confirmation: the lines that say how the best trial's settings fared on the test seeds (see
+            :meth:`ConfirmationResult.lines`), or why there is no confirmation yet.
     """
 
     records: list[TrialRecord]
     best: TrialRecord | None
     finished_trials: int
+    confirmation: tuple[str, ...] = ()
 
     def summary_lines(self, config: SweepConfig) -> list[str]:
         """What a worker prints when it is done: trials by state, and how to reproduce (and fetch) the best one."""
@@ -106,14 +134,27 @@ class SweepResult:
         best = self.best
         if best is not None and best.settings is not None:
             lines.append(
-                f"best: trial {best.number} ({best.dvc_experiment}), score {best.objective:.3f}, success "
-                f"{100 * best.success_rate:.1f}%, latency "
+                f"best: trial {best.number} ({best.dvc_experiment}), validation score {best.objective:.3f}, "
+                f"validation success {100 * best.validation_success_rate:.1f}%, latency "
                 f"{best.latency_ms:.2f} ms; reproduce with: dvc exp run {best.settings.command_line()}"
             )
             if config.git_remote:
                 name = best.dvc_experiment
                 lines.append(f"in any workspace: dvc exp pull {config.git_remote} {name} && dvc exp apply {name}")
+        lines.extend(self.confirmation)
         return lines
+
+
+def write_best_params(best: TrialRecord | None, confirmation: Sequence[str], path: Path) -> None:
+    """Write the best trial's ``-S`` arguments on the first line, then the confirmation as ``#`` lines.
+
+    No file before a best exists. The first line alone is ready for ``dvc exp run`` (``head -n 1``).
+    """
+    if best is None or best.settings is None:
+        path.unlink(missing_ok=True)
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{line}\n" for line in [best.settings.command_line(), *(f"# {c}" for c in confirmation)]))
 
 
 def experiment_name(study_name: str, number: int) -> str:
@@ -126,16 +167,20 @@ def run_sweep(
     runner: ExperimentRunner,
     report_directory: Path,
     tracker: SweepTracker | None = None,
+    confirmation: ConfirmationPlan | None = None,
 ) -> SweepResult:
-    """Work on the study until its budget is spent or its grid exhausted and no trial of it runs or waits.
+    """Work on the study until its budget is spent or its grid exhausted and no trial of it runs or waits; confirm.
 
     Other workers may work on the same study at the same time (each with its own runner and workspace).
 
     Args:
         config: the sweep section; ``config.storage`` must already be an absolute URL (e.g. ``sqlite:////abs/x.db``).
         runner: runs one trial's pipeline.
-        report_directory: receives ``trials.csv`` and ``best_params.txt`` (rewritten after every trial).
+        report_directory: receives ``trials.csv`` and ``best_params.txt`` (rewritten after every trial), and the
+            confirmation's evaluations under ``confirmation/``.
         tracker: MLflow parent/child runs; ``None`` records nothing in MLflow.
+        confirmation: how to confirm the best trial on the test seeds once every trial is finished; ``None``
+            confirms nothing (``best_params.txt`` then says so).
 
     Raises:
         SweepStateError: the stored study has another search space.
@@ -144,7 +189,7 @@ def run_sweep(
     _check_search_space(study, config)
     claims = ClaimStore(config.storage, study_id)
     try:
-        return _work(study, config, claims, runner, report_directory, tracker)
+        return _work(study, config, claims, runner, report_directory, tracker, confirmation)
     finally:
         claims.close()
 
@@ -156,18 +201,19 @@ def _work(
     runner: ExperimentRunner,
     report_directory: Path,
     tracker: SweepTracker | None,
+    confirmation: ConfirmationPlan | None,
 ) -> SweepResult:
     claim_existing_trials(study, claims)
     parent_run_id = None
     if tracker is not None:
         parent_run_id = _open_parent_run(study, config, claims, tracker)
 
-    def write_reports() -> SweepResult:
+    def write_reports(confirmed: Sequence[str] = ("not confirmed on the test seeds yet",)) -> SweepResult:
         trials = study.get_trials(deepcopy=False)
         records = [trial_record(trial) for trial in trials]
-        result = SweepResult(records, best_record(records), finished_trial_count(trials))
+        result = SweepResult(records, best_record(records), finished_trial_count(trials), tuple(confirmed))
         write_trials_csv(records, report_directory / TRIALS_FILE)
-        write_best_params(result.best, report_directory / BEST_PARAMS_FILE)
+        write_best_params(result.best, result.confirmation, report_directory / BEST_PARAMS_FILE)
         return result
 
     logger.info(
@@ -193,16 +239,45 @@ def _work(
             waiting_for = []
             _run_trial(study, trial, objective, config)
             write_reports()
+        best = write_reports().best
+        confirmed, lines = _confirm(study, claims, config, runner, report_directory, best, confirmation)
     except BaseException:
-        # Ctrl-C or a bug: the reports and the parent run still show where the sweep stopped.
+        # Ctrl-C, a failed confirmation or a bug: the reports and the parent run still show where the sweep stopped.
         write_reports()
         if tracker is not None and parent_run_id is not None:
             tracker.interrupt_study(parent_run_id)
         raise
-    result = write_reports()
+    result = write_reports(lines)
     if tracker is not None and parent_run_id is not None:
-        tracker.close_study(parent_run_id, result.best, result.finished_trials)
+        tracker.close_study(parent_run_id, result.best, result.finished_trials, confirmed, lines)
     return result
+
+
+def _confirm(
+    study: optuna.Study,
+    claims: ClaimStore,
+    config: SweepConfig,
+    runner: ExperimentRunner,
+    report_directory: Path,
+    best: TrialRecord | None,
+    plan: ConfirmationPlan | None,
+) -> tuple[ConfirmationResult | None, list[str]]:
+    """Run (or resume) the confirmation when this worker owns it; otherwise the lines another worker stored."""
+    if best is None or best.settings is None:
+        return None, ["no completed trial to confirm"]
+    if plan is None:
+        return None, ["not confirmed on the test seeds (the sweep ran without a confirmation)"]
+    owner = claims.setdefault(CONFIRMATION_WORKER_KEY, plan.worker)
+    if owner != plan.worker:
+        stored = study.user_attrs.get(CONFIRMATION_ATTR) or {}
+        if stored.get("settings") == best.settings.command_line():
+            return None, list(stored["lines"])
+        logger.info("the confirmation runs in the workspace %s; this worker leaves it there", owner)
+        return None, [f"not confirmed here: the confirmation runs in the workspace {owner}"]
+    result = confirm(best, plan, config.study_name, runner.run_confirmation, report_directory)
+    lines = result.lines()
+    study.set_user_attr(CONFIRMATION_ATTR, {"settings": best.settings.command_line(), "lines": lines})
+    return result, lines
 
 
 def trial_record(trial: FrozenTrial) -> TrialRecord:
@@ -212,11 +287,12 @@ def trial_record(trial: FrozenTrial) -> TrialRecord:
         number=trial.number,
         state=trial.state.name,
         settings=trial_settings(trial),
-        success_rate=attrs.get("success_rate"),
-        score=attrs.get("score"),
+        validation_success_rate=attrs.get("validation_success_rate"),
+        validation_score=attrs.get("validation_score"),
         latency_ms=attrs.get("latency_ms"),
         tokenizer_rmse_percent=attrs.get("tokenizer_rmse_percent"),
         dvc_experiment=attrs.get("dvc_experiment") or "",
+        validated_candidates=attrs.get("validated_candidates") or 0,
     )
 
 
@@ -278,8 +354,9 @@ class _Objective:
         # A retried trial inherits its predecessor's user attrs; start from a clean slate.
         for key in (
             "tokenizer_rmse_percent",
-            "score",
-            "success_rate",
+            "validation_score",
+            "validation_success_rate",
+            "validated_candidates",
             "latency_ms",
             "dvc_experiment",
             "interrupted",
@@ -317,26 +394,40 @@ class _Objective:
             raise optuna.TrialPruned(
                 f"tokenizer RMSE {error:.3g}% > {self.config.prune_factor} x best {best_error}% of the study"
             )
-        result = self.runner.run_experiment(name, settings)
+        curve = ValidationCurve()
+
+        def on_validated(candidate: ValidatedCandidate) -> bool:
+            step, value = curve.add(candidate)
+            trial.report(value, step)
+            trial.set_user_attr("validated_candidates", step)
+            self._log(run_id, {"validation_curve": value}, step)
+            return trial.should_prune()
+
+        try:
+            result = self.runner.run_experiment(name, settings, on_validated)
+        except ExperimentStoppedError as stopped:
+            raise optuna.TrialPruned(
+                f"{self.config.pruner} pruner after {curve.steps} validated candidate(s): {stopped}"
+            ) from stopped
         trial.set_user_attr("dvc_experiment", name)
-        trial.set_user_attr("score", result.objective)
-        trial.set_user_attr("success_rate", result.success_rate)
+        trial.set_user_attr("validation_score", result.objective)
+        trial.set_user_attr("validation_success_rate", result.validation_success_rate)
         trial.set_user_attr("latency_ms", result.latency_ms)
         trial.set_user_attr("tokenizer_rmse_percent", result.tokenizer_rmse_percent)
         self._log(
             run_id,
             {
-                "score": result.objective,
-                "success_rate": result.success_rate,
+                "validation_score": result.objective,
+                "validation_success_rate": result.validation_success_rate,
                 "latency_ms": result.latency_ms,
                 "tokenizer_rmse_percent": result.tokenizer_rmse_percent,
             },
         )
         return result.objective, "COMPLETE", name
 
-    def _log(self, run_id: str | None, metrics: dict[str, float]) -> None:
+    def _log(self, run_id: str | None, metrics: dict[str, float], step: int = 0) -> None:
         if self.tracker is not None and run_id is not None:
-            self.tracker.log_trial_metrics(run_id, metrics)
+            self.tracker.log_trial_metrics(run_id, metrics, step)
 
     def _end_run(self, run_id: str | None, state: str, dvc_experiment: str = "") -> None:
         if self.tracker is not None and run_id is not None:
@@ -350,6 +441,7 @@ def _load_study(config: SweepConfig) -> tuple[optuna.Study, int]:
         storage=storage,
         # Never consulted: every trial is created with the params of the point its worker claimed.
         sampler=optuna.samplers.RandomSampler(seed=CLAIM_ORDER_SEED),
+        pruner=make_pruner(config),
         direction="maximize",
         load_if_exists=True,
     )
@@ -375,6 +467,8 @@ def _open_parent_run(study: optuna.Study, config: SweepConfig, claims: ClaimStor
         "scale_schedules": str(scale_choices(config)),
         "codebook_sizes": str(codebook_choices(config)),
         "prune_factor": str(config.prune_factor),
+        "pruner": config.pruner,
+        "confirm_seeds": str(list(config.confirm_seeds)),
     }
     known = claims.get(PARENT_RUN_ATTR) or study.user_attrs.get(PARENT_RUN_ATTR)
     run_id = tracker.open_study(config.study_name, known, description)

@@ -9,7 +9,8 @@ import logging
 import math
 import random
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
@@ -17,6 +18,9 @@ from mlflow.exceptions import MlflowException
 from carp.sweep.outcome import TrialRecord
 from carp.sweep.space import TrialSettings, schedule_label
 from carp.tracking.runs import ensure_experiment
+
+if TYPE_CHECKING:
+    from carp.sweep.confirmation import ConfirmationResult
 
 logger = logging.getLogger(__name__)
 
@@ -84,11 +88,11 @@ class SweepTracker:
         self.client.log_param(run_id, "codebook_size", settings.codebook_size)
         return run_id
 
-    def log_trial_metrics(self, run_id: str, metrics: Mapping[str, float | None]) -> None:
-        """Log the finite metrics among ``metrics``."""
+    def log_trial_metrics(self, run_id: str, metrics: Mapping[str, float | None], step: int = 0) -> None:
+        """Log the finite metrics among ``metrics`` at ``step``."""
         for key, value in metrics.items():
             if value is not None and math.isfinite(value):
-                self.client.log_metric(run_id, key, value)
+                self.client.log_metric(run_id, key, value, step=step)
 
     def end_trial(self, run_id: str, state: str, dvc_experiment: str = "") -> None:
         """Close a child run with the trial's final state (a tag and the matching run status)."""
@@ -101,12 +105,37 @@ class SweepTracker:
 
         _shared_write(end)
 
-    def close_study(self, parent_run_id: str, best: TrialRecord | None, finished_trials: int) -> None:
-        """Record the best trial on the parent run and mark it finished (a resume reopens it)."""
-        _shared_write(lambda: self._close_study(parent_run_id, best, finished_trials))
+    def close_study(
+        self,
+        parent_run_id: str,
+        best: TrialRecord | None,
+        finished_trials: int,
+        confirmation: "ConfirmationResult | None" = None,
+        confirmation_lines: Sequence[str] = (),
+    ) -> None:
+        """Record the best trial and its confirmation on the parent run and mark it finished (a resume reopens it).
 
-    def _close_study(self, parent_run_id: str, best: TrialRecord | None, finished_trials: int) -> None:
+        The best trial's figures are validation figures (``best_validation_*``); the confirmation's test figures
+        (``confirmed_test_success_rate``, ``default_test_success_rate``) and verdicts (tags
+        ``carp.confirmation_verdict.<label>``) sit beside them, with its lines in the tag ``carp.confirmation``.
+        """
+        _shared_write(lambda: self._close_study(parent_run_id, best, finished_trials, confirmation, confirmation_lines))
+
+    def _close_study(
+        self,
+        parent_run_id: str,
+        best: TrialRecord | None,
+        finished_trials: int,
+        confirmation: "ConfirmationResult | None",
+        confirmation_lines: Sequence[str],
+    ) -> None:
         self.client.set_tag(parent_run_id, "carp.finished_trials", str(finished_trials))
+        if confirmation_lines:
+            self.client.set_tag(parent_run_id, "carp.confirmation", "\n".join(confirmation_lines))
+        if confirmation is not None:
+            self.log_trial_metrics(parent_run_id, confirmation.metrics())
+            for label, verdict in confirmation.verdicts().items():
+                self.client.set_tag(parent_run_id, f"carp.confirmation_verdict.{label}", verdict)
         if best is not None and best.settings is not None:
             self.client.set_tag(parent_run_id, "carp.best_trial", str(best.number))
             self.client.set_tag(parent_run_id, "carp.best_params", best.settings.command_line())
@@ -114,8 +143,8 @@ class SweepTracker:
             self.log_trial_metrics(
                 parent_run_id,
                 {
-                    "best_score": best.objective,
-                    "best_success_rate": best.success_rate,
+                    "best_validation_score": best.objective,
+                    "best_validation_success_rate": best.validation_success_rate,
                     "best_latency_ms": best.latency_ms,
                     "best_tokenizer_rmse_percent": best.tokenizer_rmse_percent,
                 },
