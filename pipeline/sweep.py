@@ -106,6 +106,7 @@ def main() -> None:
         margin=params.comparison.margin,
         alpha=params.comparison.alpha,
         worker=f"{socket.gethostname()}:{PROJECT_DIR}",
+        min_seeds=params.comparison.min_seeds,
     )
     try:
         result = run_sweep(config, runner, REPORTS_DIR / "sweep", tracker, plan)

@@ -51,6 +51,7 @@ TASKS = ("lift", "can", "square", "stack", "nut_assembly", "stack_three", "threa
 
 
 def main() -> None:
+    """Print every group's pairs with their verdicts and explanations."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--min-seeds", type=int, default=3)
     parser.add_argument("--alpha", type=float, default=0.05)

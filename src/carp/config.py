@@ -748,8 +748,8 @@ class SweepConfig:
             ``none``. The tokenizer check (``prune_factor``) applies whatever the choice.
         confirm_seeds: Training seeds of the confirmation that ends the sweep: the selected trial's settings and the
             default ones (``scales`` and ``codebook_size`` of the params file) are each trained once per seed and
-            evaluated on the test seeds, and their paired comparison is the sweep's result; at least two distinct
-            integers >= 0.
+            evaluated on the test seeds, and their paired comparison is the sweep's result; distinct integers >= 0,
+            at least two and at least ``comparison.min_seeds`` (fewer could never confirm anything).
     """
 
     study_name: str = "carp-sweep"
@@ -924,6 +924,12 @@ class Params:
                 [list(s) for s in self.sweep.scale_schedules],
                 f"every schedule must be strictly increasing and end at l = {latent_length}",
             )
+        _require(
+            len(self.sweep.confirm_seeds) >= self.comparison.min_seeds,
+            "sweep.confirm_seeds",
+            list(self.sweep.confirm_seeds),
+            f"must hold at least comparison.min_seeds = {self.comparison.min_seeds} seeds: a family verdict needs them",
+        )
         # Collection may try up to 3 seeds per kept demo (see carp.data.collect); evaluation must never reuse them.
         collection_end = self.data.collection_seed + 3 * max(self.data.demos_for(task) for task in self.tasks)
         evaluation_end = self.eval.seed + self.eval.episodes

@@ -15,7 +15,7 @@ from carp.sweep.dvc_runner import CONFIRMATION_EVAL_OVERRIDES, TRIAL_EVAL_OVERRI
 from carp.sweep.outcome import ExperimentResult
 from carp.sweep.space import TrialSettings
 
-EVAL = EvalConfig(episodes=8, seed=100_000, validation_episodes=4, validation_seed=200_000)
+EVAL = EvalConfig(episodes=40, seed=100_000, validation_episodes=4, validation_seed=200_000)
 """The pipeline's ``eval`` section the fake evaluations start from; each run applies the sweep's overrides to it."""
 EPOCHS = (1, 2, 3, 4, 5, 6)
 """Epochs of each fake training's candidates (five snapshots and the final policy)."""

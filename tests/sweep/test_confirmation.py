@@ -13,7 +13,7 @@ DEFAULT = TrialSettings((4,), 4)  # one scale: the fake's weakest settings
 
 
 def plan(default=DEFAULT, worker="here"):
-    return ConfirmationPlan(default=default, seeds=(0, 1), margin=0.05, alpha=0.05, worker=worker)
+    return ConfirmationPlan(default=default, seeds=(0, 1, 2), margin=0.05, alpha=0.05, worker=worker)
 
 
 def test_no_trial_runs_a_test_seed_and_the_confirmation_tests_both_arms(sweep_config, tmp_path):
@@ -30,8 +30,8 @@ def test_no_trial_runs_a_test_seed_and_the_confirmation_tests_both_arms(sweep_co
 
     best = result.best
     assert [(settings, seeds) for _, settings, seeds in runner.confirmation_calls] == [
-        (best.settings, (0, 1)),
-        (DEFAULT, (0, 1)),
+        (best.settings, (0, 1, 2)),
+        (DEFAULT, (0, 1, 2)),
     ]
     lines = (tmp_path / "best_params.txt").read_text().splitlines()
     assert lines[0] == best.settings.command_line()

@@ -41,6 +41,7 @@ class ConfirmationPlan:
         seeds: training seeds of each arm (``sweep.confirm_seeds``).
         margin: equivalence margin of the verdict, in success rate (``comparison.margin``).
         alpha: significance level of the verdict (``comparison.alpha``).
+        min_seeds: training seeds per arm a verdict needs (``comparison.min_seeds``); fewer seeds confirm nothing.
         worker: names this worker's workspace (host and path); among workers sharing a study the first to get
             there runs the confirmation, and a restart in the same workspace resumes it.
     """
@@ -50,6 +51,7 @@ class ConfirmationPlan:
     margin: float
     alpha: float
     worker: str
+    min_seeds: int = 3
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,6 @@ def confirm(
     comparisons = {}
     if len(arms) == 2:
         evaluations = {label: {SELECTED: evaluated[0][label], DEFAULT: evaluated[1][label]} for label in evaluated[0]}
-        decided = compare_families(evaluations, margin=plan.margin, alpha=plan.alpha)
+        decided = compare_families(evaluations, margin=plan.margin, alpha=plan.alpha, min_seeds=plan.min_seeds)
         comparisons = {label: decided[label][0] for label in evaluations}
     return ConfirmationResult(best, plan, tuple(experiments), evaluated[0], comparisons)
