@@ -35,8 +35,8 @@ def test_defaults_follow_the_design():
 @pytest.mark.parametrize(
     ("raw", "message"),
     [
-        ({"scales": [1, 2, 3]}, "scales=[1, 2, 3]: must end at the latent length"),
-        ({"scales": [1, 3, 2, 4]}, "scales=[1, 3, 2, 4]: must be positive and strictly increasing"),
+        ({"scales": [1, 2, 17]}, "scales=[1, 2, 17]: every schedule must be positive, strictly increasing and end at"),
+        ({"scales": [1, 3, 2, 4]}, "scales=[1, 3, 2, 4]: every schedule must be positive, strictly increasing"),
         ({"codebook_size": 1}, "codebook_size=1: must be >= 2"),
         ({"tasks": ["peg_in_hole"]}, "tasks=('peg_in_hole',): every task must be one of"),
         ({"tasks": []}, "tasks=(): must list at least one task"),
@@ -80,7 +80,7 @@ def test_defaults_follow_the_design():
             {"tasks": ["pusht"], "data": {"observations": "image"}},
             "data.observations='image': pusht has no camera observations; use state",
         ),
-        ({"sweep": {"scale_schedules": [[1, 2]]}}, "sweep.scale_schedules=[[1, 2]]: every schedule"),
+        ({"sweep": {"scale_schedules": [[2, 1]]}}, "sweep.scale_schedules=[[2, 1]]: every schedule"),
         ({"sweep": {"git_remote": "--force"}}, "sweep.git_remote='--force': must be a git remote name or URL"),
         ({"sweep": {"pruner": "median"}}, "sweep.pruner='median': must be one of ('successive_halving', 'hyperband',"),
         ({"sweep": {"confirm_seeds": [0]}}, "sweep.confirm_seeds=[0]: must hold at least two distinct integer seeds"),

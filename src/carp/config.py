@@ -733,8 +733,7 @@ class SweepConfig:
             URL such as ``postgresql://mlflow@127.0.0.1:5432/optuna`` (password from ``~/.pgpass`` or ``PGPASSFILE``).
         num_trials: Total number of finished trials (complete, pruned or failed), counted across restarts of the
             sweep and across the workers sharing its study; an integer >= 1.
-        scale_schedules: Candidate values of ``scales``; at least one, each strictly increasing and ending at the
-            latent length ``l``.
+        scale_schedules: Candidate values of ``scales``; at least one, each as ``scales`` requires.
         codebook_sizes: Candidate values of ``codebook_size``; each an integer >= 2.
         prune_factor: A trial whose tokenizer reconstruction error is more than this many times the lowest error of
             the study so far is pruned before its policy is trained; a number > 1.
@@ -746,6 +745,10 @@ class SweepConfig:
         pruner: How Optuna stops a trial early from its snapshots' validation scores, which the trial reports as the
             evaluate stage produces them (see ``carp.sweep.pruning``): ``successive_halving``, ``hyperband`` or
             ``none``. The tokenizer check (``prune_factor``) applies whatever the choice.
+        validation_episodes: Episodes per candidate policy on the validation seeds (from ``eval.validation_seed``)
+            in every trial and in the confirmation, which select on them; the sweep sets it as their
+            ``eval.validation_episodes``, whatever the ``eval`` section says. An integer >= 1; a few dozen tell trials
+            apart.
         confirm_seeds: Training seeds of the confirmation that ends the sweep: the selected trial's settings and the
             default ones (``scales`` and ``codebook_size`` of the params file) are each trained once per seed and
             evaluated on the test seeds, and their paired comparison is the sweep's result; distinct integers >= 0,
@@ -761,6 +764,7 @@ class SweepConfig:
     heartbeat_seconds: int = 10
     git_remote: str = ""
     pruner: str = "successive_halving"
+    validation_episodes: int = 20
     confirm_seeds: tuple[int, ...] = (0, 1, 2)
 
     def __post_init__(self) -> None:
@@ -777,6 +781,7 @@ class SweepConfig:
             "must be a git remote name or URL, without surrounding spaces or a leading '-'",
         )
         _require(self.pruner in SWEEP_PRUNERS, "sweep.pruner", self.pruner, f"must be one of {SWEEP_PRUNERS}")
+        _require(self.validation_episodes >= 1, "sweep.validation_episodes", self.validation_episodes, "must be >= 1")
         seeds = list(self.confirm_seeds)
         _require(
             len(seeds) >= 2
@@ -806,8 +811,11 @@ class Params:
 
     Attributes:
         scales: ``s_k``, tokens per action dimension at each scale, coarse to fine; ``K`` is the number of scales and
-            a chunk has ``L = A * sum(scales)`` tokens. Positive, strictly increasing integers whose last entry equals
-            the latent length ``l = data.action_horizon / 2**len(tokenizer.channel_mult)`` (4 by default).
+            a chunk has ``L = A * sum(scales)`` tokens. Positive, strictly increasing integers, the last at most
+            ``data.action_horizon``. The scales quantize a latent of length ``l = max(e, s_K)``, where ``e =
+            data.action_horizon / 2**len(tokenizer.channel_mult)`` is the encoder's output length (4 by default): a
+            last scale below ``e`` reconstructs from coarser maps only (``[1, 2, 3]``), one above it quantizes a
+            latent resampled to its own length (``[1, 2, 3, 4, 5]``, as the paper's Fig. 10 does for K = 5 and 6).
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
         tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
@@ -902,28 +910,20 @@ class Params:
         _require(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
         self._bind_image_encoder()
         _require(self.codebook_size >= 2, "codebook_size", self.codebook_size, "must be >= 2")
-        latent_length = self.latent_length
-        _require(
-            all(s >= 1 for s in self.scales) and all(a < b for a, b in zip(self.scales, self.scales[1:])),
-            "scales",
-            list(self.scales),
-            "must be positive and strictly increasing",
-        )
-        _require(
-            len(self.scales) >= 1 and self.scales[-1] == latent_length,
-            "scales",
-            list(self.scales),
-            f"must end at the latent length l = action_horizon / 2**len(channel_mult) = {latent_length}",
-        )
-        for schedule in self.sweep.scale_schedules:
-            _require(
-                len(schedule) >= 1
-                and schedule[-1] == latent_length
-                and all(a < b for a, b in zip(schedule, schedule[1:])),
-                "sweep.scale_schedules",
-                [list(s) for s in self.sweep.scale_schedules],
-                f"every schedule must be strictly increasing and end at l = {latent_length}",
-            )
+        horizon = self.data.action_horizon
+        for key, schedules in (("scales", [self.scales]), ("sweep.scale_schedules", self.sweep.scale_schedules)):
+            for schedule in schedules:
+                _require(
+                    len(schedule) >= 1
+                    and all(size >= 1 for size in schedule)
+                    and all(a < b for a, b in zip(schedule, schedule[1:]))
+                    and schedule[-1] <= horizon,
+                    key,
+                    list(self.scales) if key == "scales" else [list(s) for s in schedules],
+                    f"every schedule must be positive, strictly increasing and end at most at data.action_horizon = "
+                    f"{horizon}",
+                )
+        self.encoder_length  # noqa: B018 (checks that the horizon divides into the encoder's levels)
         _require(
             len(self.sweep.confirm_seeds) >= self.comparison.min_seeds,
             "sweep.confirm_seeds",
@@ -1079,7 +1079,12 @@ class Params:
 
     @property
     def latent_length(self) -> int:
-        """``l = H / 2**len(channel_mult)``; raises if ``H`` is not divisible."""
+        """``l``, the latent the scales quantize: the encoder's length, or the last scale where that is longer."""
+        return max(self.encoder_length, self.scales[-1])
+
+    @property
+    def encoder_length(self) -> int:
+        """``H / 2**len(channel_mult)``, the tokenizer encoder's output length; raises if ``H`` is not divisible."""
         downsampling = 2 ** len(self.tokenizer.channel_mult)
         _require(
             self.data.action_horizon % downsampling == 0,

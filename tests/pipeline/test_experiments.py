@@ -1,14 +1,17 @@
 """End to end on tiny params: `dvc exp run -S` (workspace and --temp) and the Optuna sweep, killed and resumed.
 
 The workspace template (repository copy with collected and ingested demos) is built once per module; every test
-works in its own copy, so experiments, MLflow and Optuna stores never mix between tests.
+works in its own copy, so experiments, MLflow and Optuna stores never mix between tests. The killed and resumed
+sweep runs once per module and serves two tests: how it resumes, and its trials and confirmation seen end to end.
 """
 
 import fcntl
+import io
 import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -21,16 +24,35 @@ import yaml
 from mlflow import MlflowClient
 from optuna.trial import TrialState
 
-from tests.pipeline.workspace import dvc, make_workspace, queue_status, run, run_queued_experiments, tool_env
+from carp.sweep.confirmation import arm_key
+from carp.sweep.space import TrialSettings
+from tests.pipeline.workspace import (
+    TINY_PARAMS,
+    dvc,
+    make_workspace,
+    queue_status,
+    run,
+    run_queued_experiments,
+    tool_env,
+)
 from tests.services import service_directory, tool, tracking_server
 
 SWEEP = {
     "study_name": "tiny",
     "num_trials": 2,
     "scale_schedules": [[1, 4], [1, 2, 4]],
-    "codebook_sizes": [8, 16],
+    # The workspace's own codebook_size (TINY_PARAMS) is off the grid, so the confirmation always has two arms.
+    "codebook_sizes": [8, 32],
     "heartbeat_seconds": 1,
+    # Candidates still report their validation through the progress file; no trial is stopped by chance.
+    "pruner": "none",
+    "validation_episodes": 2,
+    # Two training seeds per arm, which comparison.min_seeds must then allow (copy_workspace sets it).
+    "confirm_seeds": [0, 1],
 }
+DEFAULT_SETTINGS = TrialSettings(tuple(TINY_PARAMS["scales"]), TINY_PARAMS["codebook_size"])
+TEST_SEEDS = range(100_000, 100_000 + TINY_PARAMS["eval"]["episodes"])  # eval.seed on, eval.episodes of them
+VALIDATION_SEEDS = range(200_000, 200_000 + SWEEP["validation_episodes"])  # eval.validation_seed on
 # Generous bounds for a loaded two-core machine; the waits end as soon as their condition holds.
 TRIAL_TIMEOUT_SECONDS = 900
 
@@ -51,6 +73,7 @@ def copy_workspace(template: Path, directory: Path, sweep: dict | None = None, t
     if sweep is not None:
         params = yaml.safe_load((workspace / "params.yaml").read_text())
         params["sweep"].update(sweep)
+        params["comparison"]["min_seeds"] = len(params["sweep"]["confirm_seeds"])
         params["tracking"].update(tracking or {})
         (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         for command in (["git", "add", "params.yaml"], ["git", "commit", "-qm", "sweep settings"]):
@@ -63,7 +86,7 @@ def head(workspace: Path) -> str:
 
 
 def experiments(workspace: Path) -> dict[str, dict]:
-    """`dvc exp show --json` as experiment name -> {params, metrics} of params.yaml and the metrics files."""
+    """`dvc exp show --json` as experiment name -> {rev, params, metrics} of params.yaml and the metrics files."""
     shown = run(dvc("exp", "show", "--json"), workspace)
     assert shown.returncode == 0, shown.stderr
     found = {}
@@ -73,7 +96,11 @@ def experiments(workspace: Path) -> dict[str, dict]:
             metrics = {}
             for values in data["metrics"].values():
                 metrics.update(values["data"])
-            found[experiment["name"]] = {"params": data["params"]["params.yaml"]["data"], "metrics": metrics}
+            found[experiment["name"]] = {
+                "rev": experiment["revs"][0]["rev"],
+                "params": data["params"]["params.yaml"]["data"],
+                "metrics": metrics,
+            }
     return found
 
 
@@ -88,6 +115,18 @@ def study_trials(workspace: Path) -> list:
 
 def sweep_command() -> list[str]:
     return [sys.executable, "pipeline/sweep.py"]
+
+
+def committed_file(workspace: Path, rev: str, path: str) -> str:
+    """A file as an experiment's commit holds it (its uncached outputs, metrics and plots)."""
+    shown = run(["git", "show", f"{rev}:{path}"], workspace)
+    assert shown.returncode == 0, shown.stderr
+    return shown.stdout
+
+
+def comment_lines(best_params: str) -> list[str]:
+    """The ``#`` lines of best_params.txt without their ``# ``."""
+    return [line.removeprefix("# ") for line in best_params.splitlines()[1:]]
 
 
 @pytest.mark.slow
@@ -144,10 +183,15 @@ def test_two_queued_experiments_run_at_once_on_a_fresh_store_keep_every_run(temp
     assert not list((workspace / ".dvc" / "tmp").rglob("mlflow.db"))
 
 
-@pytest.mark.slow
-def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_one(template, tmp_path):
-    workspace = copy_workspace(template, tmp_path, {**SWEEP, "prune_factor": 1000.0})
-    log_path = tmp_path / "sweep.log"
+@pytest.fixture(scope="module")
+def killed_sweep(template, tmp_path_factory) -> dict:
+    """A sweep killed during its second trial's training, then resumed to its end (confirmation included).
+
+    Returns the workspace, the trials completed before the kill and the resumed sweep's completed process.
+    """
+    directory = tmp_path_factory.mktemp("killed-sweep")
+    workspace = copy_workspace(template, directory, {**SWEEP, "prune_factor": 1000.0})
+    log_path = directory / "sweep.log"
     with log_path.open("w") as log:
         sweep = subprocess.Popen(
             sweep_command(), cwd=workspace, env=tool_env(), stdout=log, stderr=subprocess.STDOUT, start_new_session=True
@@ -168,8 +212,15 @@ def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_
     _wait_until_group_is_gone(group)
     assert [t.state for t in study_trials(workspace)] == [TrialState.COMPLETE, TrialState.RUNNING]
 
-    resumed = run(sweep_command(), workspace, timeout=2 * TRIAL_TIMEOUT_SECONDS)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    # The trials' evaluations and the confirmation's two arms of two training seeds each.
+    resumed = run(sweep_command(), workspace, timeout=4 * TRIAL_TIMEOUT_SECONDS)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    return {"workspace": workspace, "completed_before": completed_before, "resumed": resumed}
+
+
+@pytest.mark.slow
+def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_one(killed_sweep):
+    workspace, completed_before, resumed = (killed_sweep[key] for key in ("workspace", "completed_before", "resumed"))
     trials = study_trials(workspace)
     assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.COMPLETE]
     kept, interrupted, retry = trials
@@ -190,16 +241,22 @@ def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_
             assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
             assert experiment["params"]["codebook_size"] == trial.params["codebook_size"]
             metrics = experiment["metrics"]
-            assert metrics["success_rate"] == pytest.approx(row.success_rate)
+            assert metrics["validation_success_rate"] == pytest.approx(row.validation_success_rate)
+            assert metrics["validation_score"] == pytest.approx(row.validation_score)
             assert row.latency_ms == pytest.approx(
                 metrics["latency_predict_ms_median"] + metrics["latency_decode_ms_median"]
             )
+            # The only candidate (no snapshots) of the only evaluation reached the pruner through the progress file.
+            assert row.validated_candidates == 1
+            assert trial.intermediate_values == {1: pytest.approx(row.validation_score)}
         else:
-            assert pd.isna(row.success_rate)
-    best = table[table["state"] == "COMPLETE"].sort_values(["success_rate", "latency_ms"], ascending=[False, True])
+            assert pd.isna(row.validation_success_rate)
+    best = table[table["state"] == "COMPLETE"].sort_values(
+        ["validation_score", "validation_success_rate", "latency_ms", "trial"], ascending=[False, False, True, True]
+    )
     best_row = best.iloc[0]
-    expected = f"-S 'scales={best_row.scales}' -S codebook_size={best_row.codebook_size}\n"
-    assert (workspace / "reports/sweep/best_params.txt").read_text() == expected
+    best_params = (workspace / "reports/sweep/best_params.txt").read_text()
+    assert best_params.splitlines()[0] == f"-S 'scales={best_row.scales}' -S codebook_size={best_row.codebook_size}"
 
     runs = mlflow_runs(workspace)
     parents = [
@@ -225,9 +282,77 @@ def test_killed_sweep_resumes_keeps_completed_trial_and_retries_the_interrupted_
         "evaluate@lift-carp-0",
     }
 
-    # The budget is spent: a third start runs nothing.
+    # The budget is spent and the confirmation saved: a third start runs no experiment and reports the same.
     again = run(sweep_command(), workspace, timeout=300)
     assert again.returncode == 0 and len(study_trials(workspace)) == 3, again.stderr[-2000:]
+    assert "Running stage" not in again.stdout and set(experiments(workspace)) == set(shown)
+    assert (workspace / "reports/sweep/best_params.txt").read_text() == best_params
+
+
+@pytest.mark.slow
+def test_the_confirmation_step_runs_end_to_end_on_tiny_params_with_2_seeds(killed_sweep):
+    # The same sweep seen from its statistics: trials chose on the validation seeds alone; the confirmation trained
+    # the winner's and the default settings on 2 training seeds each and tested both on exactly the test seeds.
+    workspace = killed_sweep["workspace"]
+    shown = experiments(workspace)
+    table = pd.read_csv(workspace / "reports/sweep/trials.csv")
+    completed = table[table["state"] == "COMPLETE"]
+    assert len(completed) == 2
+    for row in completed.itertuples():
+        rev = shown[row.dvc_experiment]["rev"]
+        assert shown[row.dvc_experiment]["params"]["eval"]["run_test"] is False
+        evaluation = "reports/eval/lift/carp/seed0"
+        summary = json.loads(committed_file(workspace, rev, f"{evaluation}.json"))
+        assert summary["test_episodes"] == 0 and "success_rate" not in summary
+        assert pd.read_csv(io.StringIO(committed_file(workspace, rev, f"{evaluation}_episodes.csv"))).empty
+        validation = pd.read_csv(io.StringIO(committed_file(workspace, rev, f"{evaluation}_validation.csv")))
+        assert sorted(set(validation["seed"])) == list(VALIDATION_SEEDS)
+        assert not set(validation["seed"]) & set(TEST_SEEDS)
+
+    best_row = completed.sort_values(
+        ["validation_score", "validation_success_rate", "latency_ms", "trial"], ascending=[False, False, True, True]
+    ).iloc[0]
+    selected = TrialSettings(tuple(json.loads(best_row.scales)), int(best_row.codebook_size))
+    seeds = SWEEP["confirm_seeds"]
+    test_rates = {}
+    for arm, settings in (("selected", selected), ("default", DEFAULT_SETTINGS)):
+        directory = workspace / "reports/sweep/confirmation" / arm_key(settings, seeds)
+        name = json.loads((directory / "arm.json").read_text())["experiment"]
+        params = shown[name]["params"]
+        assert (params["scales"], params["codebook_size"]) == (list(settings.scales), settings.codebook_size)
+        assert params["seeds"] == seeds and params["eval"]["run_test"] is True
+        episodes = [pd.read_csv(directory / "lift" / f"seed{seed}_episodes.csv") for seed in seeds]
+        for table_of_seed in episodes:
+            assert table_of_seed["seed"].tolist() == list(TEST_SEEDS)
+        successes = sum(int(table_of_seed["success"].astype(bool).sum()) for table_of_seed in episodes)
+        test_rates[arm] = successes / (len(seeds) * len(TEST_SEEDS))
+    assert sorted(path.name for path in (workspace / "reports/sweep/confirmation").iterdir()) == sorted(
+        arm_key(settings, seeds) for settings in (selected, DEFAULT_SETTINGS)
+    )
+
+    lines = comment_lines((workspace / "reports/sweep/best_params.txt").read_text())
+    assert lines[0] == (
+        f"trial {best_row.trial} ({best_row.dvc_experiment}), selected on the validation seeds: validation score "
+        f"{best_row.validation_score:.3f}, validation success {100 * best_row.validation_success_rate:.1f}%"
+    )
+    assert lines[1].startswith("confirmation (") and f"training seeds {seeds}) against the default settings" in lines[1]
+    figures = (
+        f"lift: validation success {100 * best_row.validation_success_rate:.1f}% | test success "
+        f"{100 * test_rates['selected']:.1f}% selected, {100 * test_rates['default']:.1f}% default: "
+    )
+    (parent,) = [
+        r
+        for r in mlflow_runs(workspace)
+        if r.data.tags.get("carp.sweep_study") == "tiny" and "mlflow.parentRunId" not in r.data.tags
+    ]
+    verdict = parent.data.tags["carp.confirmation_verdict.lift"]
+    assert len(lines) == 3 and lines[2].startswith(f"{figures}{verdict}. "), (lines, verdict)
+    # Two training seeds per arm meet comparison.min_seeds: a verdict, not "not decided (2 training seeds)".
+    assert verdict in ("selected better", "default better", "not decided") or verdict.startswith("on par"), verdict
+    assert parent.data.tags["carp.confirmation"] == "\n".join(lines)
+    assert parent.data.metrics["confirmed_test_success_rate"] == pytest.approx(test_rates["selected"])
+    assert parent.data.metrics["default_test_success_rate"] == pytest.approx(test_rates["default"])
+    assert parent.data.metrics["best_validation_success_rate"] == pytest.approx(best_row.validation_success_rate)
 
 
 def _second_trial_is_training(log: str) -> bool:
@@ -285,25 +410,41 @@ def test_two_sweep_workers_share_a_postgresql_study_and_push_their_experiments(t
         for workspace in (first, second):
             table = pd.read_csv(workspace / "reports/sweep/trials.csv")
             assert table["state"].tolist() == ["COMPLETE", "COMPLETE"]
-        # Each experiment exists in the workspace that ran it; both reach any other clone through the git remote.
+        # Each trial's experiment exists in the workspace that ran it; one worker ran the confirmation's two
+        # experiments, and the other says where. All of them reach any clone through the git remote.
         ran_here = [set(experiments(workspace)) for workspace in (first, second)]
         names = {f"sweep-tiny-t{t.number}" for t in trials}
-        assert ran_here[0] | ran_here[1] == names and not ran_here[0] & ran_here[1]
+        confirming = [index for index, ran in enumerate(ran_here) if ran - names]
+        assert len(confirming) == 1, ran_here
+        confirmations = ran_here[confirming[0]] - names
+        assert len(confirmations) == 2 and all(name.startswith("sweep-tiny-confirm-") for name in confirmations)
+        assert ran_here[0] | ran_here[1] == names | confirmations and not ran_here[0] & ran_here[1]
+        confirmed, waited = (first, second) if confirming == [0] else (second, first)
+        assert "against the default settings" in (confirmed / "reports/sweep/best_params.txt").read_text()
+        assert (
+            f"# not confirmed here: the confirmation runs in the workspace {socket.gethostname()}:{confirmed.resolve()}"
+            in (waited / "reports/sweep/best_params.txt").read_text()
+        )
         clone = tmp_path / "clone"
         assert run(["git", "clone", "-q", str(remote), str(clone)], tmp_path).returncode == 0
-        pulled = run(dvc("exp", "pull", "origin", *sorted(names)), clone)
+        pulled = run(dvc("exp", "pull", "origin", *sorted(names | confirmations)), clone)
         assert pulled.returncode == 0, pulled.stderr
         shown = experiments(clone)
         for trial in trials:
             experiment = shown[f"sweep-tiny-t{trial.number}"]
             assert experiment["params"]["scales"] == json.loads(trial.params["scales"])
-            assert experiment["metrics"]["success_rate"] == pytest.approx(trial.user_attrs["success_rate"])
+            assert experiment["metrics"]["validation_success_rate"] == pytest.approx(
+                trial.user_attrs["validation_success_rate"]
+            )
+        for name in confirmations:
+            assert shown[name]["params"]["seeds"] == SWEEP["confirm_seeds"]
 
         client = MlflowClient(tracking_uri=url)
         runs = client.search_runs([experiment.experiment_id for experiment in client.search_experiments()])
         study_runs = [r for r in runs if r.data.tags.get("carp.sweep_study") == "tiny"]
         parents = [r for r in study_runs if "mlflow.parentRunId" not in r.data.tags]
         assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+        assert "carp.confirmation_verdict.lift" in parents[0].data.tags
         children = [r for r in study_runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
         assert sorted(r.data.tags["carp.dvc_experiment"] for r in children) == sorted(names)
         for name in names:

@@ -13,9 +13,7 @@ from carp.config import load_params
 from carp.evaluation.progress import PROGRESS_VARIABLE, ProgressFile, ValidatedCandidate
 from carp.sweep import dvc_runner
 from carp.sweep.dvc_runner import (
-    CONFIRMATION_EVAL_OVERRIDES,
     TOKENIZER_ERROR_KEY,
-    TRIAL_EVAL_OVERRIDES,
     DvcExperimentRunner,
     eval_arguments,
 )
@@ -96,6 +94,7 @@ def _runner(tmp_path, git_remote="", environment=None, seeds=(0, 1)):
         seeds,
         git_remote,
         environment or {},
+        validation_episodes=5,
     )
 
 
@@ -143,7 +142,8 @@ def test_a_trial_evaluates_on_validation_seeds_only_reports_each_candidate_and_a
     (experiment,) = fake_experiment.launched
     assert experiment.arguments == [
         "exp", "run", "--name", "sweep-s-t1", "-S", "scales=[1,2,4]", "-S", "codebook_size=16",
-        "-S", "eval.run_test=false", "-S", "eval.selection=best_validation", "-S", "seeds=[0,1]", "evaluate",
+        "-S", "eval.run_test=false", "-S", "eval.selection=best_validation", "-S", "eval.validation_episodes=5",
+        "-S", "seeds=[0,1]", "evaluate",
     ]  # fmt: skip
     assert experiment.env == {"HOME": "/h", PROGRESS_VARIABLE: str(runner.progress.path)}
     assert [candidate.epoch for candidate in reported] == [2, 4, 6]
@@ -191,18 +191,20 @@ def test_the_confirmation_trains_its_seeds_and_reads_the_test_evaluations(tmp_pa
     runs = _runner(tmp_path).run_confirmation("sweep-s-confirm", SETTINGS, (3, 4))
     assert dvc.calls[0][0] == [
         "exp", "run", "--name", "sweep-s-confirm", "-S", "scales=[1,2,4]", "-S", "codebook_size=16",
-        "-S", "eval.run_test=true", "-S", "eval.selection=best_validation", "-S", "seeds=[3,4]", "evaluate",
+        "-S", "eval.run_test=true", "-S", "eval.selection=best_validation", "-S", "eval.validation_episodes=5",
+        "-S", "seeds=[3,4]", "evaluate",
     ]  # fmt: skip
     assert list(runs) == ["lift"] and sorted(runs["lift"]) == [3, 4]
     assert runs["lift"][3].episodes["seed"].tolist() == [100_000, 100_001]
 
 
-def test_the_overrides_are_valid_params_that_keep_trials_off_the_test_seeds(tmp_path):
+def test_the_overrides_make_valid_params_of_the_defaults_that_keep_trials_off_the_test_seeds(tmp_path):
+    # The repository's params have no validation episodes: the sweep's own count makes them valid experiments.
     shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
-    apply_overrides(
-        str(tmp_path / "params.yaml"), ["eval.validation_episodes=5", *eval_arguments(TRIAL_EVAL_OVERRIDES)]
-    )
+    assert load_params(tmp_path / "params.yaml").eval.validation_episodes == 0
+    runner = _runner(tmp_path)
+    apply_overrides(str(tmp_path / "params.yaml"), eval_arguments(runner.trial_eval_settings()))
     trial = load_params(tmp_path / "params.yaml").eval
-    assert (trial.run_test, trial.selection) == (False, "best_validation")
-    apply_overrides(str(tmp_path / "params.yaml"), eval_arguments(CONFIRMATION_EVAL_OVERRIDES))
+    assert (trial.run_test, trial.selection, trial.validation_episodes) == (False, "best_validation", 5)
+    apply_overrides(str(tmp_path / "params.yaml"), eval_arguments(runner.confirmation_eval_settings()))
     assert load_params(tmp_path / "params.yaml").eval.run_test is True

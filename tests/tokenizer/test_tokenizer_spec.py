@@ -33,8 +33,7 @@ def test_from_dict_rejects_unknown_keys():
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"scales": (1, 2, 3)}, r"scales must end at the latent length l = .* = 4, got last scale 3"),
-        ({"scales": (1, 2, 3, 5)}, r"scales must end at the latent length"),
+        ({"scales": (1, 2, 17)}, r"scales must end at most at the action horizon 16 .*, got last scale 17"),
         ({"codebook_size": 1}, r"codebook_size must be >= 2, got 1"),
         ({"action_dim": 0}, r"action_dim must be >= 1, got 0"),
         ({"scales": (1, 3, 2, 4)}, r"scales must be strictly increasing, got \[1, 3, 2, 4\]"),
@@ -58,3 +57,12 @@ def test_other_horizons_change_the_latent_length():
     spec = TokenizerSpec(action_dim=1, action_horizon=32, scales=(1, 2, 4, 8), channel_mult=(2, 4))
     assert spec.latent_length == 8
     assert TokenizerSpec(action_dim=1, action_horizon=16, scales=(2, 8), channel_mult=(2,)).latent_length == 8
+
+
+@pytest.mark.parametrize(
+    ("scales", "latent_length"), [((1,), 4), ((1, 2, 3), 4), ((1, 2, 3, 4), 4), ((1, 2, 3, 4, 5), 5), ((2, 6), 6)]
+)
+def test_the_latent_is_the_encoders_length_or_the_last_scale_where_longer(scales, latent_length):
+    spec = TokenizerSpec(action_dim=2, scales=scales)
+    assert (spec.encoder_length, spec.latent_length) == (4, latent_length)
+    assert spec.tokens_per_chunk == 2 * sum(scales) and spec.num_scales == len(scales)

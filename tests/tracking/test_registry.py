@@ -124,6 +124,10 @@ def test_sha_mismatch_and_incompatible_params_are_refused(tmp_path):
     check_compatible(artifact, "panda-test2", (1, 2), 8)
     with pytest.raises(TokenizerMismatchError, match=r"tokenizer scales is \[1, 2\] but the params ask for \[2\]"):
         check_compatible(artifact, "panda-test2", (2,), 8)
+    # A schedule that extends the latent (or stops short of it) is another tokenizer too.
+    for schedule in ((1, 2, 3), (1,)):
+        with pytest.raises(TokenizerMismatchError, match=r"tokenizer scales is \[1, 2\] but the params ask for"):
+            check_compatible(artifact, "panda-test2", schedule, 8)
     with pytest.raises(TokenizerMismatchError, match="codebook_size is 8 but the params ask for 256"):
         check_compatible(artifact, "panda-test2", (1, 2), 256)
     with pytest.raises(

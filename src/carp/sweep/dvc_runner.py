@@ -3,12 +3,12 @@
 A trial first sets its values in the params file and reproduces only `train_tokenizer` (for the pruning check), with
 the same override code as `dvc exp run -S`, so the experiment that follows finds the tokenizer cached. Then `dvc exp
 run -n <name> -S ... evaluate` runs the trainings and evaluations, with the trial's evaluation settings
-(:data:`TRIAL_EVAL_OVERRIDES`: validation episodes only, the best-validated checkpoint), and the experiment is pushed to
-a git remote when one is given. While it runs, the evaluate stages append each validated candidate to a progress
-file that this runner follows (`carp.evaluation.progress`), so the sweep can prune the trial before its later
-candidates and stages run. The confirmation's experiments run the same stages with
-:data:`CONFIRMATION_EVAL_OVERRIDES` and the confirmation's training seeds. DVC's own output goes straight to this
-process's stdout and stderr.
+(:data:`TRIAL_EVAL_OVERRIDES`: validation episodes only, the best-validated checkpoint; and the sweep's count of
+validation episodes), and the experiment is pushed to a git remote when one is given. While it runs, the evaluate
+stages append each validated candidate to a progress file that this runner follows (`carp.evaluation.progress`), so
+the sweep can prune the trial before its later candidates and evaluations run. The confirmation's experiments run
+the same stages with :data:`CONFIRMATION_EVAL_OVERRIDES` and the confirmation's training seeds. DVC's own output
+goes straight to this process's stdout and stderr.
 """
 
 import json
@@ -62,6 +62,7 @@ class DvcExperimentRunner:
         seeds: Sequence[int],
         git_remote: str,
         environment: Mapping[str, str],
+        validation_episodes: int,
     ) -> None:
         """Runner of one workspace.
 
@@ -75,6 +76,8 @@ class DvcExperimentRunner:
             git_remote: where experiments are pushed; empty pushes nothing.
             environment: the variables DVC runs with, to which a trial adds its `DVC_EXP_NAME` (tokenizer stage) or
                 the progress file (experiment).
+            validation_episodes: ``eval.validation_episodes`` of every trial and confirmation experiment
+                (``sweep.validation_episodes``).
         """
         self.workspace = Path(workspace)
         self.tokenizer_metrics = Path(tokenizer_metrics)
@@ -84,7 +87,16 @@ class DvcExperimentRunner:
         self.seeds = tuple(seeds)
         self.git_remote = git_remote
         self.environment = dict(environment)
+        self.validation_episodes = validation_episodes
         self.progress = ProgressFile(self.workspace / ".dvc" / "tmp" / "sweep" / "validation_progress.jsonl")
+
+    def trial_eval_settings(self) -> dict[str, object]:
+        """The ``eval`` keys a trial's experiment sets: no test episode, selection on the validation episodes."""
+        return {**TRIAL_EVAL_OVERRIDES, "validation_episodes": self.validation_episodes}
+
+    def confirmation_eval_settings(self) -> dict[str, object]:
+        """The ``eval`` keys a confirmation experiment sets: the trials' selection, then the test seeds."""
+        return {**CONFIRMATION_EVAL_OVERRIDES, "validation_episodes": self.validation_episodes}
 
     def train_tokenizer(self, name: str, settings: TrialSettings) -> float:
         """Set the trial's values in `params.yaml` and reproduce `train_tokenizer`; its RMSE (% of range)."""
@@ -105,7 +117,7 @@ class DvcExperimentRunner:
         """
         arguments = [
             *settings.set_arguments(),
-            *eval_arguments(TRIAL_EVAL_OVERRIDES),
+            *eval_arguments(self.trial_eval_settings()),
             f"seeds={schedule_label(self.seeds)}",
         ]
         command = ["exp", "run", "--name", name, *_set_options(arguments), EVALUATION_TARGET]
@@ -136,7 +148,7 @@ class DvcExperimentRunner:
         """
         arguments = [
             *settings.set_arguments(),
-            *eval_arguments(CONFIRMATION_EVAL_OVERRIDES),
+            *eval_arguments(self.confirmation_eval_settings()),
             f"seeds={schedule_label(tuple(seeds))}",
         ]
         self._dvc("exp", "run", "--name", name, *_set_options(arguments), EVALUATION_TARGET)

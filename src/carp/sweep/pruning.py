@@ -3,9 +3,9 @@
 A trial's evaluate stages validate every candidate of every run (the snapshots and the final policy, by epoch) and
 append each result to a progress file as it finishes (`carp.evaluation.progress`); the sweep reports each one to
 Optuna at once (``trial.report``) and asks the pruner. A pruned trial's evaluation stops after the candidate it is
-validating, so the later candidates' validation episodes and the stages DVC has not yet run (the other runs'
-trainings and evaluations) are saved. The training of the run being validated is not: its snapshots are validated
-after it ends, inside the evaluate stage.
+validating, so the later candidates' validation episodes and the evaluations DVC has not yet run are saved. The
+trainings are not: DVC runs every training of an experiment (``train_policy`` of each task and seed) before its
+first evaluation, and the snapshots are validated only then, inside the evaluate stage.
 
 The reported curve (:class:`ValidationCurve`): step ``k`` is the ``k``-th validated candidate of the trial, in the
 order DVC runs the evaluations and each evaluation its candidates (the same for every trial of a study, whose

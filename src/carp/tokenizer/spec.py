@@ -24,7 +24,9 @@ class TokenizerSpec:
     Attributes:
         action_dim: A, number of action dimensions; each gets its own encoder, decoder, codebook and phi convs.
         action_horizon: H, steps per action chunk; must be divisible by 2 ** len(channel_mult).
-        scales: s_1..s_K, tokens per dimension at each scale, strictly increasing, ending at the latent length l.
+        scales: s_1..s_K, tokens per dimension at each scale: strictly increasing positive sizes, the last at most H.
+            A last scale below the encoder's output length reconstructs from coarser maps only; one above it gets a
+            latent of its own length (see ``latent_length``).
         codebook_size: V, codes per dimension's codebook.
         latent_channels: C, channels of a latent position and of a code.
         base_channels: ch, channels after the encoder's input convolution.
@@ -65,10 +67,10 @@ class TokenizerSpec:
             _require_int("scales entries", scale, 1)
         if any(later <= earlier for earlier, later in zip(self.scales, self.scales[1:], strict=False)):
             raise ValueError(f"scales must be strictly increasing, got {list(self.scales)}")
-        if self.scales[-1] != self.latent_length:
+        if self.scales[-1] > self.action_horizon:
             raise ValueError(
-                f"scales must end at the latent length l = action_horizon / 2 ** len(channel_mult) = "
-                f"{self.latent_length}, got last scale {self.scales[-1]}"
+                f"scales must end at most at the action horizon {self.action_horizon} (one token per action step), "
+                f"got last scale {self.scales[-1]}"
             )
         if isinstance(self.commitment_weight, bool) or not isinstance(self.commitment_weight, int | float):
             raise ValueError(f"commitment_weight must be a number, got {self.commitment_weight!r}")
@@ -76,9 +78,15 @@ class TokenizerSpec:
             raise ValueError(f"commitment_weight must be >= 0, got {self.commitment_weight}")
 
     @property
-    def latent_length(self) -> int:
-        """l, latent positions per dimension: H / 2 ** len(channel_mult)."""
+    def encoder_length(self) -> int:
+        """Positions per dimension of the encoder's output: H / 2 ** len(channel_mult)."""
         return self.action_horizon // 2 ** len(self.channel_mult)
+
+    @property
+    def latent_length(self) -> int:
+        """l, positions per dimension of the latent the scales quantize: the encoder's length, or the last scale
+        where that is longer (the encoder's output is resampled up to it, and back before the decoder)."""
+        return max(self.encoder_length, self.scales[-1])
 
     @property
     def num_scales(self) -> int:

@@ -8,6 +8,11 @@ and 4. The encoder/decoder and quantizer modules document their own deviations; 
   list of A modules (same math; `carp.tokenizer.per_dimension` converts between the two forms).
 - No `quant_conv` / `post_quant_conv` around the quantizer (the encoder's output conv and the decoder's input conv
   already map to and from C channels).
+- Scale schedules of any length (the paper's Fig. 10 varies K from 1 to 6 with maps 1..K). The scales quantize a
+  latent of length l = max(encoder length, s_K): a last scale shorter than the encoder's output reconstructs from
+  coarser maps only (every scale's contribution is up-sampled to l, as in VAR), and a longer one gets a latent of its
+  own length, the encoder's output bicubic-resampled up to it and the quantized latent area-resampled back before the
+  decoder, so the round trip keeps its shapes whatever the schedule.
 - The training loss sums the A per-dimension objectives (each a reconstruction MSE plus the VQ loss, both means
   over that dimension's elements), so every dimension receives exactly the gradients of an independent VQ-VAE.
 
@@ -112,8 +117,10 @@ class MultiScaleActionTokenizer(nn.Module):
     def encode_to_latent(self, actions: torch.Tensor) -> torch.Tensor:
         """Encode normalized actions (B, H, A) into continuous latents f (B, A, C, l), before quantization."""
         self._check_actions(actions)
-        latent = self.encoder(rearrange(actions, "b h a -> b a 1 h"))  # (B, A * C, 1, l)
-        return rearrange(latent, "b (a c) 1 t -> b a c t", a=self.spec.action_dim)
+        latent = self.encoder(rearrange(actions, "b h a -> b a 1 h"))  # (B, A * C, 1, encoder length)
+        latent = rearrange(latent, "b (a c) 1 t -> b a c t", a=self.spec.action_dim)
+        # A schedule whose last scale is longer than the encoder's output quantizes a latent of that length.
+        return self.quantizer.resample(latent, self.spec.latent_length, mode="bicubic")  # (B, A, C, l)
 
     def encode_to_ids(self, actions: torch.Tensor) -> list[torch.Tensor]:
         """Tokenize normalized actions (B, H, A) into K token-id tensors (B, A, s_k) long."""
@@ -179,6 +186,7 @@ class MultiScaleActionTokenizer(nn.Module):
 
     def decode_latent(self, quantized: torch.Tensor) -> torch.Tensor:
         """Decode f_hat (B, A, C, l) into normalized actions (B, H, A)."""
+        quantized = self.quantizer.resample(quantized, self.spec.encoder_length, mode="area")  # the decoder's length
         image = rearrange(quantized, "b a c t -> b (a c) 1 t")
         return rearrange(self.decoder(image), "b a 1 h -> b h a")
 

@@ -26,9 +26,10 @@ TINY_ARCHITECTURE = dict(depth=1, width=16, num_heads=2)
 """The CARP params of :func:`tiny_policy_spec`'s transformer."""
 
 
-def tiny_tokenizer_spec(scales: tuple[int, ...] = (1, 2)) -> TokenizerSpec:
-    """A = 2, V = 8, C = 4; H = 4 * s_K so the latent length equals the last scale."""
-    return TokenizerSpec(action_dim=2, action_horizon=4 * scales[-1], scales=scales, codebook_size=8, latent_channels=4)
+def tiny_tokenizer_spec(scales: tuple[int, ...] = (1, 2), action_horizon: int | None = None) -> TokenizerSpec:
+    """A = 2, V = 8, C = 4; H = 4 * s_K (the encoder's length equals the last scale) unless `action_horizon` is given."""
+    horizon = 4 * scales[-1] if action_horizon is None else action_horizon
+    return TokenizerSpec(action_dim=2, action_horizon=horizon, scales=scales, codebook_size=8, latent_channels=4)
 
 
 def tiny_policy_spec(scales: tuple[int, ...] = (1, 2), **overrides) -> PolicySpec:
@@ -41,10 +42,12 @@ def tiny_policy_spec(scales: tuple[int, ...] = (1, 2), **overrides) -> PolicySpe
     return PolicySpec(**shapes, config=CarpConfig(**config))
 
 
-def tiny_tokenizer(scales: tuple[int, ...] = (1, 2), seed: int = 0) -> MultiScaleActionTokenizer:
+def tiny_tokenizer(
+    scales: tuple[int, ...] = (1, 2), seed: int = 0, action_horizon: int | None = None
+) -> MultiScaleActionTokenizer:
     """A randomly initialized tokenizer whose codes are spread out enough to give distinct tokens."""
     torch.manual_seed(seed)
-    tokenizer = MultiScaleActionTokenizer(tiny_tokenizer_spec(scales))
+    tokenizer = MultiScaleActionTokenizer(tiny_tokenizer_spec(scales, action_horizon))
     with torch.no_grad():
         tokenizer.quantizer.codebook.normal_()
     return tokenizer.eval()
@@ -105,6 +108,7 @@ def tiny_policy(
     num_tasks: int = 0,
     task_names: tuple[str, ...] | None = None,
     obs_widths: dict[str, tuple[int, ...]] | None = None,
+    action_horizon: int | None = None,
     **overrides,
 ) -> CarpPolicy:
     """Scrambled transformer + random tokenizer + normalizers (the second action feature is constant).
@@ -124,7 +128,7 @@ def tiny_policy(
         obs_normalizer = tasks.obs_normalizers[tasks.selected]
         overrides = {"obs_dim": OBS_DIM + DEFAULT_TASK_EMBEDDING_DIM} | overrides
     return CarpPolicy(
-        tiny_artifact(tiny_tokenizer(scales, seed)),
+        tiny_artifact(tiny_tokenizer(scales, seed, action_horizon)),
         scrambled_transformer(tiny_policy_spec(scales, **overrides), seed),
         obs_normalizer,
         action_normalizer,

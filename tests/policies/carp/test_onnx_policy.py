@@ -51,6 +51,23 @@ def test_greedy_tokens_and_actions_match_the_torch_policy(exported):
     assert len(distinct) > 1, "observations should change the chosen tokens"
 
 
+@pytest.mark.parametrize("scales", [(1,), (1, 2), (1, 2, 3), (1, 2, 3, 4, 5), (1, 2, 3, 4, 5, 6)])
+def test_every_scale_schedule_exports_a_graph_that_matches_pytorch(scales, tmp_path):
+    # H = 16 as in the pipeline: the encoder's latent is 4 long, so these schedules end below it, and above it.
+    policy = tiny_policy(scales, seed=2, action_horizon=16)
+    assert policy.tokenizer.spec.latent_length == max(4, scales[-1])
+    onnx_policy = OnnxPolicy(export_policy_graphs(policy, tmp_path))
+    rng = np.random.default_rng(3)
+    for _ in range(4):
+        obs = rng.normal(size=(1, OBS_STEPS, OBS_DIM)) * 3
+        tokens = onnx_policy.predict_tokens(obs)
+        assert tokens.shape == (1, 2 * sum(scales))
+        np.testing.assert_array_equal(tokens, torch_tokens(policy, obs))
+        actions = onnx_policy.predict_action_timed(obs).actions
+        assert actions.shape == (1, 16, 2)
+        np.testing.assert_allclose(actions, policy.predict_action(obs), rtol=1e-5, atol=1e-5)
+
+
 def test_top_k_graph_draws_the_tokens_the_torch_policy_draws_with_the_same_generator(exported, tmp_path):
     policy, greedy_onnx = exported
     sampling = OnnxPolicy(export_policy_graphs(policy, tmp_path, top_k=3))
