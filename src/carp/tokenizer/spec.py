@@ -84,8 +84,11 @@ class TokenizerSpec:
 
     @property
     def latent_length(self) -> int:
-        """l, positions per dimension of the latent the scales quantize: the encoder's length, or the last scale
-        where that is longer (the encoder's output is resampled up to it, and back before the decoder)."""
+        """l, positions per dimension of the latent the scales quantize.
+
+        The encoder's length, or the last scale where that is longer (the encoder's output is then resampled up to
+        it, and back before the decoder).
+        """
         return max(self.encoder_length, self.scales[-1])
 
     @property

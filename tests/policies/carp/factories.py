@@ -27,7 +27,7 @@ TINY_ARCHITECTURE = dict(depth=1, width=16, num_heads=2)
 
 
 def tiny_tokenizer_spec(scales: tuple[int, ...] = (1, 2), action_horizon: int | None = None) -> TokenizerSpec:
-    """A = 2, V = 8, C = 4; H = 4 * s_K (the encoder's length equals the last scale) unless `action_horizon` is given."""
+    """A = 2, V = 8, C = 4; H = 4 * s_K (the encoder's length is the last scale) unless `action_horizon` is given."""
     horizon = 4 * scales[-1] if action_horizon is None else action_horizon
     return TokenizerSpec(action_dim=2, action_horizon=horizon, scales=scales, codebook_size=8, latent_channels=4)
 
