@@ -633,16 +633,32 @@ class StudyConfig:
         data_efficiency_sizes: Demo counts of the data-efficiency study (supplementary Fig. 5): one experiment per
             size with ``data.subset_size`` set to it and ``data.num_demos`` to the largest, so that every size draws
             from one collected file and the subsets are nested; at least two, strictly increasing integers >= 1.
-        references: Folders of other runs of the same study (their ``reports/studies/data_efficiency``, or a copy
-            kept with the project) whose families the study's report adds to its own at every size, so that a study
-            split over clones or machines (one family or training seed each) is reported as one. Each must hold a
-            finished ``size<N>/`` for every size; a training seed of a family on a task may come from one place
-            only, and the subsets must be the same (``data.num_demos``, ``data.subset_seed`` and the collection
-            alike). Paths relative to the project root, each at most once. Empty (the default): the study's own
-            experiments only.
+        scale_schedules: Points of the scales study (supplementary Fig. 10): one experiment per schedule with
+            ``scales`` set to it, each compared with the workspace's own ``scales``, which must be one of them; at
+            least two schedules, each as ``scales`` requires, no two of the same length K.
+        codebook_sizes: Points of the codebook study: one experiment per size with ``codebook_size`` set to it, each
+            compared with the workspace's own ``codebook_size``, which must be one of them; at least two strictly
+            increasing integers >= 2.
+        references: Folders of other runs of the same study (their ``reports/studies/<study>``, or a copy kept with
+            the project) whose families the study's report adds to its own at every point, so that a study split
+            over clones or machines (one family or training seed each) is reported as one. For the data-efficiency
+            study each must hold a finished ``size<N>/`` for every size and the subsets must be the same
+            (``data.num_demos``, ``data.subset_seed`` and the collection alike); the scales and codebook studies take
+            whichever points a folder holds. A training seed of a family on a task may come from one place only.
+            Paths relative to the project root, each at most once. Empty (the default): the study's own experiments
+            only.
     """
 
     data_efficiency_sizes: tuple[int, ...] = (30, 60, 100, 200)
+    scale_schedules: tuple[tuple[int, ...], ...] = (
+        (1,),
+        (1, 2),
+        (1, 2, 3),
+        (1, 2, 3, 4),
+        (1, 2, 3, 4, 5),
+        (1, 2, 3, 4, 5, 6),
+    )
+    codebook_sizes: tuple[int, ...] = (64, 256, 512, 1024)
     references: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -652,6 +668,21 @@ class StudyConfig:
             "study.data_efficiency_sizes",
             sizes,
             "must hold at least two strictly increasing sizes >= 1",
+        )
+        object.__setattr__(self, "scale_schedules", tuple(tuple(schedule) for schedule in self.scale_schedules))
+        lengths = [len(schedule) for schedule in self.scale_schedules]
+        _require(
+            len(lengths) >= 2 and len(set(lengths)) == len(lengths),
+            "study.scale_schedules",
+            [list(schedule) for schedule in self.scale_schedules],
+            "must hold at least two schedules, no two with the same number of scales",
+        )
+        codebooks = list(self.codebook_sizes)
+        _require(
+            len(codebooks) >= 2 and codebooks[0] >= 2 and all(a < b for a, b in zip(codebooks, codebooks[1:])),
+            "study.codebook_sizes",
+            codebooks,
+            "must hold at least two strictly increasing sizes >= 2",
         )
         object.__setattr__(self, "references", _distinct_paths("study.references", self.references))
 
@@ -911,7 +942,12 @@ class Params:
         self._bind_image_encoder()
         _require(self.codebook_size >= 2, "codebook_size", self.codebook_size, "must be >= 2")
         horizon = self.data.action_horizon
-        for key, schedules in (("scales", [self.scales]), ("sweep.scale_schedules", self.sweep.scale_schedules)):
+        checked = (
+            ("scales", [self.scales]),
+            ("sweep.scale_schedules", self.sweep.scale_schedules),
+            ("study.scale_schedules", self.study.scale_schedules),
+        )
+        for key, schedules in checked:
             for schedule in schedules:
                 _require(
                     len(schedule) >= 1
