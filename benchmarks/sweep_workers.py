@@ -51,10 +51,11 @@ def configure(template: Path, storage: str, tracking_uri: str, study: str, point
         prune_factor=1000.0,
         heartbeat_seconds=2,
         pruner="none",
+        validation_episodes=1,
         confirm_seeds=[0, 1],
     )
-    # Trials select and score on validation episodes only; the sweep refuses to run without them.
-    params["eval"]["validation_episodes"] = max(params["eval"].get("validation_episodes", 0), 1)
+    # The two confirmation seeds are enough for its verdict.
+    params["comparison"]["min_seeds"] = 2
     (template / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     for command in (["git", "add", "params.yaml"], ["git", "commit", "-qm", f"study {study}"]):
         if run(command, template).returncode != 0:

@@ -8,10 +8,14 @@ storage, then confirms the best one on the test seeds, and writes reports/sweep/
 reports/sweep/best_params.txt. Killed or interrupted, it resumes where it stopped. Each trial first sets its values
 in params.yaml and reproduces only `train_tokenizer` (for the pruning check), then runs `dvc exp run -n
 sweep-<study>-t<number> -S scales=... -S codebook_size=... -S eval.run_test=false ... evaluate`: validation
-episodes only (`eval.validation_episodes`, which must be >= 1), pruned by `sweep.pruner` as they come in. The
-confirmation trains the best trial's settings and the params file's own on `sweep.confirm_seeds` as two more
+episodes only (`sweep.validation_episodes` per candidate), pruned by `sweep.pruner` as they come in. The
+confirmation trains the best trial's settings and the default ones on `sweep.confirm_seeds` as two more
 experiments and compares them on the test seeds. Experiments are pushed to `sweep.git_remote` when one is set. The
 workspace is left holding the last experiment's params and outputs.
+
+The default settings (`scales`, `codebook_size`) and the trials' training seeds (`seeds`) are the committed
+params.yaml's (HEAD, the experiments' baseline): every experiment leaves its own values of them in the workspace's
+params.yaml, so after a first trial (a resumed sweep, a second study) that file no longer holds them.
 
 Several workers: start this same command in several workspaces (clones of one commit, on any machines) whose
 `sweep.storage` names one PostgreSQL database; they share the study, each grid point runs once, and the budget
@@ -21,8 +25,11 @@ holds across them (docs/several-machines.md). One sweep at a time per workspace.
 import argparse
 import dataclasses
 import fcntl
+import logging
 import os
 import socket
+import subprocess
+import tempfile
 from pathlib import Path
 
 from stage_support import (
@@ -38,12 +45,18 @@ from stage_support import (
     tracking_uri,
 )
 
+from carp.config import ConfigError, Params, load_params
 from carp.sweep.confirmation import ConfirmationPlan
 from carp.sweep.dvc_runner import DvcExperimentRunner
 from carp.sweep.space import TrialSettings
 from carp.sweep.study import ExperimentFailedError, SweepStateError, run_sweep
 from carp.sweep.tracking import SweepTracker
 from carp.tracking.runs import resolve_tracking_uri
+
+logger = logging.getLogger(__name__)
+
+BASELINE_KEYS = ("scales", "codebook_size", "seeds")
+"""Params that every sweep experiment sets (``-S``) and leaves in the workspace, so they are read from HEAD."""
 
 
 def _hold_workspace_lock() -> object:
@@ -61,22 +74,50 @@ def _hold_workspace_lock() -> object:
     return handle
 
 
+def _with_committed_baseline(params: Params) -> Params:
+    """`params` with the committed params.yaml's :data:`BASELINE_KEYS` (see the module docstring)."""
+    shown = subprocess.run(
+        ["git", "show", "HEAD:params.yaml"], cwd=PROJECT_DIR, capture_output=True, text=True, check=False
+    )
+    if shown.returncode != 0:
+        fail(f"params.yaml is not committed ({shown.stderr.strip()}); commit it: the sweep's experiments start there")
+    with tempfile.TemporaryDirectory(prefix="carp-sweep-") as directory:
+        committed_path = Path(directory) / "params.yaml"
+        committed_path.write_text(shown.stdout)
+        try:
+            committed = load_params(committed_path)
+        except ConfigError as error:
+            fail(f"params.yaml at HEAD{str(error).removeprefix(str(committed_path))}")
+    changed = [key for key in BASELINE_KEYS if getattr(params, key) != getattr(committed, key)]
+    if changed:
+        logger.info(
+            "params.yaml: %s differ from the committed file's (an earlier experiment's, or not committed); "
+            "the default settings and the trials' training seeds are the committed ones",
+            ", ".join(changed),
+        )
+    return dataclasses.replace(params, **{key: getattr(committed, key) for key in BASELINE_KEYS})
+
+
+def _check_experiment_params(params: Params, runner: DvcExperimentRunner, path: Path) -> None:
+    """Fail now, not in every trial's first stage, when the experiments' ``eval`` settings break a constraint."""
+    for settings in (runner.trial_eval_settings(), runner.confirmation_eval_settings()):
+        try:
+            dataclasses.replace(params, eval=dataclasses.replace(params.eval, **settings))
+        except ConfigError as error:
+            fail(f"{path}: with the sweep's evaluation settings {settings} (sweep.validation_episodes): {error}")
+
+
 def main() -> None:
     setup_logging()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--params", type=Path, default=PROJECT_DIR / "params.yaml")
     parser.add_argument("--trials", type=int, default=None, help="total trial budget (default: sweep.num_trials)")
     args = parser.parse_args()
-    params = load(args.params)
+    params = _with_committed_baseline(load(args.params))
     if args.trials is not None and args.trials < 1:
         fail(f"--trials={args.trials}: must be at least 1")
     if project_root() != PROJECT_DIR:
         fail("run the sweep in the project workspace, not inside a DVC temporary workspace")
-    if params.eval.validation_episodes < 1:
-        fail(
-            f"{args.params}: eval.validation_episodes={params.eval.validation_episodes}: the sweep selects on the "
-            "validation seeds only; set it >= 1 (and keep snapshots, training.snapshot_every, to prune on)"
-        )
     if not params.policies:
         fail(f"{args.params}: policies=[]: the sweep trains and evaluates single-task policies; list a family")
     lock = _hold_workspace_lock()
@@ -99,7 +140,9 @@ def main() -> None:
         params.seeds,
         config.git_remote,
         os.environ,
+        config.validation_episodes,
     )
+    _check_experiment_params(params, runner, args.params)
     plan = ConfirmationPlan(
         default=TrialSettings(tuple(params.scales), params.codebook_size),
         seeds=tuple(config.confirm_seeds),
