@@ -8,19 +8,20 @@ STAMP := $(VENV)/.installed
 # Stage commands call `python`, `dvc`; the venv must come first on PATH.
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup render-deps repro test test-fast lint docs benchmark ui sweep study exps tracking-server tracking-server-stop \
+.PHONY: setup render-deps repro dry dry-exp test test-fast lint docs benchmark ui sweep study exps tracking-server tracking-server-stop \
 	object-store object-store-stop dvc-remote
 
+# A start-up hook that older versions of this Makefile copied into the venv is removed, so nothing but the pinned
+# packages runs at interpreter start.
 setup: $(STAMP)
+	@rm -f "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/carp-dvc-dry-run.pth"
 
-# tools/carp-dvc-dry-run.pth lets `dvc repro --dry` answer before the first run (see carp.dvc_dry_run).
-$(STAMP): requirements.lock requirements-binaries.lock pyproject.toml tools/carp-dvc-dry-run.pth
+$(STAMP): requirements.lock requirements-binaries.lock pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -r requirements.lock
 	$(BIN)/python -m pip install --quiet --require-hashes --no-deps -r requirements-binaries.lock
 	$(BIN)/python -m pip install --quiet --no-deps -e .
-	cp tools/carp-dvc-dry-run.pth "$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 	touch $(STAMP)
 
 # Headless offscreen rendering (camera observations, evaluation videos) through EGL with Mesa: installs the Debian
@@ -34,6 +35,13 @@ render-deps:
 
 repro: setup
 	dvc repro
+
+# What `dvc repro` (or `dvc exp run $(ARGS)`) would run, also on a fresh clone before any stage has (tools/dvc_dry.py).
+dry: setup
+	$(BIN)/python tools/dvc_dry.py repro $(ARGS)
+
+dry-exp: setup
+	$(BIN)/python tools/dvc_dry.py exp run $(ARGS)
 
 # Tests run in TEST_WORKERS pytest-xdist processes (one per core of a 2-core CPU); a module's tests stay in one
 # process, so its module-scoped fixtures are built once. `make test TEST_WORKERS=0` runs them in this process.

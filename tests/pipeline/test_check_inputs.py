@@ -8,12 +8,15 @@ import pytest
 import yaml
 
 from tests.conftest import write_synthetic_file
-from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.pipeline.workspace import REPO, make_workspace, run, stages_run
 
 USER_FILE = "own/lift.hdf5"
 
 
 def repro(workspace, *targets):
+    """`dvc repro` of `targets`, or with "--dry" first, what `make dry` shows for them."""
+    if targets and targets[0] == "--dry":
+        return run([sys.executable, str(REPO / "tools" / "dvc_dry.py"), "repro", *targets[1:]], workspace)
     return run([sys.executable, "-m", "dvc", "repro", *targets], workspace)
 
 

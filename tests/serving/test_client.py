@@ -43,7 +43,7 @@ def test_the_client_reconnects_to_a_server_restarted_on_the_same_port(checkpoint
 
 
 def test_the_client_package_imports_neither_torch_nor_carp():
-    # Compared with the modules loaded before it: carp's venv imports `carp.dvc_dry_run` at start-up (a .pth file).
+    # Compared with the modules loaded before it, so that whatever the interpreter loads at start-up does not count.
     check = (
         "import sys; before = set(sys.modules); import carp_client; "
         "new = {name.split('.')[0] for name in set(sys.modules) - before}; "
