@@ -34,6 +34,7 @@ from carp.reporting.comparison import (  # noqa: E402
     find_pair,
     oriented_verdict,
     outcomes_by_seed,
+    referenced_runs,
 )
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.report import Section, write_sections  # noqa: E402
@@ -102,18 +103,12 @@ def is_complete(point_dir: Path, layout: StudyLayout, size: int) -> bool:
 
 
 def load_point(point_dir: Path, layout: StudyLayout) -> dict[str, dict[str, dict[int, RunResults]]]:
-    """One size's evaluations as the report's comparison reads them."""
-    runs: dict[str, dict[str, dict[int, RunResults]]] = {}
-    for task in layout.tasks:
-        runs[task] = {}
-        for policy in layout.policies:
-            runs[task][policy] = {}
-            for seed in layout.seeds:
-                summary = summary_path(point_dir, task, policy, seed)
-                runs[task][policy][seed] = RunResults(
-                    json.loads(summary.read_text()), pd.read_csv(summary.with_name(f"{summary.stem}_episodes.csv"))
-                )
-    return runs
+    """One size's evaluations as the report's comparison reads them.
+
+    Every family and training seed the folder holds for the layout's tasks, at least the layout's own (which
+    `is_complete` checked), so a folder extended by hand with more seeds reports them all.
+    """
+    return referenced_runs(Path(point_dir), layout.tasks)
 
 
 def run_study(
