@@ -18,6 +18,14 @@ def test_repository_params_load_and_match_defaults_shape():
     assert params.action_format.policy_dim == 10
 
 
+def test_params_yaml_states_exactly_the_config_defaults():
+    # One home per default: the dataclasses. params.yaml spells every key out for users and must not drift from them.
+    written = flatten_params(params_from_dict(parse_yaml((REPO / "params.yaml").read_text(), "params.yaml")))
+    defaults = flatten_params(Params())
+    assert set(written) == set(defaults)
+    assert {key: (value, defaults[key]) for key, value in written.items() if defaults[key] != value} == {}
+
+
 def test_defaults_follow_the_design():
     params = Params()
     assert params.scales == (1, 2, 3, 4)
