@@ -91,7 +91,7 @@ def require_optimizer_settings(section: str, config: Any) -> None:
 
 @dataclass(frozen=True)
 class DataConfig:
-    """Demonstrations, ingestion and the time convention (DESIGN.md sections 1 and 2).
+    """Demonstrations, ingestion and the time convention (docs/architecture.md, "Data path" and "Time convention").
 
     Attributes:
         num_demos: Successful scripted demos collected per task; an integer >= 1. Collection may try up to 3 seeds per
@@ -111,8 +111,8 @@ class DataConfig:
             ingested). Push-T has one fixed observation (``block_keypoints``, ``agent_pos``) and ignores them.
         obs_steps: ``To``, observation steps the policy sees per decision; an integer >= 1.
         action_horizon: ``H``, actions predicted per decision, in control steps; an integer >= 1. Must be divisible by
-            ``2**len(tokenizer.channel_mult)`` (each encoder level halves the length), and the latent length
-            ``l = action_horizon / 2**len(tokenizer.channel_mult)`` must equal the last entry of ``scales``.
+            ``2**len(tokenizer.channel_mult)`` (each encoder level halves the length), and at least the last entry of
+            ``scales`` (a scale has at most one token per action step).
         action_steps: ``Ta``, actions executed per decision before the policy is asked again; an integer between 1
             and ``action_horizon - obs_steps + 1``.
         filter_key: Optional robomimic filter key: only the demos listed in the file's ``mask/<filter_key>`` are
@@ -228,7 +228,7 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class TokenizerConfig:
-    """The per-dimension multi-scale VQ-VAE (DESIGN.md section 3) and its training.
+    """The per-dimension multi-scale VQ-VAE (docs/architecture.md, "Action tokenizer") and its training.
 
     Attributes:
         source: Where the tokenizer comes from: ``pipeline`` trains it here and registers it in the MLflow Model
@@ -241,8 +241,9 @@ class TokenizerConfig:
         base_channels: Channels per action dimension of the encoder's first convolution; an integer >= 1. Level i of
             the encoder has ``base_channels * channel_mult[i]`` channels per dimension.
         channel_mult: Channel multiplier of each encoder level (the decoder mirrors it); a non-empty list of positive
-            integers. Each level halves the time length, so its length sets ``l = action_horizon /
-            2**len(channel_mult)``, which ``scales`` must end at.
+            integers. Each level halves the time length, so the encoder's output is ``action_horizon /
+            2**len(channel_mult)`` steps long; ``scales`` may end below or above that length (the latent length ``l``
+            in docs/architecture.md, "Symbols").
         commitment_weight: Weight of the commitment loss that pulls encoder latents towards their quantized values,
             relative to the reconstruction loss; a number >= 0.
         epochs: Passes over the training windows; an integer >= 1.
@@ -503,7 +504,7 @@ def _positive_training_fields(section: Any, name: str) -> None:
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Simulated evaluation (DESIGN.md section 6).
+    """Simulated evaluation (docs/architecture.md, "Evaluation protocol").
 
     Attributes:
         episodes: Seeded evaluation episodes per task; an integer >= 1. The success rate is reported with its 95%

@@ -1,8 +1,8 @@
 """`ChunkScheduler`: from action chunks to one action per control step, on the robot's side.
 
-Time convention (carp's DESIGN.md section 1): a chunk predicted from the observations up to control step t is
-(H, A); its row ``To - 1`` (the metadata's ``executed_offset``) acts at step t, row ``To - 1 + i`` at step t + i.
-Every action is stamped with the step it belongs to, so a chunk that arrives late (the robot went on meanwhile)
+Time convention (carp's docs/architecture.md, "Time convention"): a chunk predicted from the observations up to control
+step t is (H, A); its row ``To - 1`` (the metadata's ``executed_offset``) acts at step t, row ``To - 1 + i`` at step
+t + i. Every action is stamped with the step it belongs to, so a chunk that arrives late (the robot went on meanwhile)
 loses only its rows for steps already executed, and a step is never given an action meant for another.
 
 Two ways of using the chunks:

@@ -1,4 +1,4 @@
-"""Training windows with the time convention of Diffusion Policy (DESIGN.md section 1).
+"""Training windows with the time convention of Diffusion Policy (docs/architecture.md, "Time convention").
 
 A window covers ``H`` consecutive steps starting ``To - 1`` steps before the current step: the policy sees
 obs[0:To] and predicts actions[0:H], of which actions[To-1 : To-1+Ta] are executed. Windows may start up to ``To - 1``

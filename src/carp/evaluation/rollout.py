@@ -1,11 +1,11 @@
 """One rollout loop for every action source (learned policy or scripted expert) and the parallel evaluator.
 
-Time convention (DESIGN.md section 1): at each decision the source sees the last ``To`` observations (the first one
-repeated after a reset) and returns the actions to execute before the next decision (``Ta`` for the policy, one for
-the expert). Episodes run in worker processes, one env per process; a crash inside an episode is recorded as a
-failure with its reason and the evaluation goes on. That holds for a worker process that dies as well (a native crash
-in the simulator or in ONNX Runtime, the out-of-memory killer): the episode it was running is run once more on a
-fresh worker and, if that worker dies too, recorded as crashed with the way it died (``worker killed by SIGKILL``).
+Time convention (docs/architecture.md, "Time convention"): at each decision the source sees the last ``To`` observations
+(the first one repeated after a reset) and returns the actions to execute before the next decision (``Ta`` for the
+policy, one for the expert). Episodes run in worker processes, one env per process; a crash inside an episode is
+recorded as a failure with its reason and the evaluation goes on. That holds for a worker process that dies as well (a
+native crash in the simulator or in ONNX Runtime, the out-of-memory killer): the episode it was running is run once more
+on a fresh worker and, if that worker dies too, recorded as crashed with the way it died (``worker killed by SIGKILL``).
 
 A policy trained on camera images sees them the way ingest stored them: after every step the cameras are rendered
 from the simulator's current state with the same renderer and settings that render a demo's stored states

@@ -1,4 +1,4 @@
-"""Policy families behind one seam (STYLE.md section 6).
+"""Policy families behind one seam (docs/architecture.md, "Policy families").
 
 - `base`: the `Policy` protocol every family implements, `TimedPrediction`, `Deployment`, the checkpoint format
   version.

@@ -42,7 +42,7 @@ class RequestError(ValueError):
 
 @dataclass(frozen=True)
 class ServingSpec:
-    """The contract between a served policy and its robots (symbols as in DESIGN.md section 1).
+    """The contract between a served policy and its robots (symbols as in docs/architecture.md, "Symbols").
 
     Attributes:
         obs_keys: names of the low-dim observation keys concatenated, in this order, into the `Do` features of

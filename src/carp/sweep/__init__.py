@@ -1,1 +1,4 @@
-"""Optuna sweep over scale schedules and codebook sizes, each trial one DVC experiment (DESIGN.md section 7)."""
+"""Optuna sweep over scale schedules and codebook sizes, each trial one DVC experiment.
+
+Overview in docs/architecture.md, "Sweeps and studies".
+"""

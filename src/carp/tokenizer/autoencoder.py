@@ -11,7 +11,8 @@ Convolutions use `groups=A` and GroupNorm uses one group per dimension, so no we
 dimensions: the module computes A independent networks in one kernel launch per layer. A consequence used by
 `carp.tokenizer.per_dimension`: every parameter is the concatenation along axis 0 of the A per-dimension parameters.
 
-Architecture after DESIGN.md section 3, itself after the official CARP code (ZhefeiGong/carp, `svqvae/basic_vae.py`).
+Architecture after the official CARP code (ZhefeiGong/carp, `svqvae/basic_vae.py`); docs/architecture.md, "Action
+tokenizer", places it in the whole tokenizer.
 Deviations from CARP: two residual blocks before each down-sampling (CARP puts one before and one after), a symmetric
 padded stride-2 convolution for down-sampling (CARP pads one step on the right), a kernel-4 transposed convolution for
 up-sampling (CARP: kernel 3 with output padding) and a GroupNorm + SiLU before the decoder's output convolution.

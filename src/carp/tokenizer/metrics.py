@@ -1,4 +1,4 @@
-"""Reconstruction quality and codebook health of a trained tokenizer (DESIGN.md section 3, "Metrics").
+"""Reconstruction quality and codebook health of a trained tokenizer (docs/architecture.md, "Action tokenizer").
 
 Metric keys are flat strings (ready for MLflow) of the form `<metric>/<dimension name>` plus `<metric>/mean`;
 scales are numbered from 1 in keys (`usage/scale_1/...` is the coarsest scale).

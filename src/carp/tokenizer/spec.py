@@ -19,7 +19,9 @@ def _require_int(field_name: str, value: Any, minimum: int) -> None:
 
 @dataclass(frozen=True)
 class TokenizerSpec:
-    """Shape-defining settings of the per-dimension multi-scale residual VQ-VAE (DESIGN.md section 3).
+    """Shape-defining settings of the per-dimension multi-scale residual VQ-VAE.
+
+    Its place in the tokenizer: docs/architecture.md, "Action tokenizer".
 
     Attributes:
         action_dim: A, number of action dimensions; each gets its own encoder, decoder, codebook and phi convs.

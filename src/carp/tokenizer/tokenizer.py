@@ -1,8 +1,9 @@
 """Multi-scale residual action tokenizer: one VQ-VAE per action dimension, computed for all A dimensions at once.
 
 Sources: the multi-scale residual quantization of VAR (Tian et al. 2024, FoundationVision/VAR) applied per action
-dimension as in CARP (Gong et al. 2024, ZhefeiGong/carp `MSAT/vqvae.py`, `svqvae/`), following DESIGN.md sections 3
-and 4. The encoder/decoder and quantizer modules document their own deviations; at this level the deviations are:
+dimension as in CARP (Gong et al. 2024, ZhefeiGong/carp `MSAT/vqvae.py`, `svqvae/`); docs/architecture.md, "Action
+tokenizer" and "Token layout and attention mask", summarizes both. The encoder/decoder and quantizer modules document
+their own deviations; at this level the deviations are:
 
 - The A per-dimension VQ-VAEs are one module with grouped convolutions and an (A, V, C) codebook instead of a Python
   list of A modules (same math; `carp.tokenizer.per_dimension` converts between the two forms).
@@ -19,9 +20,9 @@ and 4. The encoder/decoder and quantizer modules document their own deviations; 
 Inputs are normalized actions in [-1, 1]; normalization happens in the data layer. Scale indices are 0-based
 (`scale_index` k addresses `spec.scales[k]`).
 
-Token layout of a chunk (DESIGN.md section 4): scale-major, then position, then dimension, so scale k contributes
-s_k * A tokens ordered [pos0: d0..d(A-1), pos1: d0..d(A-1), ...] and token i of a scale (and of the whole sequence,
-since every scale block is a multiple of A long) belongs to dimension i % A.
+Token layout of a chunk (docs/architecture.md, "Token layout and attention mask"): scale-major, then position, then
+dimension, so scale k contributes s_k * A tokens ordered [pos0: d0..d(A-1), pos1: d0..d(A-1), ...] and token i of a
+scale (and of the whole sequence, since every scale block is a multiple of A long) belongs to dimension i % A.
 """
 
 from dataclasses import dataclass
@@ -195,7 +196,7 @@ class MultiScaleActionTokenizer(nn.Module):
         return self.decode_latent(self.ids_to_latent(token_ids))
 
     def ids_to_sequence(self, token_ids: list[torch.Tensor]) -> torch.Tensor:
-        """Flatten K id tensors (B, A, s_k) into the chunk's token sequence (B, L) (DESIGN.md section 4 layout)."""
+        """Flatten K id tensors (B, A, s_k) into the chunk's token sequence (B, L), in the chunk's token layout."""
         self._check_token_ids(token_ids)
         return torch.cat([rearrange(ids, "b a s -> b (s a)") for ids in token_ids], dim=1)  # (B, L)
 

@@ -1,4 +1,6 @@
-"""Coarse-to-fine autoregressive policy (DESIGN.md sections 4 and 5).
+"""Coarse-to-fine autoregressive policy.
+
+Overview in docs/architecture.md, "Token layout and attention mask" and "Coarse-to-fine transformer".
 
 - `spec`: `PolicySpec`, the shapes of data and tokenizer with CARP's params section, which size the transformer.
 - `layout`: token order of a chunk, level ids and the block-causal mask.

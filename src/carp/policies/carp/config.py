@@ -70,7 +70,7 @@ class TransformerConfig:
 
 @dataclass(frozen=True)
 class CarpConfig(TransformerConfig):
-    """The coarse-to-fine transformer (DESIGN.md section 5) and its optimizer.
+    """The coarse-to-fine transformer (docs/architecture.md, "Coarse-to-fine transformer") and its optimizer.
 
     Attributes:
         attention: Kernel of the block-causal attention in training: ``masked`` (one fused kernel over the dense

@@ -1,4 +1,6 @@
-"""Token layout of one action chunk and the block-causal attention mask (DESIGN.md section 4).
+"""Token layout of one action chunk and the block-causal attention mask.
+
+docs/architecture.md, "Token layout and attention mask", gives the same rules in prose.
 
 The sequence is scale-major, then position, then dimension: scale k contributes `s_k * A` tokens ordered
 `[pos0: d0..d(A-1), pos1: d0..d(A-1), ...]`, so token `i` of any scale belongs to dimension `i % A` (every scale's

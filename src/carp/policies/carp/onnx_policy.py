@@ -97,7 +97,7 @@ class PredictionGraph(nn.Module):
 
         Returns:
             f_hat (1, A, C, l) accumulated over the K scales, and the chosen tokens (1, L) long in sequence order
-            (DESIGN.md section 4).
+            (docs/architecture.md, "Token layout and attention mask").
         """
         task_ids = extra[0] if self.multi_task else None
         uniforms = extra[-1] if self.top_k > 1 else None  # (1, L, k)

@@ -1,4 +1,6 @@
-"""Coarse-to-fine inference: K next-scale steps with a kv-cache, then decoding (DESIGN.md section 5).
+"""Coarse-to-fine inference: K next-scale steps with a kv-cache, then decoding.
+
+The procedure is summarized in docs/architecture.md, "Next-scale inference".
 
 Mirrors `autoregressive_infer_cfg` of VAR and the official CARP without classifier-free guidance. Per scale the
 transformer scores all `s_k * A` tokens at once, a token is chosen per position (argmax, or a draw from the top-k

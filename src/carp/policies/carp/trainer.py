@@ -1,14 +1,14 @@
 """CARP's part of the shared training loop (`carp.training.loop`): token targets, the training step, the recipe.
 
-Recipe (DESIGN.md section 5, after VAR and the official CARP trainer): teacher forcing with ground-truth tokens, cross
-entropy over all L tokens, AdamW (betas 0.9/0.95 as in VAR, no weight decay on biases and embeddings), linear warm-up
-then cosine decay per step, optional EMA of the weights.
+Recipe (docs/architecture.md, "Teacher-forced training"; after VAR and the official CARP trainer): teacher forcing
+with ground-truth tokens, cross entropy over all L tokens, AdamW (betas 0.9/0.95 as in VAR, no weight decay on biases
+and embeddings), linear warm-up then cosine decay per step, optional EMA of the weights.
 
 Because the tokenizer is frozen, the ground-truth token ids and the teacher-forcing inputs of every window never change;
 they are computed once before training (the loop's `prepare_data`) instead of re-encoding every batch as the official
 trainer does.
 
-Learning rate: DESIGN.md's rule is 1e-4 x batch / 256 for the paper's 4,000 epochs on a GPU; the CPU budget here is
+Learning rate: VAR's rule, 1e-4 x batch / 256, is sized for the paper's 4,000 epochs on a GPU; the CPU budget here is
 tens of epochs, so the default peak is 1e-3 with 100 warm-up steps and cosine decay to 1% of the peak. The AdaLN gates
 start near zero, which keeps the first steps stable at such rates; the default stays below the largest stable rate as
 a margin for long runs over few demonstrations. The rate is a parameter, worth raising when the epoch budget is small.

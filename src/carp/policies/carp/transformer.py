@@ -1,4 +1,6 @@
-"""Coarse-to-fine autoregressive transformer: next-scale prediction of action tokens (DESIGN.md section 5).
+"""Coarse-to-fine autoregressive transformer: next-scale prediction of action tokens.
+
+Overview in docs/architecture.md, "Coarse-to-fine transformer".
 
 Follows VAR (FoundationVision/VAR, `models/var.py`) and the official CARP (`singletask/CFAP/autoreg.py`): a
 decoder-only GPT-2-style stack with AdaLN conditioning. The first scale's tokens are the condition plus a learned
