@@ -1,4 +1,4 @@
-"""The sweep's search space: scale schedules ``s_1 < ... < s_K = l`` crossed with codebook sizes ``V``.
+"""The sweep's search space: scale schedules ``s_1 < ... < s_K`` crossed with codebook sizes ``V``.
 
 Optuna's categorical choices must be plain scalars, so a schedule is stored as its ``-S`` spelling (``[1,2,4]``);
 that spelling is also what a trial passes to ``dvc exp run -S scales=[1,2,4]``.
