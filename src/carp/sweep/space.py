@@ -20,7 +20,7 @@ class TrialSettings:
     """The two swept params of one trial.
 
     Attributes:
-        scales: tokens per dimension at each scale, ``(s_1, ..., s_K)``, ending at the latent length ``l``.
+        scales: tokens per dimension at each scale, ``(s_1, ..., s_K)``, strictly increasing.
         codebook_size: ``V``, codes per action dimension.
     """
 
