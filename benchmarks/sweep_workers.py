@@ -52,7 +52,7 @@ def configure(template: Path, storage: str, tracking_uri: str, study: str, point
         heartbeat_seconds=2,
         pruner="none",
         validation_episodes=1,
-        confirm_seeds=[0, 1],
+        confirm_seeds=[1, 2],
     )
     # The two confirmation seeds are enough for its verdict.
     params["comparison"]["min_seeds"] = 2

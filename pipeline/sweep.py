@@ -9,9 +9,10 @@ reports/sweep/best_params.txt. Killed or interrupted, it resumes where it stoppe
 in params.yaml and reproduces only `train_tokenizer` (for the pruning check), then runs `dvc exp run -n
 sweep-<study>-t<number> -S scales=... -S codebook_size=... -S eval.run_test=false ... evaluate`: validation
 episodes only (`sweep.validation_episodes` per candidate), pruned by `sweep.pruner` as they come in. The
-confirmation trains the best trial's settings and the default ones on `sweep.confirm_seeds` as two more
-experiments and compares them on the test seeds. Experiments are pushed to `sweep.git_remote` when one is set. The
-workspace is left holding the last experiment's params and outputs.
+confirmation trains the best trial's settings and the default ones on `sweep.confirm_seeds` (none of the trials'
+`seeds`: new networks, not the ones the trials chose) as two more experiments and compares them on the test seeds.
+Experiments are pushed to `sweep.git_remote` when one is set. The workspace is left holding the last experiment's
+params and outputs.
 
 The default settings (`scales`, `codebook_size`) and the trials' training seeds (`seeds`) are the committed
 params.yaml's (HEAD, the experiments' baseline): every experiment leaves its own values of them in the workspace's
@@ -120,6 +121,13 @@ def main() -> None:
         fail("run the sweep in the project workspace, not inside a DVC temporary workspace")
     if not params.policies:
         fail(f"{args.params}: policies=[]: the sweep trains and evaluates single-task policies; list a family")
+    reused = sorted(set(params.sweep.confirm_seeds) & set(params.seeds))
+    if reused:
+        # The winner's trial networks were selected for their validation score: the confirmation trains new ones.
+        fail(
+            f"{args.params}: sweep.confirm_seeds={list(params.sweep.confirm_seeds)}: must not include the trials' "
+            f"training seeds seeds={list(params.seeds)} (both hold {reused})"
+        )
     lock = _hold_workspace_lock()
     config = dataclasses.replace(
         params.sweep,

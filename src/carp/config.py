@@ -782,9 +782,11 @@ class SweepConfig:
             ``eval.validation_episodes``, whatever the ``eval`` section says. An integer >= 1; a few dozen tell trials
             apart.
         confirm_seeds: Training seeds of the confirmation that ends the sweep: the selected trial's settings and the
-            default ones (``scales`` and ``codebook_size`` of the params file) are each trained once per seed and
-            evaluated on the test seeds, and their paired comparison is the sweep's result; distinct integers >= 0,
-            at least two and at least ``comparison.min_seeds`` (fewer could never confirm anything).
+            default ones (``scales`` and ``codebook_size`` of the committed params file) are each trained once per
+            seed and evaluated on the test seeds, and their paired comparison is the sweep's result; distinct integers
+            >= 0, at least two and at least ``comparison.min_seeds`` (fewer could never confirm anything), and none
+            of ``seeds`` (the sweep checks it): the winner's trial networks were chosen for their validation score,
+            and a confirmation that reused one would measure the selected settings with that luck included.
     """
 
     study_name: str = "carp-sweep"
@@ -797,7 +799,7 @@ class SweepConfig:
     git_remote: str = ""
     pruner: str = "successive_halving"
     validation_episodes: int = 20
-    confirm_seeds: tuple[int, ...] = (0, 1, 2)
+    confirm_seeds: tuple[int, ...] = (1, 2, 3)
 
     def __post_init__(self) -> None:
         _require(self.num_trials >= 1, "sweep.num_trials", self.num_trials, "must be >= 1")

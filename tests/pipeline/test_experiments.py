@@ -47,8 +47,8 @@ SWEEP = {
     # Candidates still report their validation through the progress file; no trial is stopped by chance.
     "pruner": "none",
     "validation_episodes": 2,
-    # Two training seeds per arm, which comparison.min_seeds must then allow (copy_workspace sets it).
-    "confirm_seeds": [0, 1],
+    # Two training seeds per arm, none of the trials' (seeds: [0]); comparison.min_seeds allows two (copy_workspace).
+    "confirm_seeds": [1, 2],
 }
 DEFAULT_SETTINGS = TrialSettings(tuple(TINY_PARAMS["scales"]), TINY_PARAMS["codebook_size"])
 TEST_SEEDS = range(100_000, 100_000 + TINY_PARAMS["eval"]["episodes"])  # eval.seed on, eval.episodes of them
@@ -134,7 +134,7 @@ def test_invalid_set_values_are_refused_with_one_line(template, tmp_path):
     workspace = copy_workspace(template, tmp_path)
     for value, message in (
         ("codebook_size=1", "codebook_size=1: must be >= 2"),
-        ("scales=[1,2,3]", "scales=[1, 2, 3]: must end at the latent length l = "),
+        ("scales=[1,3,2]", "scales=[1, 3, 2]: every schedule must be positive, strictly increasing and end at most"),
     ):
         refused = run(dvc("exp", "run", "-S", value), workspace)
         assert refused.returncode != 0
@@ -472,5 +472,17 @@ def test_a_second_sweep_in_the_same_workspace_is_refused(tmp_path):
     assert refused.returncode == 1 and refused.stdout == ""
     assert refused.stderr.strip() == (
         f"error: {lock_path}: another sweep is running in this workspace; start each sweep worker in its own clone"
+    )
+    assert not (workspace / "optuna.db").exists() and not (workspace / "reports" / "sweep").exists()
+
+
+@pytest.mark.slow
+def test_a_confirmation_that_would_reuse_a_trial_seed_is_refused(tmp_path):
+    workspace = make_workspace(tmp_path / "carp", {"seeds": [0, 1], "sweep": {"confirm_seeds": [1, 2, 3]}})
+    refused = run(sweep_command(), workspace, timeout=300)
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.strip() == (
+        f"error: {workspace.resolve() / 'params.yaml'}: sweep.confirm_seeds=[1, 2, 3]: must not include the trials' "
+        "training seeds seeds=[0, 1] (both hold [1])"
     )
     assert not (workspace / "optuna.db").exists() and not (workspace / "reports" / "sweep").exists()
