@@ -25,7 +25,9 @@ from mlflow import MlflowClient
 from optuna.trial import TrialState
 
 from carp.sweep.confirmation import arm_key
+from carp.sweep.dvc_runner import DvcExperimentRunner
 from carp.sweep.space import TrialSettings
+from carp.sweep.study import ExperimentStoppedError
 from tests.pipeline.workspace import (
     TINY_PARAMS,
     dvc,
@@ -353,6 +355,46 @@ def test_the_confirmation_step_runs_end_to_end_on_tiny_params_with_2_seeds(kille
     assert parent.data.metrics["confirmed_test_success_rate"] == pytest.approx(test_rates["selected"])
     assert parent.data.metrics["default_test_success_rate"] == pytest.approx(test_rates["default"])
     assert parent.data.metrics["best_validation_success_rate"] == pytest.approx(best_row.validation_success_rate)
+
+
+@pytest.mark.slow
+def test_a_pruned_trial_stops_its_dvc_experiment_and_the_next_trial_runs(template, tmp_path):
+    # The progress file and its stop file through a real `dvc exp run`: the evaluate stage reports each candidate (a
+    # snapshot at epoch 1, the final policy at 2), stops when asked, and the failed experiment leaves the workspace
+    # fit for the next trial.
+    workspace = copy_workspace(template, tmp_path, SWEEP)
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    params["training"]["snapshot_every"] = 1
+    (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    assert run(["git", "commit", "-qam", "snapshots"], workspace).returncode == 0
+    runner = DvcExperimentRunner(
+        workspace,
+        workspace / "reports/tokenizer/metrics.json",
+        lambda task, policy, seed: workspace / "reports/eval" / task / policy / f"seed{seed}.json",
+        ["lift"],
+        ["carp"],
+        [0],
+        "",
+        tool_env(),
+        SWEEP["validation_episodes"],
+    )
+    settings = TrialSettings((1, 4), 8)
+    stopped, completed = [], []
+    runner.train_tokenizer("sweep-tiny-t0", settings)
+    with pytest.raises(ExperimentStoppedError):
+        runner.run_experiment("sweep-tiny-t0", settings, lambda candidate: stopped.append(candidate) or True)
+    # The stop takes effect after the candidate being validated when the stage sees it: the first or the second.
+    assert [candidate.epoch for candidate in stopped][:1] == [1] and len(stopped) <= 2
+    assert "sweep-tiny-t0" not in experiments(workspace)
+
+    runner.train_tokenizer("sweep-tiny-t1", settings)
+    result = runner.run_experiment("sweep-tiny-t1", settings, lambda candidate: completed.append(candidate) or False)
+    assert [(candidate.evaluation, candidate.epoch) for candidate in completed] == [
+        ("lift/carp/seed0", 1),
+        ("lift/carp/seed0", 2),
+    ]
+    assert result.validation_success_rate == pytest.approx(max(candidate.success_rate for candidate in completed))
+    assert set(experiments(workspace)) == {"sweep-tiny-t1"}
 
 
 def _second_trial_is_training(log: str) -> bool:
