@@ -2,11 +2,13 @@
 
 The sweep picks the best of many trials on the validation seeds, so the winner's validation score is optimistic (the
 best of 16 equal trials measured on 50 episodes reads about 9 points high). The confirmation measures the choice
-afresh: the winner's settings and the default settings (``scales`` and ``codebook_size`` of the params file) are each
-trained once per ``sweep.confirm_seeds`` training seed, as one DVC experiment each, and evaluated on the test seeds
-that no trial ran; the paired comparison of the two (`carp.reporting.comparison.compare_families`, the report's own
-verdicts, with ``comparison.margin`` and ``comparison.alpha``) is the sweep's result. When the winner's settings are
-the default ones, one experiment runs and there is nothing to compare.
+afresh: the winner's settings and the default settings (``scales`` and ``codebook_size`` of the committed params
+file) are each trained once per ``sweep.confirm_seeds`` training seed, as one DVC experiment each, and evaluated on
+the test seeds that no trial ran. The confirmation's training seeds are none of the trials' (the sweep checks it): a
+trial's network was chosen for its validation score, and reusing it would carry that luck into the selected arm. The
+paired comparison of the two (`carp.reporting.comparison.compare_families`, the report's own verdicts, with
+``comparison.margin`` and ``comparison.alpha``) is the sweep's result. When the winner's settings are the default
+ones, one experiment runs and there is nothing to compare.
 
 Each arm's evaluations are copied under ``<reports>/confirmation/<arm>/`` as soon as its experiment ends (the next
 experiment overwrites the workspace's outputs), so a resumed sweep does not train an arm again.
@@ -37,7 +39,7 @@ class ConfirmationPlan:
     """What the confirmation compares and how.
 
     Attributes:
-        default: the params file's own ``scales`` and ``codebook_size``.
+        default: the committed params file's ``scales`` and ``codebook_size``.
         seeds: training seeds of each arm (``sweep.confirm_seeds``).
         margin: equivalence margin of the verdict, in success rate (``comparison.margin``).
         alpha: significance level of the verdict (``comparison.alpha``).
