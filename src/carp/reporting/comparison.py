@@ -285,6 +285,21 @@ def family_rate(runs: Runs, level: float = 0.95) -> "statistics.Interval | None"
     return seed_level_estimate([values.astype(float) for values in outcomes], shared_states=True).interval(level)
 
 
+def family_rate_cells(runs: Runs, level: float = 0.95) -> dict[str, int | str]:
+    """Table cells of one family: its training seeds, each seed's rate and the family rate with its interval."""
+    rate = family_rate(runs, level)
+    seed_rates = [values.mean() for values in outcomes_by_seed(runs).values()]
+    return {
+        "seeds": len(runs),
+        "per seed": ", ".join(f"{100 * seed_rate:.1f}%" for seed_rate in seed_rates),
+        f"family rate, {level:.0%} interval over seeds": (
+            f"{100 * rate.estimate:.1f}% ({100 * rate.low:.1f}-{100 * rate.high:.1f}%)"
+            if rate is not None
+            else f"{100 * seed_rates[0]:.1f}% (n/a, 1 training seed)"
+        ),
+    }
+
+
 def family_table(task_runs: Mapping[str, Runs], level: float = 0.95) -> pd.DataFrame:
     """One row per family: its rate over training seeds with the family interval, and the networks' own figures.
 

@@ -274,7 +274,7 @@ def kaplan_meier(steps: np.ndarray, success: np.ndarray, max_steps: int) -> Kapl
         reaching 1 when no episode failed.
     """
     step_counts = np.asarray(steps)
-    succeeded = _outcomes(success, "success")
+    succeeded = as_outcomes(success, "success")
     if step_counts.shape != succeeded.shape or not np.issubdtype(step_counts.dtype, np.integer):
         raise ValueError("steps must be integers of the same shape as success")
     if step_counts.size == 0:
@@ -311,7 +311,7 @@ def logrank(
     samples, any_success = [], False
     for steps, success in ((first_steps, first_success), (second_steps, second_success)):
         step_counts = np.asarray(steps)
-        succeeded = _outcomes(success, "success")
+        succeeded = as_outcomes(success, "success")
         if step_counts.shape != succeeded.shape or step_counts.size == 0:
             raise ValueError("steps and success must be non-empty and of the same shape")
         samples.append(stats.CensoredData(uncensored=step_counts[succeeded], right=step_counts[~succeeded]))
@@ -337,7 +337,7 @@ def _newcombe_phi(both: int, first_only: int, second_only: int, neither: int) ->
 
 def _paired_outcomes(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Both outcome arrays as (N,) bool, N >= 1, checked to pair."""
-    first, second = _outcomes(first, "first"), _outcomes(second, "second")
+    first, second = as_outcomes(first, "first"), as_outcomes(second, "second")
     if first.shape != second.shape:
         raise ValueError(f"paired outcomes need the same length, got {first.size} and {second.size}")
     if first.size == 0:
@@ -345,7 +345,7 @@ def _paired_outcomes(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray,
     return first, second
 
 
-def _outcomes(values: np.ndarray | Sequence[bool], name: str) -> np.ndarray:
+def as_outcomes(values: np.ndarray | Sequence[bool], name: str) -> np.ndarray:
     """A flat bool array from bools or 0/1 numbers."""
     array = np.asarray(values)
     if array.ndim != 1:

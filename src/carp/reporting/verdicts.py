@@ -26,6 +26,7 @@ from carp.reporting.statistics import (
     Interval,
     KaplanMeierCurve,
     McNemarResult,
+    as_outcomes,
     kaplan_meier,
     mcnemar_exact,
     newcombe_paired_difference,
@@ -174,8 +175,8 @@ def compare_pair(
     first_runs, second_runs, used_pairs, first_steps, second_steps = [], [], [], [], []
     truncated, empty = False, []
     for first_seed, second_seed in seed_pairs:
-        first_values = _outcomes(first_by_seed[first_seed], first_name)
-        second_values = _outcomes(second_by_seed[second_seed], second_name)
+        first_values = as_outcomes(first_by_seed[first_seed], first_name)
+        second_values = as_outcomes(second_by_seed[second_seed], second_name)
         length = min(first_values.size, second_values.size)
         truncated |= first_values.size != second_values.size
         if length == 0:
@@ -475,18 +476,6 @@ def _steps_curves(
         kaplan_meier(first_counts, np.concatenate(first_runs), horizon),
         kaplan_meier(second_counts, np.concatenate(second_runs), horizon),
     )
-
-
-def _outcomes(values: np.ndarray | Sequence[bool], name: str) -> np.ndarray:
-    """A flat bool array from bools or 0/1 numbers."""
-    array = np.asarray(values)
-    if array.ndim != 1:
-        raise ValueError(f"{name}: outcomes must be one flat array per run, got shape {array.shape}")
-    if array.dtype != np.bool_:
-        if array.size and not np.all((array == 0) | (array == 1)):
-            raise ValueError(f"{name}: outcomes must be booleans or 0/1")
-        array = array.astype(bool)
-    return array
 
 
 def _seeds_text(seeds: int) -> str:

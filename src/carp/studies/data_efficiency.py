@@ -31,6 +31,7 @@ from carp.reporting.comparison import (  # noqa: E402
     decide_groups,
     family_pairs,
     family_rate,
+    family_rate_cells,
     find_pair,
     oriented_verdict,
     outcomes_by_seed,
@@ -277,21 +278,7 @@ def study_sections(
         rows = []
         for size in sizes:
             for family, runs in points[size][task].items():
-                rate = family_rate(runs)
-                seed_rates = [values.mean() for values in outcomes_by_seed(runs).values()]
-                rows.append(
-                    {
-                        "demos": size,
-                        "policy": family,
-                        "seeds": len(runs),
-                        "per seed": ", ".join(f"{100 * rate:.1f}%" for rate in seed_rates),
-                        "family rate, 95% interval over seeds": (
-                            f"{100 * rate.estimate:.1f}% ({100 * rate.low:.1f}-{100 * rate.high:.1f}%)"
-                            if rate is not None
-                            else f"{100 * seed_rates[0]:.1f}% (n/a, 1 training seed)"
-                        ),
-                    }
-                )
+                rows.append({"demos": size, "policy": family, **family_rate_cells(runs)})
         claims = claims_table(verdicts, task)
         section = Section(
             f"Data efficiency on {task}",

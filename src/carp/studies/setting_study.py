@@ -30,19 +30,18 @@ from carp.reporting.comparison import (  # noqa: E402
     Runs,
     decide_groups,
     family_rate,
+    family_rate_cells,
+    merge_runs,
     oriented_verdict,
     outcomes_by_seed,
     referenced_runs,
 )
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.report import Section, write_sections  # noqa: E402
+from carp.studies.data_efficiency import COMPLETE_MARKER, Evaluations  # noqa: E402
 
-COMPLETE_MARKER = "complete.json"
 TOKENIZER_METRICS = "tokenizer_metrics.json"
 EVAL_FOLDER = "eval"
-
-Evaluations = Mapping[str, Mapping[str, Runs]]
-"""task -> family -> training seed -> results: what one point's experiment evaluated."""
 
 
 @dataclass(frozen=True)
@@ -191,14 +190,8 @@ def load_study(study: SettingStudy, folders: Sequence[Path], tasks: Sequence[str
 def merged_evaluations(parts: Sequence[StudyPoint]) -> dict[str, dict[str, dict[int, Any]]]:
     """One point's evaluations from several folders; a family's training seed may come from one folder only."""
     merged: dict[str, dict[str, dict[int, Any]]] = {}
-    for part in parts:
-        for task, families in part.evaluations.items():
-            for family, runs in families.items():
-                seeds = merged.setdefault(task, {}).setdefault(family, {})
-                for seed, run in runs.items():
-                    if seed in seeds:
-                        raise ValueError(f"{task}/{family} training seed {seed} is in two folders of the study")
-                    seeds[seed] = run
+    for index, part in enumerate(parts):
+        merged = merge_runs(merged, part.evaluations, f"study folder {index + 1} of the point")
     return merged
 
 
@@ -244,21 +237,13 @@ def study_sections(
         rows = []
         for value in values:
             for family, runs in evaluations[value].get(task, {}).items():
-                rate = family_rate(runs)
-                seed_rates = [outcome.mean() for outcome in outcomes_by_seed(runs).values()]
                 latency = _median_latency(runs)
                 comparison = verdict_of.get((value, task, family))
                 rows.append(
                     {
                         "point": study.label(value),
                         "policy": family,
-                        "seeds": len(runs),
-                        "per seed": ", ".join(f"{100 * rate:.1f}%" for rate in seed_rates),
-                        "family rate, 95% interval over seeds": (
-                            f"{100 * rate.estimate:.1f}% ({100 * rate.low:.1f}-{100 * rate.high:.1f}%)"
-                            if rate is not None
-                            else f"{100 * seed_rates[0]:.1f}% (n/a, 1 training seed)"
-                        ),
+                        **family_rate_cells(runs),
                         "tokenizer error (% of range)": _metric(tokenizer[value], "rmse_percent_range/mean", "{:.2f}"),
                         "code usage": _metric(tokenizer[value], "usage/all_scales/mean", "{:.0%}"),
                         "perplexity": _metric(tokenizer[value], "perplexity/mean", "{:.0f}"),
