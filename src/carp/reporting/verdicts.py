@@ -499,7 +499,10 @@ def _interval_text(interval: Interval) -> str:
 
 
 def _p_phrase(p_value: float) -> str:
-    return "p < 0.0001" if p_value < 1e-4 else f"p = {p_value:.2g}"
+    # Four digits between 0.01 and 0.1, so a p just below alpha does not print as alpha itself.
+    if p_value < 1e-4:
+        return "p < 0.0001"
+    return f"p = {p_value:.4g}" if 0.01 <= p_value < 0.1 else f"p = {p_value:.2g}"
 
 
 def _p_text(p_value: float | None) -> str:
