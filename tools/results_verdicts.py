@@ -2,7 +2,7 @@
 
 Each group below is what one README / docs/results.md row compares: the evaluation folders whose families are set
 side by side. The verdicts are decided as a report decides them (the training seed as the unit, one correction over
-the group's pairs), so a row's published verdict can be checked against its episodes at any time.
+the group's pairs and precision claims), so a row's published verdict can be checked against its episodes at any time.
 
     .venv/bin/python tools/results_verdicts.py [--min-seeds 3] [--alpha 0.05] [--margin 0.05]
 """
@@ -12,10 +12,12 @@ from pathlib import Path
 
 from carp.reporting.comparison import (
     MULTITASK_SUFFIX,
-    decide_groups,
+    claims_table,
+    decide_report,
     family_pairs,
     merge_runs,
     multitask_pairs,
+    precision_tests,
     referenced_runs,
     split_multitask,
 )
@@ -63,7 +65,10 @@ def main() -> None:
             runs = merge_runs(runs, referenced_runs(RESULTS / folder, TASKS), folder)
         single, multi = split_multitask(runs, MULTITASK_SUFFIX)
         groups = [(list(single), family_pairs(single)), (list(multi), multitask_pairs(single, multi, MULTITASK_SUFFIX))]
-        decided = decide_groups(groups, arguments.margin, arguments.alpha, min_seeds=arguments.min_seeds)
+        single_tests = precision_tests(single, arguments.min_seeds)
+        tests = single_tests + precision_tests(multi, arguments.min_seeds)
+        decided, tests = decide_report(groups, tests, arguments.margin, arguments.alpha, min_seeds=arguments.min_seeds)
+        split = len(single_tests)
         print(f"## {title}")
         for by_task in decided:
             for task, pairs in by_task.items():
@@ -71,6 +76,12 @@ def main() -> None:
                     rates = f"{100 * pair.first_rate:.1f}% vs {100 * pair.second_rate:.1f}%"
                     print(f"- {task}: {pair.first} vs {pair.second}, {pair.seeds} seed(s), {rates}: {pair.verdict}")
                     print(f"  {pair.explanation}")
+        for evaluations, suffix, group_tests in ((single, "", tests[:split]), (multi, MULTITASK_SUFFIX, tests[split:])):
+            claims = claims_table(evaluations, {}, group_tests, suffix=suffix)
+            for row in claims.itertuples():
+                if "precision" in row.claim:
+                    print(f"- {row.task}{suffix}: {row.claim}: {row.verdict}")
+                    print(f"  {row.evidence}")
         print()
 
 

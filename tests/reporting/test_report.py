@@ -338,6 +338,16 @@ def test_a_tasks_precision_measure_gets_its_table_and_claim(tmp_path, inputs):
     claims = markdown.split("## The paper's claims on this run", 1)[1]
     precision = next(line for line in claims.splitlines() if "insertion precision" in line)
     assert "| holds " in precision and "carp more precise" in precision
+    # The precision test joins the success pair's correction: two groups, so its p at most doubles.
+    raw, corrected = map(float, re.search(r"p = ([\d.e-]+), corrected ([\d.e-]+);", precision).groups())
+    assert raw < corrected <= 2 * raw + 1e-3
+    # With one seed per family the claim is not decided and takes no part in the correction.
+    one_seed = {family: {0: seed_runs[0]} for family, seed_runs in runs["square"].items()}
+    one = dataclasses.replace(report, runs={"square": one_seed})
+    markdown = write_report(one, tmp_path / "one_seed")[0].read_text()
+    claims = markdown.split("## The paper's claims on this run", 1)[1]
+    precision = next(line for line in claims.splitlines() if "insertion precision" in line)
+    assert "| not decided (1 training seed) " in precision and "corrected" not in precision
 
 
 def test_the_seed_table_names_an_averaged_checkpoint_by_its_span():

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from carp.reporting.calibration import Regime, simulate_run
-from carp.reporting.verdicts import compare_pair, comparison_table, decide_pairs
+from carp.reporting.verdicts import compare_pair, comparison_table, decide_pairs, decide_pairs_and_tests
 
 
 def paired_table(both: int, first_only: int, second_only: int, neither: int) -> tuple[np.ndarray, np.ndarray]:
@@ -90,6 +90,24 @@ def test_one_correction_over_every_pair_turns_a_marginal_win_into_not_decided():
     # Pairs with too few seeds are outside the correction: they leave the marginal win alone.
     few = [compare_pair(f"e{index}", {0: equal[0]}, "d", {0: equal[0]}) for index in range(20)]
     assert decide_pairs([marginal, *few], margin=0.05)[0].verdict == "a better"
+
+
+def test_other_tests_share_the_correction_with_the_pairs():
+    outcomes = two_families((0.85, 0.7), 3, 200, seed=28, seed_spread=0.03)
+    marginal = compare_pair("a", outcomes[0], "b", outcomes[1])
+    assert 0.005 < marginal.p_value < 0.05 / 3
+    # Two precision tests, one strong, one null: three groups, so the marginal win holds at 3x its p.
+    pairs, adjusted = decide_pairs_and_tests([marginal], [0.001, 0.6], margin=0.05)
+    assert pairs[0].verdict == "a better"
+    assert pairs[0].adjusted_p_value == pytest.approx(2 * marginal.p_value)  # second step: two groups left
+    # The null test's step still counts the pair's untested equivalence: two groups, 2 x 0.6 capped at 1.
+    assert adjusted == pytest.approx([0.003, 1.0])
+    # Twenty null tests beside it: the same win is no longer decided, as with twenty null pairs.
+    pairs, adjusted = decide_pairs_and_tests([marginal], [0.5] * 20, margin=0.05)
+    assert pairs[0].verdict == "not decided" and pairs[0].adjusted_p_value == pytest.approx(21 * marginal.p_value)
+    assert len(adjusted) == 20 and min(adjusted) >= 0.5
+    # Without other tests it is decide_pairs.
+    assert decide_pairs_and_tests([marginal], [], margin=0.05)[0] == decide_pairs([marginal], margin=0.05)
 
 
 def test_pairs_seeds_by_position_and_truncates_to_shared_states():

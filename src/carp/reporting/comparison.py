@@ -10,7 +10,7 @@ training seeds pair by number.
 import json
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import combinations
 from pathlib import Path
 from typing import Any
@@ -420,7 +420,7 @@ def decide_groups(
     level: float = 0.95,
     min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
 ) -> list[dict[str, list["verdicts.PairComparison"]]]:
-    """Compare several groups of pairs with one correction over all of them (every verdict a report states).
+    """Compare several groups of pairs with one correction over all of them (`decide_report` without other tests).
 
     Args:
         groups: (tasks, pairs) per group, e.g. the single-task families and the multi-task policies of one report, or
@@ -433,15 +433,49 @@ def decide_groups(
     Returns:
         Per group, task -> its pairs' comparisons with verdicts, in the order of the pairs.
     """
+    return decide_report(groups, (), margin, alpha, level, min_seeds)[0]
+
+
+def decide_report(
+    groups: Sequence[tuple[Sequence[str], Sequence[tuple[str, str, Runs, str, Runs]]]],
+    tests: Sequence["PrecisionTest"],
+    margin: float,
+    alpha: float,
+    level: float = 0.95,
+    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
+) -> tuple[list[dict[str, list["verdicts.PairComparison"]]], list["PrecisionTest"]]:
+    """Every verdict a report states under one correction: the groups' success pairs and the precision tests.
+
+    Args:
+        groups: as for `decide_groups`.
+        tests: the report's precision tests (`precision_tests`); those without a p-value (too few seeds) stay out of
+            the correction.
+        margin: equivalence margin of the verdicts, in success rate.
+        alpha: family-wise significance level over every pair's verdict and every test.
+        level: confidence level of the intervals.
+        min_seeds: training seeds per family a family verdict needs.
+
+    Returns:
+        Per group, task -> its decided pairs; and the tests with their adjusted p-values, in their input order.
+    """
     compared = [[(pair[0], _compare(pair, margin, alpha, level, min_seeds)) for pair in pairs] for _, pairs in groups]
-    decided = iter(verdicts.decide_pairs([pair for group in compared for _, pair in group], margin=margin, alpha=alpha))
+    decidable = [test for test in tests if test.p_value is not None]
+    decided_pairs, adjusted = verdicts.decide_pairs_and_tests(
+        [pair for group in compared for _, pair in group],
+        [test.p_value for test in decidable if test.p_value is not None],
+        margin=margin,
+        alpha=alpha,
+    )
+    decided = iter(decided_pairs)
     results = []
     for (tasks, _), group in zip(groups, compared):
         by_task: dict[str, list[verdicts.PairComparison]] = {task: [] for task in tasks}
         for task, _ in group:
             by_task.setdefault(task, []).append(next(decided))
         results.append(by_task)
-    return results
+    adjusted_by_test = {id(test): value for test, value in zip(decidable, adjusted)}
+    corrected = [replace(test, adjusted_p_value=adjusted_by_test.get(id(test))) for test in tests]
+    return results, corrected
 
 
 def compare_families(
@@ -550,33 +584,95 @@ def latency_ratio(slower: Runs, faster: Runs, level: float = 0.95, resamples: in
     )
 
 
+@dataclass(frozen=True)
+class PrecisionTest:
+    """One precision claim on one task: Welch's test of two families' per-seed mean measures (lower is more precise).
+
+    Attributes:
+        task, claim, family, rival, column: the claim (`PRECISION_CLAIMS`) and the task it is tested on.
+        seed_means: (n_family,), (n_rival,) each training seed's mean of the measure over its measured episodes.
+        networks: the pooled episode figures, stated as the networks' (they do not decide the claim).
+        min_seeds: training seeds per family the test needs.
+        p_value: Welch's p over training seeds; None with fewer than `min_seeds` seeds in either family.
+        difference: family's mean minus rival's, over seeds (NaN without a p-value).
+        interval: its 95% Welch interval, uncorrected (NaN without a p-value).
+        adjusted_p_value: p after the report's correction (`decide_report`); None until then.
+    """
+
+    task: str
+    claim: str
+    family: str
+    rival: str
+    column: str
+    seed_means: tuple[np.ndarray, np.ndarray]
+    networks: str
+    min_seeds: int
+    p_value: float | None
+    difference: float
+    interval: tuple[float, float]
+    adjusted_p_value: float | None = None
+
+
+def precision_tests(
+    evaluations: Mapping[str, Mapping[str, Runs]], min_seeds: int = verdicts.DEFAULT_MIN_SEEDS
+) -> list[PrecisionTest]:
+    """The precision claims a run can test, per task: families it trained with a measure its task takes."""
+    tests = []
+    for task, task_runs in evaluations.items():
+        for claim, family, rival, column in PRECISION_CLAIMS:
+            if family not in task_runs or rival not in task_runs or column not in measure_columns(task_runs):
+                continue
+            pooled = [pooled_measure(task_runs[name], column) for name in (family, rival)]
+            pooled = [values[np.isfinite(values)] for values in pooled]
+            if not all(values.size for values in pooled):
+                continue
+            networks = (
+                f"{column} over the networks' measured episodes: {family} mean {pooled[0].mean():.2f} "
+                f"({pooled[0].size} episodes), {rival} mean {pooled[1].mean():.2f} ({pooled[1].size} episodes)"
+            )
+            seed_means = (_seed_means(task_runs[family], column), _seed_means(task_runs[rival], column))
+            p_value, difference, interval = None, float("nan"), (float("nan"), float("nan"))
+            if min(means.size for means in seed_means) >= min_seeds:
+                result = stats.ttest_ind(seed_means[0], seed_means[1], equal_var=False)
+                low, high = result.confidence_interval(0.95)
+                p_value = float(result.pvalue)
+                difference = float(seed_means[0].mean() - seed_means[1].mean())
+                interval = (float(low), float(high))
+            tests.append(
+                PrecisionTest(
+                    task, claim, family, rival, column, seed_means, networks, min_seeds, p_value, difference, interval
+                )
+            )
+    return tests
+
+
 def claims_table(
     evaluations: Mapping[str, Mapping[str, Runs]],
     comparisons: Mapping[str, Sequence["verdicts.PairComparison"]],
+    precision: Sequence[PrecisionTest] = (),
     alpha: float = 0.05,
     suffix: str = "",
-    min_seeds: int = verdicts.DEFAULT_MIN_SEEDS,
 ) -> pd.DataFrame:
     """The paper's claims that this run can check, per task: the verdict and the numbers behind it.
 
     A success claim holds when the pair's family verdict says what the paper says ("on par" also holds when CARP comes
     out better), and is "not decided (n training seeds)" when the pair has too few seeds for a family verdict; a speed
     claim states the latency ratio with its interval and holds when the interval lies above 1; a precision claim
-    compares the families' per-seed mean offsets (Welch over training seeds) and holds when CARP's is lower at
+    holds when CARP's per-seed mean offset is lower and its test's p, corrected with the report's verdicts, is below
     `alpha`. Claims about families the run did not train, or measures its task lacks, are left out.
 
     Args:
         evaluations: task -> family -> runs.
         comparisons: task -> the pairs compared, each policy named by its family and `suffix`.
-        alpha: significance level of the precision claims.
+        precision: the precision tests of these evaluations, corrected (`decide_report`).
+        alpha: family-wise significance level the verdicts were corrected at.
         suffix: appended to a family's name in `comparisons` (`MULTITASK_SUFFIX` for the multi-task policies' claims).
-        min_seeds: training seeds per family a precision verdict needs.
     """
     rows = []
     for task, task_runs in evaluations.items():
         pairs = comparisons.get(task, ())
         rows += [{"task": task, **row} for row in _success_claims(pairs, suffix)]
-        rows += [{"task": task, **row} for row in _precision_claims(task_runs, alpha, min_seeds)]
+        rows += [{"task": task, **_precision_claim(test, alpha)} for test in precision if test.task == task]
         rows += [{"task": task, **row} for row in _speed_claims(task_runs)]
     return pd.DataFrame(rows, columns=["task", "claim", "verdict", "evidence"])
 
@@ -594,47 +690,32 @@ def _success_claims(pairs: Sequence["verdicts.PairComparison"], suffix: str) -> 
     return rows
 
 
-def _precision_claims(task_runs: Mapping[str, Runs], alpha: float, min_seeds: int) -> list[dict[str, str]]:
-    """Precision claims over training seeds: Welch's test of the two families' per-seed mean offsets.
-
-    Each training seed contributes the mean of its measured episodes; with fewer than `min_seeds` seeds in either
-    family the claim is not decided, and the pooled episode figures are given as what they are, the networks'.
-    """
-    rows = []
-    for claim, family, rival, column in PRECISION_CLAIMS:
-        if family not in task_runs or rival not in task_runs or column not in measure_columns(task_runs):
-            continue
-        seed_means = [_seed_means(task_runs[name], column) for name in (family, rival)]
-        pooled = [pooled_measure(task_runs[name], column) for name in (family, rival)]
-        pooled = [values[np.isfinite(values)] for values in pooled]
-        if not all(values.size for values in pooled):
-            continue
-        networks = (
-            f"{column} over the networks' measured episodes: {family} mean {pooled[0].mean():.2f} "
-            f"({pooled[0].size} episodes), {rival} mean {pooled[1].mean():.2f} ({pooled[1].size} episodes)"
-        )
-        counts = [means.size for means in seed_means]
-        if min(counts) < min_seeds:
-            verdict = f"not decided ({min(counts)} training seed{'s' if min(counts) != 1 else ''})"
-            evidence = f"{networks}; a family verdict needs {min_seeds} training seeds with measured episodes each"
-            rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
-            continue
-        result = stats.ttest_ind(seed_means[0], seed_means[1], equal_var=False)
-        difference = seed_means[0].mean() - seed_means[1].mean()
-        low, high = result.confidence_interval(0.95)
-        if result.pvalue >= alpha:
-            verdict, finding = "not decided", "no difference in the families' means detected"
-        else:
-            better = difference < 0
-            verdict = "holds" if better else "does not hold"
-            finding = f"{family} {'more' if better else 'less'} precise"
-        evidence = (
-            f"per-seed mean {column}: {family} {_listed(seed_means[0])}, {rival} {_listed(seed_means[1])}; {finding} "
-            f"(Welch over training seeds p = {result.pvalue:.3g}, difference {difference:+.2f}, 95% interval "
-            f"{low:+.2f} to {high:+.2f}); {networks}"
-        )
-        rows.append({"claim": claim, "verdict": verdict, "evidence": evidence})
-    return rows
+def _precision_claim(test: PrecisionTest, alpha: float) -> dict[str, str]:
+    """A precision test's row: not decided below its seed count, else by its corrected p and the sign."""
+    if test.p_value is None:
+        seeds = min(means.size for means in test.seed_means)
+        return {
+            "claim": test.claim,
+            "verdict": f"not decided ({seeds} training seed{'s' if seeds != 1 else ''})",
+            "evidence": f"{test.networks}; a family verdict needs {test.min_seeds} training seeds with measured "
+            "episodes each",
+        }
+    if test.adjusted_p_value is None:
+        raise ValueError(f"the precision test of {test.claim!r} on {test.task} was not corrected (decide_report)")
+    if test.adjusted_p_value >= alpha:
+        verdict, finding = "not decided", "no difference in the families' means detected"
+    else:
+        better = test.difference < 0
+        verdict = "holds" if better else "does not hold"
+        finding = f"{test.family} {'more' if better else 'less'} precise"
+    low, high = test.interval
+    evidence = (
+        f"per-seed mean {test.column}: {test.family} {_listed(test.seed_means[0])}, {test.rival} "
+        f"{_listed(test.seed_means[1])}; {finding} (Welch over training seeds p = {test.p_value:.3g}, corrected "
+        f"{test.adjusted_p_value:.3g}; difference {test.difference:+.2f}, 95% interval {low:+.2f} to {high:+.2f}); "
+        f"{test.networks}"
+    )
+    return {"claim": test.claim, "verdict": verdict, "evidence": evidence}
 
 
 def _seed_means(runs: Runs, column: str) -> np.ndarray:

@@ -410,11 +410,11 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         for task, policies in inputs.evaluation.items()
         if policies
     ]
-    single_pairs, multitask_pairs = decided_pairs(inputs)
+    decided = decide_verdicts(inputs)
     if inputs.multitask:
-        sections.append(multitask_section(inputs, multitask_pairs))
+        sections.append(multitask_section(inputs, decided))
     if inputs.runs:
-        sections += comparison_sections(inputs, single_pairs, figures_dir)
+        sections += comparison_sections(inputs, decided, figures_dir)
     sections += [
         Section(
             "Success rate",
@@ -528,7 +528,7 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
     return sections
 
 
-def multitask_section(inputs: ReportInputs, decided: Mapping[str, Sequence[verdicts.PairComparison]]) -> Section:
+def multitask_section(inputs: ReportInputs, decided: "ReportVerdicts") -> Section:
     """Each multi-task policy beside its family's single-task policy per task, with paired verdicts and task measures.
 
     The verdicts set each multi-task policy against its single-task policy and against the other families' multi-task
@@ -544,7 +544,7 @@ def multitask_section(inputs: ReportInputs, decided: Mapping[str, Sequence[verdi
         ],
         tables=[multitask_table(inputs.multitask, inputs.evaluation)],
     )
-    pairs = [(task, pair) for task, task_pairs in decided.items() for pair in task_pairs]
+    pairs = [(task, pair) for task, task_pairs in decided.multitask.items() for pair in task_pairs]
     if pairs:
         section.paragraphs.append(
             "Each multi-task policy against its single-task policy, and the multi-task policies of different families "
@@ -562,7 +562,11 @@ def multitask_section(inputs: ReportInputs, decided: Mapping[str, Sequence[verdi
             section.paragraphs.append(f"The multi-task policies' own measures on {task} (as in the task's comparison).")
             section.tables.append(measures)
     claims = comparison.claims_table(
-        inputs.multitask_runs, decided, alpha=inputs.alpha, suffix=MULTITASK_SUFFIX, min_seeds=inputs.min_seeds
+        inputs.multitask_runs,
+        decided.multitask,
+        decided.multitask_precision,
+        alpha=inputs.alpha,
+        suffix=MULTITASK_SUFFIX,
     )
     if not claims.empty:
         section.paragraphs.append(
@@ -573,19 +577,38 @@ def multitask_section(inputs: ReportInputs, decided: Mapping[str, Sequence[verdi
     return section
 
 
-def decided_pairs(inputs: ReportInputs) -> tuple[dict, dict]:
-    """The report's single-task and multi-task pairs (task -> comparisons), decided under one correction."""
+@dataclass(frozen=True)
+class ReportVerdicts:
+    """Every verdict a report states, decided under one correction (`decide_verdicts`).
+
+    Attributes:
+        single_task: task -> the single-task families' decided pairs.
+        multitask: task -> the multi-task policies' decided pairs.
+        single_task_precision: the single-task families' precision tests, corrected.
+        multitask_precision: the multi-task policies' precision tests, corrected.
+    """
+
+    single_task: Mapping[str, Sequence[verdicts.PairComparison]]
+    multitask: Mapping[str, Sequence[verdicts.PairComparison]]
+    single_task_precision: Sequence[comparison.PrecisionTest]
+    multitask_precision: Sequence[comparison.PrecisionTest]
+
+
+def decide_verdicts(inputs: ReportInputs) -> ReportVerdicts:
+    """The report's single-task and multi-task pairs and precision claims, decided under one correction."""
     groups = [
         (list(inputs.runs), comparison.family_pairs(inputs.runs)),
         (list(inputs.multitask_runs), comparison.multitask_pairs(inputs.runs, inputs.multitask_runs, MULTITASK_SUFFIX)),
     ]
-    single, multi = comparison.decide_groups(groups, inputs.margin, inputs.alpha, min_seeds=inputs.min_seeds)
-    return single, multi
+    single_tests = comparison.precision_tests(inputs.runs, inputs.min_seeds)
+    multitask_tests = comparison.precision_tests(inputs.multitask_runs, inputs.min_seeds)
+    (single, multi), tests = comparison.decide_report(
+        groups, single_tests + multitask_tests, inputs.margin, inputs.alpha, min_seeds=inputs.min_seeds
+    )
+    return ReportVerdicts(single, multi, tests[: len(single_tests)], tests[len(single_tests) :])
 
 
-def comparison_sections(
-    inputs: ReportInputs, decided: Mapping[str, Sequence[verdicts.PairComparison]], figures_dir: Path
-) -> list[Section]:
+def comparison_sections(inputs: ReportInputs, decided: ReportVerdicts, figures_dir: Path) -> list[Section]:
     """The comparison sections: per task the seeds, families, paired verdicts and steps to success; then the claims."""
     margin_points = 100 * inputs.margin
     sections = []
@@ -606,7 +629,7 @@ def comparison_sections(
             ],
             tables=[comparison.seed_table(task_runs), comparison.family_table(task_runs)],
         )
-        pairs = decided.get(task, [])
+        pairs = decided.single_task.get(task, [])
         if pairs:
             section.paragraphs.append(
                 "Pairs of families on the same episode seeds, training seeds paired by number. The training seed is "
@@ -637,7 +660,9 @@ def comparison_sections(
                 )
             )
         sections.append(section)
-    claims = comparison.claims_table(inputs.runs, decided, alpha=inputs.alpha, min_seeds=inputs.min_seeds)
+    claims = comparison.claims_table(
+        inputs.runs, decided.single_task, decided.single_task_precision, alpha=inputs.alpha
+    )
     if not claims.empty:
         sections.append(
             Section(

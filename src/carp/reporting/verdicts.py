@@ -254,7 +254,7 @@ def compare_pair(
         explanation="",
         pairing_note=note,
     )
-    return _with_verdict(comparison, comparison.p_value, comparison.equivalence_p_value, pairs=1)
+    return _with_verdict(comparison, comparison.p_value, comparison.equivalence_p_value, groups=1)
 
 
 def decide_pairs(comparisons: Sequence[PairComparison], margin: float, alpha: float = 0.05) -> list[PairComparison]:
@@ -273,6 +273,26 @@ def decide_pairs(comparisons: Sequence[PairComparison], margin: float, alpha: fl
     Returns:
         The comparisons in the same order with adjusted p-values, ``margin``, ``verdict`` and ``explanation``.
     """
+    return decide_pairs_and_tests(comparisons, (), margin, alpha)[0]
+
+
+def decide_pairs_and_tests(
+    comparisons: Sequence[PairComparison], other_p_values: Sequence[float], margin: float, alpha: float = 0.05
+) -> tuple[list[PairComparison], list[float]]:
+    """``decide_pairs`` with further single-hypothesis tests of the same report under the same correction.
+
+    Every claim a report states from a rejection must share the family-wise level, so tests that are not success
+    pairs (e.g. a precision claim's test of two families' mean measures) join the correction, each as its own group.
+
+    Args:
+        comparisons: as for ``decide_pairs``.
+        other_p_values: raw p-values of the other tests.
+        margin: equivalence margin as a share.
+        alpha: family-wise significance level over the pairs' verdicts and the other tests together.
+
+    Returns:
+        The decided comparisons (as ``decide_pairs``) and the other tests' adjusted p-values, in their input order.
+    """
     for comparison in comparisons:
         if not math.isclose(comparison.alpha, alpha):
             raise ValueError(
@@ -285,16 +305,19 @@ def decide_pairs(comparisons: Sequence[PairComparison], margin: float, alpha: fl
         if comparison.decidable:
             p_values += [comparison.p_value, comparison.equivalence_p_value]
             groups += [index, index]
-    adjusted = iter(step_down_adjust(p_values, groups))
-    pairs = max(1, len(set(groups)))
+    p_values += list(other_p_values)
+    groups += [len(rescored) + index for index in range(len(other_p_values))]
+    adjusted = step_down_adjust(p_values, groups)
+    pair_adjusted = iter(adjusted[: len(adjusted) - len(other_p_values)])
+    hypotheses = max(1, len(set(groups)))
     decided = []
     for comparison in rescored:
         if comparison.decidable:
-            difference_p, equivalence_p = next(adjusted), next(adjusted)
+            difference_p, equivalence_p = next(pair_adjusted), next(pair_adjusted)
         else:
             difference_p = equivalence_p = None
-        decided.append(_with_verdict(comparison, difference_p, equivalence_p, pairs))
-    return decided
+        decided.append(_with_verdict(comparison, difference_p, equivalence_p, hypotheses))
+    return decided, adjusted[len(adjusted) - len(other_p_values) :]
 
 
 def _at_margin(comparison: PairComparison, margin: float) -> PairComparison:
@@ -308,9 +331,12 @@ def _with_verdict(
     comparison: PairComparison,
     difference_p: float | None,
     equivalence_p: float | None,
-    pairs: int,
+    groups: int,
 ) -> PairComparison:
-    """The comparison with its verdict and explanation at given adjusted p-values (see ``decide_pairs``)."""
+    """The comparison with its verdict and explanation at given adjusted p-values (see ``decide_pairs``).
+
+    ``groups`` counts the correction's groups (pairs and other tests), whose count the strictest step divides by.
+    """
     alpha, margin = comparison.alpha, comparison.margin
     margin_text = f"±{100.0 * margin:g} points"
     networks = _networks_text(comparison)
@@ -340,7 +366,7 @@ def _with_verdict(
     else:
         verdict = "not decided"
         # The correction's strictest step, so the count holds whichever rank this pair's p-value takes.
-        seeds_needed = seeds_to_decide(comparison.estimate, margin, alpha / pairs)
+        seeds_needed = seeds_to_decide(comparison.estimate, margin, alpha / groups)
         outlook = (
             f"about {seeds_needed} training seeds per family would likely decide at this difference and spread"
             if seeds_needed is not None
