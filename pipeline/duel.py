@@ -23,11 +23,11 @@ import tempfile
 from pathlib import Path
 
 import pandas as pd
+from evaluation_support import episode_runner
 from stage_support import (
     PROCESSED_DIR,
     PROJECT_DIR,
     REPORTS_DIR,
-    episode_runner,
     evaluation_report,
     fail,
     load,
@@ -41,8 +41,7 @@ from carp.data.dataset import load_task_windows
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.selection import confirmed_checkpoint, find_candidates
 from carp.evaluation.sequential import run_duel
-from carp.outputs import write_json
-from carp.reporting.comparison import MULTITASK_SUFFIX
+from carp.outputs import MULTITASK_SUFFIX, write_json
 
 DUEL_DIR = REPORTS_DIR / "duel"
 

@@ -20,11 +20,11 @@ import tempfile
 from pathlib import Path
 
 import pandas as pd
+from evaluation_support import episode_runner
 from stage_support import (
     EVAL_VIDEO_DIR,
     PROCESSED_DIR,
     camera_settings,
-    episode_runner,
     evaluation_report,
     fail,
     mlflow_stage,

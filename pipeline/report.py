@@ -23,8 +23,8 @@ from stage_support import (
 from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
+from carp.outputs import MULTITASK_SUFFIX
 from carp.reporting.comparison import (
-    MULTITASK_SUFFIX,
     add_referenced_runs,
     pooled_metrics,
     read_run_results,

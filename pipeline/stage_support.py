@@ -10,12 +10,13 @@ import logging
 import os
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from carp.config import ConfigError, Params, flatten_params, load_params
+from carp.outputs import MULTITASK_SUFFIX
 
 if TYPE_CHECKING:
     import torch
@@ -107,47 +108,6 @@ def camera_settings(params: Params) -> "RenderSettings | None":
     return RenderSettings(cameras=params.data.cameras, image_size=params.data.image_size)
 
 
-def episode_runner(
-    params: Params,
-    task: str,
-    family: str,
-    env_args: dict,
-    video_seeds: list[int] | None = None,
-) -> Callable[[Path, list[int]], tuple[dict, list]]:
-    """Runs a checkpoint of `family` on `task`'s episode seeds as the evaluate stage does: (checkpoint, seeds) ->
-    (summary, episodes) of `carp.evaluation.runner.evaluate_policy`.
-
-    `env_args` are the task's environment arguments (its replay buffer's ``env_args``); episodes on exactly
-    `video_seeds` are recorded when ``eval.video`` is on.
-    """
-    from carp.evaluation.runner import evaluate_policy
-
-    config, cameras = params.eval, camera_settings(params)
-    workers = config.workers or os.cpu_count() or 1
-    inference = params.inference_settings(family, task)
-
-    def run_episodes(checkpoint: Path, seeds: list[int]) -> tuple[dict, list]:
-        return evaluate_policy(
-            checkpoint,
-            env_args=env_args,
-            action_format=params.action_format,
-            obs_keys=params.obs_keys_for(task),
-            obs_steps=params.data.obs_steps,
-            action_steps=params.data.action_steps,
-            seeds=seeds,
-            max_steps=params.max_steps_for(task),
-            workers=min(workers, len(seeds)),
-            inference=inference,
-            video_episodes=config.video_episodes if config.video and seeds == video_seeds else 0,
-            backend=config.backend,
-            cameras=cameras,
-            task=task,
-            ensemble_m=config.ensemble_m,
-        )
-
-    return run_episodes
-
-
 def seed_name(seed: int) -> str:
     """``seed<seed>``: the path part of one training seed's outputs."""
     return f"seed{seed}"
@@ -169,8 +129,6 @@ MULTITASK_DIRNAME = "multitask"
 
 def multitask_label(policy: str) -> str:
     """``<policy>-multitask``: a family's multi-task policy in evaluation paths and the report, beside ``<policy>``."""
-    from carp.reporting.comparison import MULTITASK_SUFFIX  # the report's plotting imports only where a label is made
-
     return policy + MULTITASK_SUFFIX
 
 

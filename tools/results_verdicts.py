@@ -10,8 +10,8 @@ the group's pairs and precision claims), so a row's published verdict can be che
 import argparse
 from pathlib import Path
 
+from carp.outputs import MULTITASK_SUFFIX
 from carp.reporting.comparison import (
-    MULTITASK_SUFFIX,
     claims_table,
     decide_report,
     family_pairs,

@@ -9,6 +9,9 @@ import json
 import os
 from pathlib import Path
 
+MULTITASK_SUFFIX = "-multitask"
+"""Appended to a family's name to name its multi-task policy (``carp-multitask``) in evaluation paths and reports."""
+
 
 def write_json(path: Path, payload: dict) -> None:
     """Write `payload` as indented JSON with sorted keys to `path` (parents created)."""

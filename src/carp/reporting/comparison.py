@@ -44,9 +44,6 @@ class RunResults:
 Runs = Mapping[int, RunResults]
 """Training seed -> that seed's results, for one family on one task."""
 
-MULTITASK_SUFFIX = "-multitask"
-"""Appended to a family's name to name its multi-task policy (``carp-multitask``) in evaluation paths and reports."""
-
 PAPER_CLAIMS = (
     ("CARP's success is on par with DP-C", "carp", "diffusion_unet", "on par"),
     ("CARP's success is better than next-token's", "carp", "next_token", "better"),
@@ -666,7 +663,8 @@ def claims_table(
         comparisons: task -> the pairs compared, each policy named by its family and `suffix`.
         precision: the precision tests of these evaluations, corrected (`decide_report`).
         alpha: family-wise significance level the verdicts were corrected at.
-        suffix: appended to a family's name in `comparisons` (`MULTITASK_SUFFIX` for the multi-task policies' claims).
+        suffix: appended to a family's name in `comparisons` (`carp.outputs.MULTITASK_SUFFIX` for the multi-task
+            policies' claims).
     """
     rows = []
     for task, task_runs in evaluations.items():

@@ -20,11 +20,12 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
+from carp.outputs import MULTITASK_SUFFIX  # noqa: E402
 from carp.reporting import (
     comparison,  # noqa: E402
     verdicts,  # noqa: E402
 )
-from carp.reporting.comparison import MULTITASK_SUFFIX, Runs  # noqa: E402
+from carp.reporting.comparison import Runs  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
 from carp.tokenizer.task_metrics import task_errors  # noqa: E402
