@@ -1,10 +1,11 @@
 """The import graph of `src/carp` and `pipeline/`, and what it says about `dvc.yaml` and the library's layers.
 
-Every import counts, the ones inside functions included: a stage that imports a module only when a branch runs still
-runs that module's code in some configuration, so its results depend on the file. So does a string naming a module
-(`"carp.tasks.pusht_task"`, `"carp.policies.carp.family:FAMILY"`): the task and family registries import their
-entries by name. Importing `carp.a.b` also runs `carp/__init__.py` and `carp/a/__init__.py`, which count as reached
-for the stages' dependencies (but not as imports between modules, where they would join every module of a package).
+Every import that can run counts, the ones inside functions included: a stage that imports a module only when a
+branch runs still runs that module's code in some configuration, so its results depend on the file. So does a string
+naming a module (`"carp.tasks.pusht_task"`, `"carp.policies.carp.family:FAMILY"`): the task and family registries
+import their entries by name. Imports under `if TYPE_CHECKING:` never run and do not count. Importing `carp.a.b` also
+runs `carp/__init__.py` and `carp/a/__init__.py`, which count as reached for the stages' dependencies (but not as
+imports between modules, where they would join every module of a package).
 
     .venv/bin/python tools/import_graph.py deps     # files each stage reaches that its dvc.yaml deps do not cover
     .venv/bin/python tools/import_graph.py deps --write   # rewrite each stage's code deps in dvc.yaml from the graph
@@ -100,7 +101,10 @@ def _imported_files(file: Path, repo: Path, packages: bool) -> set[Path]:
     tree = ast.parse(file.read_text(), filename=str(file))
     package = _package_of(file, repo)
     found: set[Path] = set()
+    typing_only = {id(node) for block in ast.walk(tree) if _is_type_checking_block(block) for node in ast.walk(block)}
     for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Constant) and isinstance(node.value, str):
             match = MODULE_STRING.fullmatch(node.value)
             names = [match.group(1)] if match else []
@@ -120,6 +124,14 @@ def _imported_files(file: Path, repo: Path, packages: bool) -> set[Path]:
             files = _files_of(name, file, repo)
             found |= set(files if packages else files[-1:])
     return found
+
+
+def _is_type_checking_block(node: ast.AST) -> bool:
+    """`if TYPE_CHECKING:`: imports for annotations only, which never run."""
+    return isinstance(node, ast.If) and (
+        (isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING")
+        or (isinstance(node.test, ast.Attribute) and node.test.attr == "TYPE_CHECKING")
+    )
 
 
 def _package_of(file: Path, repo: Path) -> str | None:

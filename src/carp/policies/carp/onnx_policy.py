@@ -26,6 +26,8 @@ greedy and sampled (the same generator gives the same uniforms, hence the same d
 `top_k` is fixed when the graphs are exported; batches run through `CarpPolicy`.
 """
 
+from __future__ import annotations
+
 import copy
 import json
 import math
@@ -33,6 +35,7 @@ import os
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -42,8 +45,11 @@ from torch import nn
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.carp.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
-from carp.policies.carp.policy import POLICY_TYPE, CarpPolicy
 from carp.policies.carp.sampling import check_top_k, gumbel_top_k, sampling_uniforms
+from carp.policies.carp.spec import POLICY_TYPE
+
+if TYPE_CHECKING:
+    from carp.policies.carp.policy import CarpPolicy
 
 PREDICTION_FILE = "prediction.onnx"
 DECODING_FILE = "decoding.onnx"

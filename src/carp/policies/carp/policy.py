@@ -21,7 +21,7 @@ from carp.config import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction
 from carp.policies.carp.sampling import generate_chunk
-from carp.policies.carp.spec import PolicySpec
+from carp.policies.carp.spec import POLICY_TYPE, PolicySpec
 from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.wrapper import (
@@ -35,7 +35,6 @@ from carp.training.checkpoint import CheckpointError
 
 logger = logging.getLogger(__name__)
 
-POLICY_TYPE = "carp"
 ONNX_BACKEND = "onnxruntime"
 
 

@@ -5,6 +5,9 @@ from typing import Any
 
 from carp.policies.carp.config import CarpConfig
 
+POLICY_TYPE = "carp"
+"""The family's registry name, stored as `policy_type` in its checkpoints and exported graphs."""
+
 ARCHITECTURE_FIELDS = ("depth", "width", "num_heads", "mlp_ratio", "dropout")
 """`CarpConfig` fields that checkpoints written before the spec held the whole section stored beside the shapes."""
 
