@@ -1,5 +1,8 @@
 """The `carp` console command: `carp serve` serves a trained policy to robots, `carp register` registers one.
 
+`carp export-lerobot data/raw/lift.hdf5 --out exports/lift` writes a task's demos as a LeRobotDataset v3.0 folder
+(`carp.data.lerobot.export`).
+
 `carp serve --model` takes a checkpoint path or a registry URI ``models:/<name>@<alias>``; the checkpoint describes
 what it serves (`carp.serving.protocol`), `--params` only chooses the inference settings (and gives the spec of a
 checkpoint trained before checkpoints recorded it). `carp register --model policy.pt --alias champion` registers a
@@ -68,6 +71,9 @@ def _parser() -> argparse.ArgumentParser:
     register = commands.add_parser("register", help="register a policy checkpoint in the MLflow Model Registry")
     register.add_argument("--model", type=Path, required=True, help="policy checkpoint (policy.pt)")
     register.add_argument("--alias", default="candidate", help="alias to point at the version (default: candidate)")
+    export = commands.add_parser("export-lerobot", help="write a robomimic-schema demo file as a LeRobotDataset")
+    export.add_argument("source", type=Path, help="robomimic-schema HDF5 of a registered task (data/raw/<task>.hdf5)")
+    export.add_argument("--out", type=Path, required=True, help="the LeRobotDataset folder to write (replaced)")
     for command in (serve, register):
         command.add_argument(
             "--tracking-uri",
@@ -82,6 +88,9 @@ def main(argv: list[str] | None = None) -> None:
     """Parse `argv` (default: the process's) and run the command."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
+    if args.command == "export-lerobot":
+        _export_lerobot(args.source, args.out)
+        return
     from carp.config import ConfigError, load_params
     from carp.serving.startup import ServingStartError
     from carp.tracking.runs import resolve_tracking_uri
@@ -108,6 +117,19 @@ def main(argv: list[str] | None = None) -> None:
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)
+
+
+def _export_lerobot(source: Path, output: Path) -> None:
+    from carp.data.lerobot.export import export_lerobot
+    from carp.data.robomimic_schema import DatasetError
+
+    try:
+        summary = export_lerobot(source, output)
+    except (DatasetError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(1)
+    skipped = f"; camera keys not exported: {list(summary.skipped_keys)}" if summary.skipped_keys else ""
+    print(f"{output}: {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps{skipped}")
 
 
 if __name__ == "__main__":

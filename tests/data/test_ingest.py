@@ -129,3 +129,10 @@ def test_failed_ingest_keeps_previous_output_intact(tmp_path, synthetic_file):
     with pytest.raises(DatasetError):
         ingest_demonstrations(synthetic_file, output, OBS_KEYS)
     assert json.loads((output / "summary.json").read_text()) == before
+
+
+def test_a_subset_inside_mask_valid_is_refused_not_split_another_way(tmp_path, synthetic_file):
+    # Seed 2 keeps demo_3 alone, the one demo mask/valid lists: nothing would be left to train on.
+    with pytest.raises(DatasetError, match=r"mask 'mask/valid': lists all 1 demos in the file, leaving none"):
+        ingest_demonstrations(synthetic_file, tmp_path / "out", OBS_KEYS, subset_size=1, subset_seed=2)
+    assert not (tmp_path / "out").exists()

@@ -7,7 +7,7 @@ import h5py
 import numpy as np
 import pytest
 
-from carp.data.robomimic_io import DatasetError, import_demonstrations, read_demonstrations
+from carp.data.robomimic_io import DatasetError, import_demonstrations, read_demonstrations, write_demonstrations
 from tests.conftest import IMAGE_KEYS, OBS_KEYS, write_synthetic_file
 from tests.reliability.corrupt_files import CORRUPT_FILES, corrupt_file, expected_message
 
@@ -104,3 +104,18 @@ def test_a_file_left_open_without_file_locking_is_still_one_line(tmp_path):
         )
     last = reader.stderr.strip().splitlines()[-1]
     assert last.startswith(f"carp.data.robomimic_schema.DatasetError: {path}: "), reader.stderr
+
+
+def test_a_valid_mask_listing_every_demo_is_refused(tmp_path):
+    path = tmp_path / "raw.hdf5"
+    episodes = write_synthetic_file(path)
+    names = [f"demo_{index}" for index in range(len(episodes))]
+    env_args = {"env_name": "Lift", "type": 1, "env_kwargs": {"robots": ["Panda"]}}
+    write_demonstrations(path, episodes, env_args, masks={"train": names, "valid": names})
+    message = r"mask 'mask/valid': lists all 4 demos in the file, leaving none to train on"
+    with pytest.raises(DatasetError, match=message):
+        read_demonstrations(path, OBS_KEYS)
+    with pytest.raises(DatasetError, match=r"lists all 4 demos selected by 'mask/train', leaving none"):
+        read_demonstrations(path, OBS_KEYS, filter_key="train")
+    # Training on the held-out demos themselves is an explicit choice.
+    assert read_demonstrations(path, OBS_KEYS, filter_key="valid").names == names

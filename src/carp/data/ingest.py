@@ -34,7 +34,7 @@ from carp.data.render_cache import RenderCache, render_key
 from carp.data.rendering import RenderSettings
 from carp.data.replay_buffer import ReplayBuffer
 from carp.data.robomimic_io import DatasetError, Demonstrations, check_env_name, read_demonstrations, read_env_args
-from carp.data.robomimic_schema import is_image_key
+from carp.data.robomimic_schema import check_valid_mask, is_image_key
 from carp.data.staging import staged
 from carp.data.subsets import nested_subset
 from carp.tasks import task_for_env_args
@@ -81,7 +81,9 @@ def ingest_demonstrations(
         controller: with the file's task, the action format (arm tasks: ``absolute`` converts actions to 10-D,
             ``delta`` keeps 7-D).
         filter_key: optional ``mask/<filter_key>`` restricting the demos.
-        valid_fraction: share of episodes held out when the file has no ``mask/valid``.
+        valid_fraction: share of episodes held out when the file has no ``mask/valid`` (a ``mask/valid`` listing
+            every demo is refused; with ``filter_key`` ``valid``, the mask is the selection and this share is held
+            out of it).
         staging_dir: where the output is built before its rename (see :mod:`carp.data.staging`): outside every
             folder a pipeline declares as a dependency, on the output's filesystem. ``None`` uses ``output_dir``'s
             parent.
@@ -109,6 +111,7 @@ def ingest_demonstrations(
             names=[name for name in demos.names if name in kept],
             episodes=[episode for name, episode in zip(demos.names, demos.episodes) if name in kept],
         )
+        check_valid_mask(raw_path, demos.names, demos.masks, filter_key)
     images = [key for key in obs_keys if is_image_key(key)]
     if images:
         # Checked after reading, so that a damaged file is reported as such first.

@@ -33,6 +33,7 @@ from carp.data.robomimic_schema import (
     check_demo_layout,
     check_same_widths,
     check_stored_ranges,
+    check_valid_mask,
     hdf5_errors,
     is_image_key,
     open_hdf5,
@@ -95,6 +96,8 @@ def write_demonstrations(
     file_attrs: dict | None = None,
     valid_fraction: float = 0.1,
     staging_dir: Path | None = None,
+    names: Sequence[str] | None = None,
+    masks: dict[str, list[str]] | None = None,
 ) -> None:
     """Write episodes as a robomimic-schema file, atomically (temp file, then rename).
 
@@ -107,11 +110,17 @@ def write_demonstrations(
             the rest go to ``mask/train``.
         staging_dir: where the file is built before its rename (see :mod:`carp.data.staging`); ``None`` uses
             ``path``'s folder.
+        names: the demos' names, one per episode; ``None`` names them ``demo_0 .. demo_{N-1}``.
+        masks: ``mask/<name>`` lists of demo names written as given instead of the ``valid_fraction`` split
+            (``{}`` writes no mask).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    names = [f"demo_{index}" for index in range(len(episodes))]
-    num_valid = 0 if len(names) < 2 else max(1, int(round(valid_fraction * len(names))))
+    names = list(names) if names is not None else [f"demo_{index}" for index in range(len(episodes))]
+    if masks is None:
+        num_valid = 0 if len(names) < 2 else max(1, int(round(valid_fraction * len(names))))
+        split = len(names) - num_valid
+        masks = {"train": names[:split], "valid": names[split:]}
     with staged(staging_dir or path.parent, path.name) as temporary:
         with h5py.File(temporary, "w") as handle:
             data = handle.create_group("data")
@@ -137,9 +146,8 @@ def write_demonstrations(
                 group.create_dataset(
                     "dones", data=episode.dones if episode.dones is not None else np.zeros(steps, dtype=np.int64)
                 )
-            split = len(names) - num_valid
-            handle.create_dataset("mask/train", data=np.array(names[:split], dtype="S"))
-            handle.create_dataset("mask/valid", data=np.array(names[split:], dtype="S"))
+            for key, listed in masks.items():
+                handle.create_dataset(f"mask/{key}", data=np.array(listed, dtype="S"))
         os.replace(temporary, path)
 
 
@@ -169,7 +177,8 @@ def read_demonstrations(
         check_env_name(path, env_args, env_name)
         all_names = sorted((name for name in data.keys() if name.startswith("demo")), key=_demo_sort_key)
         masks = read_masks(handle, path, all_names)
-        names = _select_demos(path, all_names, masks, filter_key)
+        names = select_demos(path, all_names, masks, filter_key)
+        check_valid_mask(path, names, masks, filter_key)
         groups = [require_group(data, name, f"{path}: demo '{name}'") for name in names]
         layouts = [
             check_demo_layout(group, f"{path}: demo '{name}'", obs_keys, action_dim)
@@ -257,7 +266,8 @@ def _short(value) -> str:
     return text if len(text) <= 60 else f"{text[:57]}..."
 
 
-def _select_demos(path: Path, names: list[str], masks: dict[str, list[str]], filter_key: str | None) -> list[str]:
+def select_demos(path: Path, names: list[str], masks: dict[str, list[str]], filter_key: str | None) -> list[str]:
+    """The demos ``mask/<filter_key>`` lists (all ``names`` when None); DatasetError for a missing mask or none."""
     if filter_key is not None:
         if filter_key not in masks:
             raise DatasetError(f"{path}: filter key 'mask/{filter_key}' not found (masks: {sorted(masks)})")
@@ -291,3 +301,19 @@ def _read_episode(group: h5py.Group, where: str, obs_keys: Sequence[str]) -> Epi
         optional = {key: group[key][()] if key in group else None for key in OPTIONAL_KEYS}
         attrs = {key: _decode_attr(value) for key, value in group.attrs.items()}
     return Episode(obs=obs, actions=actions, attrs=attrs, **optional)
+
+
+def read_obs_keys(path: Path) -> list[str]:
+    """The obs keys of a robomimic-schema file's first demo (``data/demo_<i>/obs/<key>``), sorted.
+
+    Raises:
+        DatasetError: an unreadable file, no demo, or a first demo without an ``obs`` group, naming the file.
+    """
+    path = Path(path)
+    with open_hdf5(path) as handle, hdf5_errors(str(path)):
+        data = require_group(handle, "data", f"{path}: group 'data'")
+        names = sorted((name for name in data.keys() if name.startswith("demo")), key=_demo_sort_key)
+        if not names:
+            raise DatasetError(f"{path}: group 'data' holds no demos")
+        obs = require_group(data, f"{names[0]}/obs", f"{path}: demo '{names[0]}': group 'obs'")
+        return sorted(obs.keys())

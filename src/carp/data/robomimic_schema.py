@@ -11,7 +11,8 @@ never inside numpy or h5py:
 3. low-dimensional values are finite in float32, the dtype the replay buffer stores (1e39 is finite in float64 but
    ``inf`` in the buffer), and every column's range across the demos, squared, is finite in float32 (normalization
    divides by the range; errors in original units are squared multiples of it);
-4. every ``mask/<name>`` list names existing demos, whichever of them ``filter_key`` selects.
+4. every ``mask/<name>`` list names existing demos, whichever of them ``filter_key`` selects, and ``mask/valid``
+   leaves at least one of the selected demos to train on.
 
 Any OSError or h5py error raised while a check reads the file becomes a :class:`DatasetError` naming where it happened.
 """
@@ -336,3 +337,23 @@ def _read_mask(group: h5py.Group, key: str, label: str, demo_names: set[str]) ->
             raise DatasetError(f"{label}: names demo '{name}' twice")
         names.append(name)
     return names
+
+
+def check_valid_mask(path: Path, names: Sequence[str], masks: dict[str, list[str]], filter_key: str | None) -> None:
+    """Refuse a ``mask/valid`` that lists every demo read: no demo would be left to train on.
+
+    ``mask/valid`` holds demos out of training. When it lists every one of ``names`` (the demos ``filter_key``
+    selects), no split is possible. A ``filter_key`` of ``valid`` asks to train on the listed demos themselves, so
+    there the mask is the selection (and ingestion holds out its last ``valid_fraction``).
+
+    Raises:
+        DatasetError: names the file, the mask and the count of demos.
+    """
+    listed = set(masks.get("valid", []))
+    if filter_key == "valid" or not listed or not names or not set(names) <= listed:
+        return
+    selection = f"selected by 'mask/{filter_key}'" if filter_key is not None else "in the file"
+    raise DatasetError(
+        f"{path}: mask 'mask/valid': lists all {len(names)} demos {selection}, leaving none to train on; list "
+        "only the held-out demos there, or remove it to hold out the last data.valid_fraction"
+    )
