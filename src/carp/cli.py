@@ -40,22 +40,54 @@ def _parser() -> argparse.ArgumentParser:
         help="params whose inference.<family> settings apply (default: the family's defaults); for a checkpoint that "
         "does not record its serving protocol, the params it was trained with",
     )
-    serve.add_argument("--host", default=DEFAULT_HOST, help="interface to bind (default: loopback only)")
+    serve.add_argument(
+        "--host",
+        default=DEFAULT_HOST,
+        help="interface to bind (default: loopback only; any other needs a token or --allow-no-token)",
+    )
     serve.add_argument("--port", type=int, default=DEFAULT_PORT)
     serve.add_argument(
-        "--token", default=os.environ.get(TOKEN_VARIABLE), help=f"bearer token clients must send (or ${TOKEN_VARIABLE})"
+        "--token-file",
+        type=Path,
+        default=None,
+        help=f"file whose first line is the token clients must send (default: ${TOKEN_VARIABLE}, else none)",
     )
+    serve.add_argument(
+        "--token",
+        default=None,
+        help="the token itself; visible to every local user in the process list, so prefer --token-file or "
+        f"${TOKEN_VARIABLE}",
+    )
+    serve.add_argument(
+        "--allow-no-token",
+        action="store_true",
+        help="serve a non-loopback --host without a token (anyone who reaches the port may drive the policy)",
+    )
+    serve.add_argument("--tls-cert", default=None, help="PEM certificate (chain) to serve TLS with (wss://, https://)")
+    serve.add_argument("--tls-key", default=None, help="PEM private key of --tls-cert (default: in the same file)")
     serve.add_argument("--max-request-bytes", type=int, default=DEFAULT_MAX_REQUEST_BYTES)
     serve.add_argument(
         "--max-batch", type=int, default=DEFAULT_MAX_BATCH_SIZE, help="most requests in one prediction call (1: off)"
+    )
+    serve.add_argument(
+        "--batch-window-ms",
+        type=float,
+        default=0.0,
+        help="milliseconds a request waits for others to share its PyTorch call (0: none; 0 to 1000)",
+    )
+    serve.add_argument(
+        "--prediction-threads",
+        type=int,
+        default=0,
+        help="ONNX Runtime calls run at once, one request each (default 0: one per CPU core)",
     )
     serve.add_argument(
         "--backend",
         choices=("onnxruntime", "torch"),
         default="onnxruntime",
         help="what runs the predictions: ONNX Runtime graphs for CARP on state observations, as evaluation runs them "
-        "(one request per call; other families stay in PyTorch), or PyTorch (batches the requests of several "
-        "clients; default: onnxruntime)",
+        "(one request per call, --prediction-threads calls at once; other families stay in PyTorch), or PyTorch "
+        "(one call at a time, batching the requests of several clients; default: onnxruntime)",
     )
     serve.add_argument(
         "--task",
@@ -84,6 +116,30 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _token(args: argparse.Namespace) -> str | None:
+    """The token of `--token`, else of `--token-file`, else of the environment; None for none.
+
+    Raises:
+        OSError: the token file cannot be read.
+        ValueError: the token file is empty.
+    """
+    if args.token is not None:
+        logging.getLogger("carp.cli").warning(
+            "--token is visible to every local user in the process list; pass it in $%s or --token-file instead",
+            TOKEN_VARIABLE,
+        )
+        return args.token
+    if args.token_file is not None:
+        try:
+            lines = args.token_file.read_text().splitlines()
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{args.token_file}: no such token file") from None
+        if not lines or not lines[0].strip():
+            raise ValueError(f"{args.token_file}: the token file's first line is empty")
+        return lines[0].strip()
+    return os.environ.get(TOKEN_VARIABLE) or None
+
+
 def main(argv: list[str] | None = None) -> None:
     """Parse `argv` (default: the process's) and run the command."""
     args = _parser().parse_args(argv)
@@ -91,7 +147,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "export-lerobot":
         _export_lerobot(args.source, args.out)
         return
-    from carp.config import ConfigError, load_params
+    from carp.config.checks import ConfigError
+    from carp.config.params import load_params
     from carp.serving.startup import ServingStartError
     from carp.tracking.runs import resolve_tracking_uri
 
@@ -110,7 +167,17 @@ def main(argv: list[str] | None = None) -> None:
 
         interval = args.reload_interval if args.reload_interval > 0 else None
         settings = ServerSettings(
-            args.host, args.port, args.token, args.max_request_bytes, args.max_batch, reload_interval_s=interval
+            args.host,
+            args.port,
+            _token(args),
+            args.max_request_bytes,
+            args.max_batch,
+            reload_interval_s=interval,
+            batch_window_s=args.batch_window_ms / 1e3,
+            prediction_threads=args.prediction_threads,
+            tls_certificate=args.tls_cert,
+            tls_key=args.tls_key,
+            allow_no_token=args.allow_no_token,
         )
         params = load_params(args.params) if args.params is not None else None
         serve_checkpoint(args.model, params, settings, tracking_uri, args.backend, args.task)

@@ -61,6 +61,7 @@ class GatedModel:
 
     def __init__(self, batches: bool) -> None:
         self.batches = batches
+        self.concurrent = False
         self.first_call = threading.Event()
         self.gate = threading.Event()
         self.calls: list[int] = []

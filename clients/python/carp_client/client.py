@@ -1,14 +1,22 @@
-"""`PolicyClient`: one robot's connection to `carp serve`, with timeouts and bounded reconnection.
+"""`PolicyClient`: one robot's connection to `carp serve`, with timeouts and a bounded wait for a restarting server.
 
-Each `infer` sends one step's observation and blocks until the action chunk arrives or `timeout` passes; the server
-keeps the observation history (its last `To` steps) per connection. A lost connection is reopened with exponential
-back-off, a bounded number of times; the new connection starts a new episode on the server (its history is empty
-again), as it would after `reset`.
+Each `infer` sends one step's observation and blocks until the action chunk arrives or `timeout` passes, closing
+nothing it has to wait for: a connection that timed out is dropped at once. The server keeps the observation history
+(its last `To` steps) per connection. A lost connection is reopened by waiting for the server to be ready again: the
+client asks its ``/readyz`` route (which answers 200 once the model is loaded and warmed up) with exponential
+back-off, for at most `reconnect_budget_s` seconds in all, and opens the WebSocket once it answers. A restarted
+server loads and exports its model before it is ready, which takes seconds (5 to 11 s for a Lift CARP from launch
+to ready); the default budget of 30 s covers that. The new connection starts a new episode on the server (its
+history is empty again), as it would after `reset`.
 """
 
 from __future__ import annotations
 
+import socket
+import ssl
 import time
+import urllib.error
+import urllib.request
 from typing import Any
 
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
@@ -38,12 +46,17 @@ class PolicyClient:
     """A blocking client of one policy server; use it as a context manager.
 
     Args:
-        url: ``ws://host:port`` of the server.
-        token: bearer token when the server requires one.
-        timeout: seconds to wait for the opening handshake, the metadata frame and each reply.
-        connect_attempts: connection attempts before giving up (at start and after a lost connection).
+        url: ``ws://host:port`` of the server, ``wss://`` for one that serves TLS.
+        token: the token when the server requires one (sent as ``Authorization: Bearer <token>``).
+        timeout: seconds one attempt to connect (the opening handshake and the metadata frame) may take, and the
+            most one `infer` on an open connection takes from sending to raising `TimeoutError`.
+        reconnect_budget_s: the most seconds `connect` spends in all (attempts and the waits between them) before
+            it gives up; a server being restarted is waited for this long.
+        connect_attempts: most connection attempts within the budget; None for as many as it allows.
         initial_backoff_s: wait after the first failed attempt; doubled after each further one.
         max_backoff_s: the longest wait between two attempts.
+        ssl_context: TLS settings for a ``wss://`` server, e.g. ``ssl.create_default_context(cafile=...)`` for a
+            certificate no public authority signed; None for the system's defaults.
     """
 
     def __init__(
@@ -51,18 +64,24 @@ class PolicyClient:
         url: str = "ws://127.0.0.1:8000",
         token: str | None = None,
         timeout: float = 10.0,
-        connect_attempts: int = 5,
+        reconnect_budget_s: float = 30.0,
+        connect_attempts: int | None = None,
         initial_backoff_s: float = 0.1,
         max_backoff_s: float = 2.0,
+        ssl_context: ssl.SSLContext | None = None,
     ) -> None:
-        if connect_attempts < 1:
+        if connect_attempts is not None and connect_attempts < 1:
             raise ValueError(f"connect_attempts must be >= 1, got {connect_attempts}")
+        if not timeout > 0 or not reconnect_budget_s > 0:
+            raise ValueError(f"timeout and reconnect_budget_s must be positive, got {timeout} and {reconnect_budget_s}")
         self.url = url
         self.token = token
         self.timeout = timeout
+        self.reconnect_budget_s = reconnect_budget_s
         self.connect_attempts = connect_attempts
         self.initial_backoff_s = initial_backoff_s
         self.max_backoff_s = max_backoff_s
+        self.ssl_context = ssl_context
         self._connection: ClientConnection | None = None
         self._metadata: dict[str, Any] | None = None
         self._step = 0
@@ -76,7 +95,11 @@ class PolicyClient:
         return self._metadata
 
     def connect(self) -> None:
-        """Open the connection and read the metadata frame, retrying with back-off.
+        """Open the connection and read the metadata frame, waiting for the server to be ready within the budget.
+
+        After a failed attempt the client waits (with back-off) and asks ``/readyz``; when it answers 200 it opens
+        the WebSocket again. Each question counts as an attempt; nothing here takes longer than
+        `reconnect_budget_s` in all.
 
         Raises:
             PermissionError: the server refused the token (HTTP 401 or 403).
@@ -84,44 +107,77 @@ class PolicyClient:
             ConnectionError: every attempt failed otherwise.
         """
         self.close()
+        deadline = time.monotonic() + self.reconnect_budget_s
         delay = self.initial_backoff_s
-        for attempt in range(1, self.connect_attempts + 1):
-            try:
-                self._open()
-                return
-            except InvalidStatus as error:
-                status = error.response.status_code
-                if status in (401, 403):
-                    raise PermissionError(f"{self.url} refused the connection: HTTP {status}") from None
-                failure: Exception = error
-            except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as error:
-                failure = error
-            if attempt < self.connect_attempts:
-                time.sleep(delay)
-                delay = min(2 * delay, self.max_backoff_s)
-        message = f"could not connect to {self.url} in {self.connect_attempts} attempts: {failure}"
+        attempt = 0
+        while True:
+            attempt += 1
+            remaining = deadline - time.monotonic()
+            # The first attempt opens at once; later ones wait, then ask /readyz before opening.
+            failure = None if attempt == 1 else self._not_ready(min(self.timeout, max(remaining, 0.001)))
+            if failure is None:
+                try:
+                    self._open(min(self.timeout, max(deadline - time.monotonic(), 0.001)))
+                    return
+                except InvalidStatus as error:
+                    status = error.response.status_code
+                    if status in (401, 403):
+                        raise PermissionError(f"{self.url} refused the connection: HTTP {status}") from None
+                    failure = error
+                except (OSError, TimeoutError, InvalidHandshake, ConnectionClosed) as error:
+                    failure = error
+            remaining = deadline - time.monotonic()
+            if (self.connect_attempts is not None and attempt >= self.connect_attempts) or remaining <= 0:
+                break
+            time.sleep(min(delay, remaining))
+            delay = min(2 * delay, self.max_backoff_s)
+        message = (
+            f"could not connect to {self.url} in {attempt} attempts within {self.reconnect_budget_s:g} s: {failure}"
+        )
         if isinstance(failure, TimeoutError):
             raise TimeoutError(message) from failure
         raise ConnectionError(message) from failure
 
-    def _open(self) -> None:
+    def _not_ready(self, timeout: float) -> Exception | None:
+        """None when ``/readyz`` answers 200 within `timeout` seconds, else why not."""
+        scheme, _, rest = self.url.partition("://")
+        address = rest.split("/", 1)[0]
+        request = urllib.request.Request(f"{'https' if scheme == 'wss' else 'http'}://{address}/readyz")
+        if self.token:
+            request.add_header("Authorization", "Bearer " + self.token)
+        try:
+            with urllib.request.urlopen(request, timeout=timeout, context=self.ssl_context) as response:
+                return None if response.status == 200 else ConnectionError(f"/readyz answered {response.status}")
+        except urllib.error.HTTPError as error:
+            # A refused token: the WebSocket attempt that follows says so.
+            return None if error.code in (401, 403) else ConnectionError(f"/readyz answered HTTP {error.code}")
+        except TimeoutError as error:
+            return error
+        except (OSError, ValueError) as error:
+            reason = getattr(error, "reason", None)
+            return reason if isinstance(reason, TimeoutError) else ConnectionError(str(error))
+
+    def _open(self, timeout: float) -> None:
         headers = {"Authorization": "Bearer " + self.token} if self.token else None
+        started = time.monotonic()
+        options = {"ssl": self.ssl_context} if self.ssl_context is not None else {}
         # The connection outlives this call, so no `with` block; entering it by hand is what websockets >= 17.1 asks
         # of such a connection (its `legacy=True` does not exist in the older versions the client supports).
         connection = connect(
             self.url,
             additional_headers=headers,
-            open_timeout=self.timeout,
-            close_timeout=self.timeout,
+            open_timeout=timeout,
+            close_timeout=timeout,
             compression=None,
+            **options,
         ).__enter__()
         try:
-            frame = connection.recv(timeout=self.timeout)
+            frame = connection.recv(timeout=max(timeout - (time.monotonic() - started), 0.001))
             if isinstance(frame, str):
                 raise ServerError(frame)
             self._metadata = decode(frame)
         except BaseException:
-            connection.close()
+            _drop(connection)
             raise
         self._connection = connection
 
@@ -142,10 +198,13 @@ class PolicyClient:
             ``actions`` (H, A) float32 (execute rows ``executed_offset`` to ``executed_offset + action_steps``),
             ``step``, ``timestamp``, ``model_version`` and ``timing_ms``.
 
+        On an open connection the call returns or raises within `timeout` seconds. Without one (the first call
+        after a lost connection) it first reconnects, as `connect` does, within `reconnect_budget_s`.
+
         Raises:
             ServerError: the server rejected the request (the connection stays usable).
             SpecChangedError: the server swapped in a policy with another spec (the metadata is the new one).
-            TimeoutError: no reply within `timeout`; the connection is dropped and reopened by the next call.
+            TimeoutError: no reply within `timeout`; the connection is dropped at once and reopened by the next call.
             ConnectionError, PermissionError: the connection was lost and could not be reopened.
         """
         request = dict(obs)
@@ -163,16 +222,18 @@ class PolicyClient:
                         f"{self.url} now serves a policy with another observation or action spec: read the metadata "
                         "again and build the requests from it"
                     )
+            deadline = time.monotonic() + self.timeout
             try:
                 self._connection.send(frame)
-                reply = self._connection.recv(timeout=self.timeout)
+                reply = self._connection.recv(timeout=max(deadline - time.monotonic(), 0.001))
                 break
             except TimeoutError:
-                # A late reply would answer the next request: this connection is out of step, so it goes.
-                self.close()
+                # A late reply would answer the next request: this connection is out of step, so it goes, without
+                # a closing handshake that a hung server would make us wait for.
+                self._drop()
                 raise TimeoutError(f"no reply from {self.url} within {self.timeout} s") from None
-            except ConnectionClosed:
-                self.close()
+            except (ConnectionClosed, OSError):
+                self._drop()
                 if attempt == 1:
                     raise ConnectionError(f"{self.url} closed the connection twice in a row") from None
         if isinstance(reply, str):
@@ -190,11 +251,18 @@ class PolicyClient:
         """
         return self.infer({**obs, "predict": False})
 
-    def close(self) -> None:
-        """Close the connection (the next call reopens it)."""
+    def _drop(self) -> None:
+        """Forget the connection without waiting for the server (it may be the reason for dropping it)."""
         if self._connection is not None:
-            self._connection.close()
-            self._connection = None
+            connection, self._connection = self._connection, None
+            _drop(connection)
+
+    def close(self) -> None:
+        """Close the connection with a closing handshake (the next call reopens it); waits at most `timeout`."""
+        if self._connection is not None:
+            connection, self._connection = self._connection, None
+            connection.close_timeout = min(self.timeout, 2.0)
+            connection.close()
 
     def __enter__(self) -> PolicyClient:
         self.connect()
@@ -202,6 +270,15 @@ class PolicyClient:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def _drop(connection: ClientConnection) -> None:
+    """Shut the connection's socket, then close it: with the socket shut, closing waits for nothing."""
+    try:
+        connection.socket.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    connection.close()
 
 
 def _spec(metadata: dict[str, Any]) -> dict[str, Any]:

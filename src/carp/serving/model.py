@@ -14,6 +14,10 @@ from carp.serving.session import IMAGES_KEY, Observed, ServingSpec
 
 __all__ = ["ModelSource", "ServedModel", "file_sha256"]
 
+CONCURRENT_BACKENDS = ("onnxruntime",)
+"""Backends whose policy may predict for several requests at once from several threads: an ONNX Runtime session's
+`run` is thread-safe, and each call gets its own inputs and its episode's own generator."""
+
 
 @dataclass(frozen=True)
 class ModelSource:
@@ -41,10 +45,11 @@ class ModelSource:
 
 @dataclass
 class ServedModel:
-    """A loaded policy shared by every connection; predictions take turns under one lock.
+    """A loaded policy shared by every connection; predictions in PyTorch take turns under one lock.
 
-    One lock because a policy's modules are not written for concurrent calls (the server predicts on one thread; the
-    lock keeps any other caller, such as a warm-up, out of its way).
+    One lock because a PyTorch policy's modules are not written for concurrent calls (the server predicts with it on
+    one thread at a time; the lock keeps any other caller, such as a warm-up, out of its way). Exported graphs
+    (`concurrent`) predict without it.
 
     Attributes:
         policy: the policy, with its inference settings applied.
@@ -72,11 +77,18 @@ class ServedModel:
             The policy's prediction, whose `actions` are (1, H, A) float32, and the lock wait in seconds.
         """
         seen = {} if observed.image_history is None else {IMAGES_KEY: observed.image_history[None]}
+        if self.concurrent:
+            return self.policy.predict_action_timed(observed.obs_history[None], generator=observed.generator), 0.0
         waiting = time.perf_counter()
         with self.lock:
             waited = time.perf_counter() - waiting
             timed = self.policy.predict_action_timed(observed.obs_history[None], generator=observed.generator, **seen)
         return timed, waited
+
+    @property
+    def concurrent(self) -> bool:
+        """Whether several threads may predict at once (`CONCURRENT_BACKENDS`), one request each."""
+        return self.backend in CONCURRENT_BACKENDS
 
     @property
     def batches(self) -> bool:

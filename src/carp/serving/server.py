@@ -14,13 +14,19 @@ Protocol (version `PROTOCOL_VERSION`), in `carp.serving.wire` frames:
 
 The same port answers HTTP GET ``/healthz`` (the process is up), ``/readyz`` (200 once the model is warmed up,
 503 before), ``/metadata`` (JSON) and ``/metrics`` (Prometheus text) through websockets' `process_request` hook.
-With a token every route but ``/healthz``, and the WebSocket upgrade, need ``Authorization: Bearer <token>``;
-others get 401 before any WebSocket frame is exchanged.
+With a token every route but ``/healthz``, and the WebSocket upgrade, need ``Authorization: Bearer <token>`` (or
+openpi's ``Api-Key <token>``; the scheme in any case, as HTTP has it); others get 401 before any WebSocket frame is
+exchanged, and a request with several ``Authorization`` headers gets 400. With a certificate and key
+(`ServerSettings.tls_certificate`) the port speaks TLS (``wss://``, ``https://``).
 
-Predictions run on one thread, off the event loop, so a slow chunk does not stall other robots' frames; requests
-that wait for it together share the next call when the policy draws nothing random (`carp.serving.batching`).
-Frames larger than `max_request_bytes` get an error reply; frames beyond four times that are refused by websockets
-itself (`max_size`), which closes the connection with code 1009 rather than buffer them.
+Decoding and validating a frame run on a thread of their own (`decoding_threads`), off the event loop, and the
+decoder refuses a frame with more values or deeper nesting than `carp.serving.wire` allows before building any of
+it: a hostile or malformed frame costs its own connection a few milliseconds and delays nobody else's replies.
+Predictions run off the event loop too (`carp.serving.batching`): a policy in PyTorch one call at a time, where the
+requests that wait together share the next call when the policy draws nothing random; exported ONNX Runtime graphs
+on `prediction_threads` threads at once, one request per call. Frames larger than `max_request_bytes` get an error
+reply; frames beyond four times that are refused by websockets itself (`max_size`), which closes the connection with
+code 1009 rather than buffer them. Health probes and the other plain routes are logged at debug level.
 
 Reload: with a `reloader` (`carp.serving.startup.model_reloader`: the registry alias moved, or the checkpoint file
 changed), :meth:`PolicyServer.reload` loads and warms the new model up beside the served one, then swaps it in
@@ -34,8 +40,11 @@ metadata again (`carp_client` raises `SpecChangedError`).
 import asyncio
 import hmac
 import http
+import ipaddress
 import json
 import logging
+import os
+import ssl
 import threading
 import time
 from collections.abc import Callable
@@ -44,6 +53,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.datastructures import MultipleValuesError
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
@@ -51,7 +61,7 @@ from carp.serving.batching import PredictionQueue
 from carp.serving.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from carp.serving.metrics import ServerMetrics
 from carp.serving.model import ModelSource, ServedModel
-from carp.serving.session import RequestError, ServingSpec, Session
+from carp.serving.session import Observed, RequestError, ServingSpec, Session
 from carp.serving.wire import WireError, decode, encode
 
 logger = logging.getLogger(__name__)
@@ -64,6 +74,9 @@ DEFAULT_MAX_REQUEST_BYTES = 1 << 20
 """1 MiB: two 84 x 84 cameras take 42 kB a step; a larger image policy raises it."""
 OPEN_ROUTES = ("/healthz",)
 DEFAULT_MAX_BATCH_SIZE = 8
+DEFAULT_DECODING_THREADS = 2
+AUTHORIZATION_SCHEMES = ("bearer", "api-key")
+"""Accepted ``Authorization`` schemes, compared in lower case: the usual bearer token, and openpi's client's."""
 SPEC_CHANGED_CLOSE_CODE = 1012
 SPEC_CHANGED_REASON = "the policy's observation or action spec changed: reconnect and read the metadata again"
 
@@ -73,13 +86,23 @@ class ServerSettings:
     """Where and how the server listens.
 
     Attributes:
-        host: interface to bind; loopback unless the robot is on another machine.
+        host: interface to bind; loopback unless the robot is on another machine. Another address needs a token
+            unless `allow_no_token` says otherwise.
         port: TCP port; 0 picks a free one (tests).
         token: bearer token required on every route but `/healthz`; None serves without one.
         max_request_bytes: largest request frame answered; larger ones get an error reply.
         max_batch_size: most requests predicted in one call (`carp.serving.batching`); 1 turns batching off.
         reload_interval_s: seconds between two checks for a new model (the registry alias moved, the file changed);
             None checks only when asked (SIGHUP).
+        batch_window_s: seconds the first waiting request of a batching policy waits for others to join its call;
+            0 predicts at once (only the requests that arrived during the previous call share it).
+        prediction_threads: ONNX Runtime calls that run at once (one request each); 0 for one per CPU core. A
+            PyTorch policy predicts one call at a time whatever this says.
+        decoding_threads: threads that decode and validate request frames off the event loop.
+        tls_certificate: PEM certificate chain to serve TLS with (``wss://``); None serves plain TCP.
+        tls_key: PEM private key of `tls_certificate`; None when the certificate file holds it.
+        allow_no_token: serve a non-loopback `host` without a token (anyone who reaches the port may drive the
+            robot's policy); refused otherwise.
     """
 
     host: str = DEFAULT_HOST
@@ -88,16 +111,82 @@ class ServerSettings:
     max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
     max_batch_size: int = DEFAULT_MAX_BATCH_SIZE
     reload_interval_s: float | None = None
+    batch_window_s: float = 0.0
+    prediction_threads: int = 0
+    decoding_threads: int = DEFAULT_DECODING_THREADS
+    tls_certificate: str | None = None
+    tls_key: str | None = None
+    allow_no_token: bool = False
 
     def __post_init__(self) -> None:
         if self.token is not None and not self.token:
             raise ValueError("the token must not be empty (leave it unset to serve without one)")
+        if self.token is not None and (self.token != self.token.strip() or any(c in self.token for c in "\r\n")):
+            raise ValueError("the token must not hold whitespace at its ends or line breaks")
+        if self.token is None and not self.allow_no_token and not is_loopback(self.host):
+            raise ValueError(
+                f"host {self.host!r} is reachable from other machines: set a token ($CARP_SERVE_TOKEN or "
+                "--token-file), or allow serving without one explicitly (--allow-no-token)"
+            )
+        if not 0 <= self.batch_window_s <= 1:
+            raise ValueError(f"batch_window_s must be between 0 and 1 second, got {self.batch_window_s}")
+        if self.prediction_threads < 0:
+            raise ValueError(f"prediction_threads must be >= 0 (0: one per CPU core), got {self.prediction_threads}")
+        if self.decoding_threads < 1:
+            raise ValueError(f"decoding_threads must be >= 1, got {self.decoding_threads}")
+        if self.tls_key is not None and self.tls_certificate is None:
+            raise ValueError("a TLS key needs its certificate (tls_certificate)")
         if self.max_request_bytes < 1:
             raise ValueError(f"max_request_bytes must be positive, got {self.max_request_bytes}")
         if self.max_batch_size < 1:
             raise ValueError(f"max_batch_size must be >= 1, got {self.max_batch_size}")
         if self.reload_interval_s is not None and not self.reload_interval_s > 0:
             raise ValueError(f"reload_interval_s must be positive, got {self.reload_interval_s}")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether binding `host` accepts connections from the same host only (``localhost`` or a loopback address)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name other than localhost may resolve to any interface
+
+
+def tls_context(certificate: str, key: str | None = None) -> ssl.SSLContext:
+    """A server TLS context (TLS 1.2 or later) for the PEM `certificate` chain and its `key`.
+
+    Raises:
+        ValueError: a file is missing, or the two are not a certificate and its key; the message names them.
+    """
+    for path in (certificate, key):
+        if path is not None and not os.path.isfile(path):
+            raise ValueError(f"tls: {path}: no such file")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        context.load_cert_chain(certificate, key)
+    except ssl.SSLError as error:
+        raise ValueError(f"tls: {certificate}: not a PEM certificate and key that match ({error.reason})") from None
+    return context
+
+
+class _ProbeLogger(logging.LoggerAdapter):
+    """websockets' server logger with its per-connection lines for answered plain routes and connections demoted.
+
+    A load balancer's health probe every few seconds would otherwise write two lines each time ("connection rejected
+    (200 OK)", "connection closed"); refusals (401, 400, 503) stay at info level.
+    """
+
+    QUIET = ("connection open", "connection closed")
+
+    def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
+        if level == logging.INFO and (
+            msg in self.QUIET or (str(msg).endswith("(%d %s)") and args and 200 <= int(args[0]) < 300)
+        ):
+            level = logging.DEBUG
+        super().log(level, msg, *args, **kwargs)
 
 
 class PolicyServer:
@@ -124,8 +213,12 @@ class PolicyServer:
         self.reloader = reloader
         self.metrics = ServerMetrics()
         self.ready = False
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="carp-serving")
-        self._queue = PredictionQueue(self._executor, settings.max_batch_size, self._count_call)
+        threads = settings.prediction_threads or os.cpu_count() or 1
+        self._executor = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="carp-serving")
+        self._decoder = ThreadPoolExecutor(max_workers=settings.decoding_threads, thread_name_prefix="carp-decoding")
+        self._queue = PredictionQueue(
+            self._executor, settings.max_batch_size, self._count_call, threads, settings.batch_window_s
+        )
         self._sessions: dict[ServerConnection, Session] = {}
         self._reload_lock: asyncio.Lock | None = None
         self._poller: asyncio.Task | None = None
@@ -153,6 +246,11 @@ class PolicyServer:
             "max_request_bytes": self.settings.max_request_bytes,
         }
 
+    @property
+    def scheme(self) -> str:
+        """``wss`` when the server speaks TLS, else ``ws``."""
+        return "ws" if self.settings.tls_certificate is None else "wss"
+
     async def start(self) -> Server:
         """Bind, then warm the model up off the event loop; `/readyz` answers 200 from then on.
 
@@ -160,6 +258,9 @@ class PolicyServer:
             OSError: the address cannot be bound.
             ValueError: the warm-up prediction does not fit the spec (the server is closed again).
         """
+        tls = None
+        if self.settings.tls_certificate is not None:
+            tls = tls_context(self.settings.tls_certificate, self.settings.tls_key)
         server = await serve(
             self._handle,
             self.settings.host,
@@ -168,6 +269,8 @@ class PolicyServer:
             max_size=4 * self.settings.max_request_bytes,
             # Raw float and image bytes compress poorly; deflate would only add latency.
             compression=None,
+            ssl=tls,
+            logger=_ProbeLogger(logging.getLogger("websockets.server"), {}),
         )
         try:
             await asyncio.get_running_loop().run_in_executor(self._executor, self.model.warm_up, self.spec)
@@ -194,8 +297,9 @@ class PolicyServer:
         await self._queue.stop()
 
     def close(self) -> None:
-        """Release the prediction thread (after :meth:`stop`)."""
+        """Release the prediction and decoding threads (after :meth:`stop`)."""
         self._executor.shutdown(wait=True)
+        self._decoder.shutdown(wait=True)
 
     async def reload(self) -> bool:
         """Ask the reloader for the model to serve now; swap it in if it is another one.
@@ -249,16 +353,27 @@ class PolicyServer:
         self.metrics.predicted_chunks += size
 
     def _authorized(self, request: Request) -> bool:
+        """Whether the request's one ``Authorization`` header carries the token in an accepted scheme.
+
+        Raises:
+            MultipleValuesError: the request has several ``Authorization`` headers.
+        """
         if self.settings.token is None:
             return True
-        expected = f"Bearer {self.settings.token}".encode()
-        return hmac.compare_digest(request.headers.get("Authorization", "").encode(), expected)
+        scheme, _, credential = request.headers.get("Authorization", "").strip().partition(" ")
+        # The comparison runs whatever the scheme, so that its time does not tell a wrong scheme from a wrong token.
+        matches = hmac.compare_digest(credential.strip().encode(), self.settings.token.encode())
+        return matches and scheme.lower() in AUTHORIZATION_SCHEMES
 
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return connection.respond(http.HTTPStatus.OK, "ok\n")
-        if not self._authorized(request):
+        try:
+            authorized = self._authorized(request)
+        except MultipleValuesError:
+            return connection.respond(http.HTTPStatus.BAD_REQUEST, "send one Authorization header, not several\n")
+        if not authorized:
             response = connection.respond(http.HTTPStatus.UNAUTHORIZED, "missing or wrong bearer token\n")
             response.headers["WWW-Authenticate"] = "Bearer"
             return response
@@ -301,13 +416,17 @@ class PolicyServer:
         except WireError as error:
             raise RequestError(f"frame: {error}") from None
 
+    def _observe(self, session: Session, frame: str | bytes) -> Observed:
+        """Decode and validate `frame` into `session` (on a decoding thread; a connection's frames one at a time)."""
+        return session.observe(self._parse(frame))
+
     async def _answer(self, connection: ServerConnection, session: Session, frame: str | bytes) -> None:
         received = time.perf_counter()
         # The model this request arrived under answers it, even if a reload swaps another one in meanwhile.
         model = self.model
         self.metrics.requests += 1
         try:
-            observed = session.observe(self._parse(frame))
+            observed = await asyncio.get_running_loop().run_in_executor(self._decoder, self._observe, session, frame)
         except RequestError as error:
             self.metrics.errors += 1
             await connection.send(str(error))
@@ -404,8 +523,8 @@ class ServerThread:
 
     @property
     def url(self) -> str:
-        """``ws://host:port`` of the running server."""
-        return f"ws://{self.policy_server.settings.host}:{self.port}"
+        """``ws://host:port`` (``wss://`` with TLS) of the running server."""
+        return f"{self.policy_server.scheme}://{self.policy_server.settings.host}:{self.port}"
 
     def _run(self) -> None:
         async def main() -> None:

@@ -16,6 +16,7 @@ then comes from their `data` section, as evaluation takes it (`carp.evaluation.r
 concatenated ``obs`` (the per-key widths are unknown). The warm-up checks the predicted (H, A) against the spec.
 """
 
+import logging
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -23,10 +24,11 @@ from pathlib import Path
 from carp.policies.base import TORCH_BACKEND, Policy
 from carp.serving.model import ModelSource, ServedModel, file_sha256
 from carp.serving.protocol import recorded_protocol, spec_from_protocol
-from carp.serving.server import PolicyServer, ServerSettings, serve_forever
+from carp.serving.server import PolicyServer, ServerSettings, is_loopback, serve_forever, tls_context
 from carp.serving.session import ServingSpec
 
 REGISTRY_PREFIX = "models:/"
+logger = logging.getLogger(__name__)
 
 
 class ServingStartError(RuntimeError):
@@ -286,6 +288,16 @@ def serve_checkpoint(
         ServingStartError: the model cannot be loaded, the address cannot be bound, or the warm-up prediction does
             not fit the spec.
     """
+    if settings.tls_certificate is not None:
+        try:
+            tls_context(settings.tls_certificate, settings.tls_key)  # refused before the model takes seconds to load
+        except ValueError as error:
+            raise ServingStartError(str(error)) from None
+    elif not is_loopback(settings.host):
+        if settings.token is None:
+            logger.warning("serving %s without a token: anyone who reaches the port drives the policy", settings.host)
+        else:
+            logger.warning("serving %s without TLS: the token crosses the network in clear text", settings.host)
     served, spec = load_served_model(model, params, tracking_uri, backend, task)
     reloader = model_reloader(model, params, tracking_uri, backend, task)
     try:
