@@ -1,11 +1,12 @@
-"""collect stage: scripted-expert demos (or the user's own robomimic file) -> data/raw/<task>.hdf5."""
+"""collect stage: scripted-expert demos (or the user's own robomimic file or LeRobotDataset) -> data/raw/<task>.hdf5."""
 
 import json
 
 from stage_support import PROJECT_DIR, STAGING_DIR, fail, load, mlflow_stage, parse_args, setup_logging
 
 from carp.config import TASK_NAMES
-from carp.data.robomimic_io import DatasetError, import_demonstrations
+from carp.data.demo_sources import import_demos
+from carp.data.robomimic_io import DatasetError
 from carp.tasks import get_task
 
 
@@ -22,9 +23,10 @@ def main() -> None:
         try:
             # The same checks as ingest (low-dim obs keys, action width, filter mask), so a file ingest would refuse
             # is refused here, before anything is written at the output. An image run reads the proprioception
-            # only: a camera file need not hold the object's pose.
+            # only: a camera file need not hold the object's pose. A LeRobotDataset that records no env_args takes
+            # the task's own.
             task = get_task(args.task)
-            demos = import_demonstrations(
+            demos = import_demos(
                 source,
                 output,
                 params.obs_keys_for(args.task),
@@ -32,11 +34,12 @@ def main() -> None:
                 filter_key=params.data.filter_key,
                 staging_dir=STAGING_DIR,
                 env_name=task.env_name,
+                env_args=lambda: task.make_env_args(params.data.controller),
             )
         except DatasetError as error:
             fail(str(error))
         except OSError as error:
-            fail(f"{source}: cannot copy to {output} ({error.strerror or error})")
+            fail(f"{source}: cannot write {output} ({error.strerror or error})")
         with mlflow_stage(params, f"collect@{args.task}", args.task) as run:
             run.log_metrics({"demos": len(demos.episodes)})
         print(f"{args.task}: copied {len(demos.episodes)} demos from {source}")

@@ -34,3 +34,20 @@ def test_missing_or_directory_source_is_refused_with_the_key(tmp_path, make, rea
     make(tmp_path / "lift.hdf5")
     with pytest.raises(SourceError, match=rf"^data\.raw_files\.lift='lift\.hdf5': {reason}"):
         describe_source("lift", "lift.hdf5", tmp_path)
+
+
+def test_a_lerobot_folder_is_recorded_by_the_hash_of_its_files(tmp_path):
+    import shutil
+
+    from tests.data.lerobot.fixtures import FIXTURES
+
+    shutil.copytree(FIXTURES / "v3.0", tmp_path / "pusht")
+    record = describe_source("pusht", "pusht", tmp_path)
+    assert record["source"] == "lerobot" and record["files"] == 6
+    assert describe_source("pusht", "pusht", tmp_path) == record
+    (tmp_path / "pusht" / "meta" / "extra.json").write_text("{}")
+    added = describe_source("pusht", "pusht", tmp_path)
+    assert added["sha256"] != record["sha256"] and added["files"] == 7
+    (tmp_path / "pusht" / "meta" / "extra.json").unlink()
+    (tmp_path / "pusht" / "meta" / "info.json").write_text("{}")
+    assert describe_source("pusht", "pusht", tmp_path)["sha256"] != record["sha256"]
