@@ -67,7 +67,11 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--tls-key", default=None, help="PEM private key of --tls-cert (default: in the same file)")
     serve.add_argument("--max-request-bytes", type=int, default=DEFAULT_MAX_REQUEST_BYTES)
     serve.add_argument(
-        "--max-batch", type=int, default=DEFAULT_MAX_BATCH_SIZE, help="most requests in one prediction call (1: off)"
+        "--max-batch",
+        type=int,
+        default=DEFAULT_MAX_BATCH_SIZE,
+        help="most requests of a greedy PyTorch policy in one prediction call (default 1: off; a batched chunk may "
+        "differ from the one predicted alone where a token choice is a near tie)",
     )
     serve.add_argument(
         "--batch-window-ms",

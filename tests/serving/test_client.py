@@ -1,13 +1,88 @@
+import base64
+import hashlib
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from carp_client import PolicyClient
 
 from tests.serving.conftest import CLIENT_DIR, observations, start_server
+
+PROJECT_DIR = Path(__file__).resolve().parents[2]
+WEBSOCKET_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
+"""RFC 6455's constant of the opening handshake's accept key."""
+
+
+class SilentServer:
+    """Accepts one connection, completes the WebSocket handshake and sends a metadata frame, then reads nothing and
+    answers nothing, not even a close frame: a server hung after it accepted the robot."""
+
+    def __init__(self) -> None:
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.url = f"ws://127.0.0.1:{self._listener.getsockname()[1]}"
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        connection, _ = self._listener.accept()
+        with connection:
+            request = b""
+            while b"\r\n\r\n" not in request:
+                request += connection.recv(4096)
+            key = next(
+                line.split(b":", 1)[1].strip()
+                for line in request.split(b"\r\n")
+                if line.lower().startswith(b"sec-websocket-key:")
+            )
+            accept = base64.b64encode(hashlib.sha1(key + WEBSOCKET_GUID).digest())
+            connection.sendall(
+                b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                b"Sec-WebSocket-Accept: " + accept + b"\r\n\r\n"
+            )
+            metadata = msgpack.packb({"protocol": "carp-policy"})
+            connection.sendall(bytes([0x82, len(metadata)]) + metadata)  # one unmasked binary frame
+            self._done.wait(60)
+
+    def close(self) -> None:
+        self._done.set()
+        self._thread.join(10)
+        self._listener.close()
+
+
+def test_a_reply_that_never_comes_raises_within_the_timeout_not_twice_it():
+    hung = SilentServer()
+    try:
+        client = PolicyClient(hung.url, timeout=1.5, connect_attempts=1)
+        client.connect()
+        started = time.monotonic()
+        with pytest.raises(TimeoutError, match="no reply .* within 1.5 s"):
+            client.infer({"obs": np.zeros(3, np.float32)})
+        elapsed = time.monotonic() - started
+    finally:
+        hung.close()
+    # Waiting for a closing handshake the hung server never answers would take another 1.5 s.
+    assert elapsed < 1.5 * 1.5, elapsed
+
+
+def test_connecting_to_a_server_that_accepts_and_never_answers_gives_up_within_the_budget():
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        url = f"ws://127.0.0.1:{listener.getsockname()[1]}"
+        started = time.monotonic()
+        with pytest.raises(TimeoutError, match="within 2 s"):
+            PolicyClient(url, timeout=0.5, reconnect_budget_s=2.0).connect()
+        elapsed = time.monotonic() - started
+    assert elapsed < 2.0 + 0.5, elapsed
 
 
 def test_the_client_times_out_against_a_server_that_never_answers():
@@ -39,6 +114,35 @@ def test_the_client_reconnects_to_a_server_restarted_on_the_same_port(checkpoint
             reply = client.infer({"obs": obs})
         finally:
             second.stop()
+    assert reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
+
+
+def serve_in_a_process(checkpoint, port: int) -> subprocess.Popen:
+    environment = os.environ | {"PYTHONPATH": str(PROJECT_DIR / "src")}
+    command = [sys.executable, "-m", "carp.cli", "serve", "--model", str(checkpoint), "--port", str(port)]
+    return subprocess.Popen(
+        [*command, "--reload-interval", "0"], cwd=PROJECT_DIR, env=environment, stderr=subprocess.DEVNULL
+    )
+
+
+@pytest.mark.slow
+def test_with_its_defaults_the_client_waits_for_a_server_killed_and_restarted(checkpoint):
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        port = unused.getsockname()[1]
+    process = serve_in_a_process(checkpoint, port)
+    try:
+        # The defaults wait for the first start too: the process imports torch, loads and exports the policy.
+        with PolicyClient(f"ws://127.0.0.1:{port}") as client:
+            obs = observations(1, seed=0)[0]
+            assert client.infer({"obs": obs})["actions"].shape == (8, 2)
+            process.send_signal(signal.SIGKILL)
+            process.wait(30)
+            process = serve_in_a_process(checkpoint, port)
+            reply = client.infer({"obs": obs})
+    finally:
+        process.kill()
+        process.wait(30)
     assert reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
 
 

@@ -1,3 +1,4 @@
+import logging
 import os
 import subprocess
 import sys
@@ -39,3 +40,59 @@ def test_register_and_serve_by_uri_without_a_usable_source_print_one_error_line(
         assert exited.value.code == 1
         lines = capsys.readouterr().err.splitlines()
         assert len(lines) == 1 and lines[0].startswith(message), lines
+
+
+@pytest.fixture
+def served_settings(monkeypatch):
+    """The settings `carp serve` would serve with; nothing is served."""
+    from carp.serving import startup
+
+    settings = []
+    monkeypatch.setattr(startup, "serve_forever", lambda server: settings.append(server.settings))
+    monkeypatch.delenv("CARP_SERVE_TOKEN", raising=False)
+    return settings
+
+
+def test_the_token_comes_from_a_file_or_the_environment_and_the_flag_warns(
+    tmp_path, served_settings, monkeypatch, caplog
+):
+    from carp import cli
+
+    model = str(save_tiny_checkpoint(tmp_path / "policy.pt"))
+    token_file = tmp_path / "token"
+    token_file.write_text("from-file\n")
+    cli.main(["serve", "--model", model, "--backend", "torch", "--token-file", str(token_file)])
+    monkeypatch.setenv("CARP_SERVE_TOKEN", "from-environment")
+    cli.main(["serve", "--model", model, "--backend", "torch"])
+    with caplog.at_level(logging.WARNING, logger="carp.cli"):
+        cli.main(["serve", "--model", model, "--backend", "torch", "--token", "from-flag"])
+    assert [settings.token for settings in served_settings] == ["from-file", "from-environment", "from-flag"]
+    assert any("visible to every local user in the process list" in record.getMessage() for record in caplog.records)
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["--host", "0.0.0.0"], "error: host '0.0.0.0' is reachable from other machines: set a token"),
+        (["--tls-cert", "missing.pem"], "error: tls: missing.pem: no such file"),
+        (["--token-file", "missing-token"], "error: missing-token: no such token file"),
+        (["--batch-window-ms", "5000"], "error: batch_window_s must be between 0 and 1 second, got 5.0"),
+    ],
+)
+def test_unsafe_or_broken_serving_settings_print_one_error_line(tmp_path, served_settings, capsys, arguments, message):
+    from carp import cli
+
+    model = str(save_tiny_checkpoint(tmp_path / "policy.pt"))
+    with pytest.raises(SystemExit) as exited:
+        cli.main(["serve", "--model", model, "--backend", "torch", *arguments])
+    assert exited.value.code == 1 and served_settings == []
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(message), lines
+
+
+def test_a_non_loopback_host_serves_without_a_token_only_when_told_to(tmp_path, served_settings):
+    from carp import cli
+
+    model = str(save_tiny_checkpoint(tmp_path / "policy.pt"))
+    cli.main(["serve", "--model", model, "--backend", "torch", "--host", "0.0.0.0", "--allow-no-token"])
+    assert served_settings[0].host == "0.0.0.0" and served_settings[0].token is None

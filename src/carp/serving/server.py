@@ -73,7 +73,9 @@ DEFAULT_PORT = 8000
 DEFAULT_MAX_REQUEST_BYTES = 1 << 20
 """1 MiB: two 84 x 84 cameras take 42 kB a step; a larger image policy raises it."""
 OPEN_ROUTES = ("/healthz",)
-DEFAULT_MAX_BATCH_SIZE = 8
+DEFAULT_MAX_BATCH_SIZE = 1
+"""Batching is opt-in: a batched row may differ from the chunk predicted alone (a greedy token flips on a near tie,
+docs/serving.md measures how often), so by default every request is predicted as the in-process evaluation would."""
 DEFAULT_DECODING_THREADS = 2
 AUTHORIZATION_SCHEMES = ("bearer", "api-key")
 """Accepted ``Authorization`` schemes, compared in lower case: the usual bearer token, and openpi's client's."""
@@ -91,7 +93,8 @@ class ServerSettings:
         port: TCP port; 0 picks a free one (tests).
         token: bearer token required on every route but `/healthz`; None serves without one.
         max_request_bytes: largest request frame answered; larger ones get an error reply.
-        max_batch_size: most requests predicted in one call (`carp.serving.batching`); 1 turns batching off.
+        max_batch_size: most requests predicted in one call (`carp.serving.batching`); 1 (the default) turns
+            batching off, so that every chunk equals the in-process prediction bit for bit.
         reload_interval_s: seconds between two checks for a new model (the registry alias moved, the file changed);
             None checks only when asked (SIGHUP).
         batch_window_s: seconds the first waiting request of a batching policy waits for others to join its call;
