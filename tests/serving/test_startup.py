@@ -1,3 +1,5 @@
+import threading
+
 import numpy as np
 import pytest
 import torch
@@ -157,3 +159,37 @@ class PyTorchOnly:
 def test_a_family_without_graphs_stays_in_pytorch_on_the_onnxruntime_backend(tmp_path):
     policy = PyTorchOnly()
     assert _deployed(policy, tmp_path / "policy.pt", "onnxruntime") == (policy, "torch")
+
+
+def test_onnxruntime_calls_of_several_robots_run_at_once_and_each_equals_its_graphs_in_process(checkpoint):
+    # Top-k sampling, so that each episode's draws from its own generator show in the chunks.
+    params = Params(inference={"carp": CarpInference(top_k=4)})
+    model, spec = load_served_model(checkpoint, params, backend="onnxruntime")
+    assert model.concurrent and not model.batches and model.policy.top_k == 4
+    episodes = {robot: observations(12, seed=400 + robot) for robot in range(4)}
+    served: dict[int, list[np.ndarray]] = {}
+    failures: list[BaseException] = []
+    running = ServerThread(PolicyServer(model, spec, ServerSettings(port=0, prediction_threads=2))).start()
+
+    def drive(robot: int) -> None:
+        try:
+            with PolicyClient(running.url, timeout=30) as client:
+                client.reset(seed=robot)
+                served[robot] = [client.infer({"obs": obs})["actions"] for obs in episodes[robot]]
+        except BaseException as error:  # noqa: BLE001 - re-raised by the test thread below
+            failures.append(error)
+
+    threads = [threading.Thread(target=drive, args=(robot,)) for robot in episodes]
+    try:
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=120)
+        calls = running.policy_server.metrics.model_calls
+    finally:
+        running.stop()
+    assert not failures, failures
+    assert calls == 4 * 12  # one call per request
+    for robot, episode in episodes.items():
+        for reply, chunk in zip(served[robot], in_process_chunks(model.policy, episode, robot), strict=True):
+            np.testing.assert_array_equal(reply, chunk)
