@@ -15,6 +15,7 @@ imports between modules, where they would join every module of a package).
 
 import argparse
 import ast
+import fnmatch
 import re
 import sys
 from collections.abc import Iterable, Mapping, Sequence
@@ -29,18 +30,20 @@ LIBRARY = Path("src/carp")
 PIPELINE = Path("pipeline")
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("carp", "carp.outputs", "carp.config_docs", "carp.config"),
+    ("carp", "carp.outputs", "carp.config.checks", "carp.training.checkpoint"),
     ("carp.simulation", "carp.tasks", "carp.data"),
-    ("carp.tokenizer", "carp.vision"),
-    ("carp.training.checkpoint", "carp.training.runtime", "carp.training.loop", "carp.training.distributed"),
-    ("carp.training.cross_entropy", "carp.policies"),
+    ("carp.config", "carp.config_docs", "carp.policies.sections", "carp.policies.*.config"),
+    ("carp.tokenizer", "carp.vision", "carp.policies.base"),
+    ("carp.training.runtime", "carp.training.loop", "carp.training.distributed", "carp.training.cross_entropy"),
+    ("carp.policies",),
     ("carp.training", "carp.evaluation", "carp.tracking"),
     ("carp.reporting", "carp.sweep", "carp.studies", "carp.serving", "carp.cli"),
 )
 """The library's layers from the bottom up (docs/architecture.md): a module may import its own layer and those below.
 
-A module belongs to the layer of the longest prefix listed (`carp.training.loop` to the fourth, the rest of
-`carp.training` to the sixth); `carp` itself is the package's `__init__` (its version)."""
+A module belongs to the layer of the most specific entry that names it: the entry itself or a module under it, with
+`*` standing for one name (`carp.policies.*.config`: each family's params sections). `carp` itself is the package's
+`__init__` (its version)."""
 
 
 @dataclass(frozen=True)
@@ -204,18 +207,32 @@ def missing_deps(graph: ImportGraph, dvc_yaml: Path = REPO / "dvc.yaml") -> dict
     return missing
 
 
-def code_deps(graph: ImportGraph, script: Path) -> list[str]:
+def code_deps(graph: ImportGraph, script: Path, repo: Path = REPO) -> list[str]:
     """What a stage running `script` lists as code.
 
-    The script, the pipeline helpers it imports, then the library packages (as folders) and top-level modules it
-    reaches, sorted.
+    The script, the pipeline helpers it imports, then the library files it reaches, sorted; a folder whose every
+    Python file it reaches is listed as the folder.
     """
-    listed = set()
-    for file in graph.reached(script):
-        inside_package = file.is_relative_to(LIBRARY) and len(file.relative_to(LIBRARY).parts) > 1
-        listed.add((LIBRARY / file.relative_to(LIBRARY).parts[0]).as_posix() if inside_package else file.as_posix())
-    helpers = sorted(path for path in listed if path.startswith(f"{PIPELINE}/") and path != script.as_posix())
-    return [script.as_posix(), *helpers, *sorted(path for path in listed if not path.startswith(f"{PIPELINE}/"))]
+    reached = graph.reached(script)
+    helpers = sorted(file.as_posix() for file in reached if file.is_relative_to(PIPELINE) and file != script)
+    library = [file for file in reached if file.is_relative_to(LIBRARY)]
+    return [script.as_posix(), *helpers, *sorted(_grouped(LIBRARY, set(library), repo))]
+
+
+def _grouped(folder: Path, reached: set[Path], repo: Path) -> list[str]:
+    """The reached files under `folder`, each subfolder whose every file is reached named as the subfolder."""
+    listed = []
+    for child in sorted((repo / folder).iterdir()):
+        relative = child.relative_to(repo)
+        if child.is_dir() and (child / "__init__.py").exists():
+            files = {file.relative_to(repo) for file in child.rglob("*.py")}
+            if files <= reached:
+                listed.append(relative.as_posix())
+            elif files & reached:
+                listed += _grouped(relative, reached, repo)
+        elif relative in reached:
+            listed.append(relative.as_posix())
+    return listed
 
 
 def write_code_deps(graph: ImportGraph, dvc_yaml: Path = REPO / "dvc.yaml") -> None:
@@ -233,7 +250,7 @@ def write_code_deps(graph: ImportGraph, dvc_yaml: Path = REPO / "dvc.yaml") -> N
         elif in_deps and (entry := re.match(r"^(\s+)- (src/carp\S*|pipeline/\S+)$", line)):
             if stage not in written:
                 written.add(stage)
-                lines += [f"{entry.group(1)}- {dep}" for dep in code_deps(graph, scripts[stage][0])]
+                lines += [f"{entry.group(1)}- {dep}" for dep in code_deps(graph, scripts[stage][0], dvc_yaml.parent)]
             continue
         elif in_deps and not re.match(r"^\s+(- |#)", line):
             in_deps = False
@@ -242,13 +259,16 @@ def write_code_deps(graph: ImportGraph, dvc_yaml: Path = REPO / "dvc.yaml") -> N
 
 
 def layer_of(module: str) -> int:
-    """Index in `LAYERS` of the longest listed prefix of `module`."""
+    """Index in `LAYERS` of the most specific entry naming `module` (see `LAYERS`)."""
     best, best_length = None, -1
     for index, layer in enumerate(LAYERS):
-        for prefix in layer:
-            inside = module == prefix or (prefix != "carp" and module.startswith(prefix + "."))
-            if inside and len(prefix) > best_length:
-                best, best_length = index, len(prefix)
+        for entry in layer:
+            names = entry == "carp" and module == "carp"
+            names = names or (
+                entry != "carp" and any(fnmatch.fnmatchcase(module, pattern) for pattern in (entry, f"{entry}.*"))
+            )
+            if names and len(entry) > best_length:
+                best, best_length = index, len(entry)
     if best is None:
         raise ValueError(f"{module} belongs to no layer of tools/import_graph.py LAYERS")
     return best

@@ -15,7 +15,9 @@ from typing import Any
 
 import yaml
 
-from carp.config import FAMILY_SECTIONS, SET_BY_PIPELINE, Params, family_sections
+from carp.config.checks import SET_BY_PIPELINE
+from carp.config.params import FAMILY_SECTIONS, Params
+from carp.policies.sections import family_sections
 
 _ENTRY = re.compile(r"^(\w+):\s*(.*)$")
 

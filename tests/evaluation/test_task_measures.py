@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from carp import simulation
-from carp.evaluation.insertion_offset import THREADING_PAIRS, InsertionOffset
+from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
@@ -217,7 +217,7 @@ class _Contacts:
 
 
 def test_a_pair_untouched_stays_nan_and_the_episode_takes_the_pairs_that_touched():
-    from carp.evaluation.insertion_offset import NUT_ASSEMBLY_PAIRS
+    from carp.tasks.insertion_offset import NUT_ASSEMBLY_PAIRS
 
     measure = InsertionOffset(NUT_ASSEMBLY_PAIRS)
     # Geoms 0-1 the square nut, 2 its peg, 3 the round nut, 4 its peg; bodies 1-4 in the same order.

@@ -112,9 +112,11 @@ def test_uncovered_files_and_the_rewritten_deps(toy_repo):
     tool.write_code_deps(graph, toy_repo / "dvc.yaml")
     assert tool.missing_deps(graph, toy_repo / "dvc.yaml") == {}
     text = (toy_repo / "dvc.yaml").read_text()
+    # A folder is listed whole only when the stage reaches all of it (pkg/heavy.py is not reached from stage.py).
     assert (
         "      - data/raw\n      # the script\n      - pipeline/stage.py\n      - pipeline/helper.py\n"
-        "      - src/carp/__init__.py\n      - src/carp/base.py\n      - src/carp/pkg\n    outs:\n" in text
+        "      - src/carp/__init__.py\n      - src/carp/base.py\n      - src/carp/pkg/__init__.py\n"
+        "      - src/carp/pkg/light.py\n    outs:\n" in text
     )
     assert text.endswith(
         "        - pipeline/other.py\n        - src/carp/__init__.py\n        - src/carp/base.py\n"

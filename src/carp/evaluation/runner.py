@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from carp.config import EVAL_BACKENDS
+from carp.config.checks import EVAL_BACKENDS
 from carp.evaluation.metrics import latency_summary, measure_summary, summarize_episodes, task_score
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.scratch import scratch_directory

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from carp.config import SELECTION_RULES, EvalConfig
+from carp.config.checks import SELECTION_RULES
+from carp.config.evaluation import EvalConfig
 
 Outcome = TypeVar("Outcome")
 

@@ -3,7 +3,7 @@
 from dataclasses import dataclass, field
 from typing import Any
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.observations import observation_feature_dim
 from carp.policies.tasks import TASKS_METADATA_KEY, PolicyTasks

@@ -28,7 +28,7 @@ import torch
 from einops import rearrange
 from torch import Tensor, nn
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.vision.encoder import ImageEncoder
 
 

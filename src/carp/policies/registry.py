@@ -1,45 +1,43 @@
 """Family name -> its config, model builder and loader, and `load_policy`, which dispatches on `policy_type`.
 
 Each family's folder has a `config` module with its params sections and a `family` module that defines its
-:class:`PolicyFamily` (the two Diffusion Policy families share one folder); the table below names both, one line per
-family. Modules are imported on first use, after `carp.config` has loaded, so a family's config may import
-`carp.config` without a cycle; and loading params imports only the light config modules, not torch or the models.
+:class:`PolicyFamily` (the two Diffusion Policy families share one folder). The table below names the `family`
+modules, one line per family; `carp.policies.sections` names the `config` modules, so that loading the params imports
+only those, never torch or the models. Both import on first use. `family_names` and `get_sections` are the sections
+table's, kept here for the callers that use the registry alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from carp.policies.base import POLICY_FORMAT_VERSION, Policy
+from carp.policies.sections import (
+    family_names,
+    module_attribute,
+    register_sections,
+    unregister_sections,
+)
+from carp.policies.sections import get_sections as get_sections  # the registry's callers look sections up here too
 
 if TYPE_CHECKING:
     import torch
 
 FAMILY_MODULES = {
-    "carp": ("carp.policies.carp.config:SECTIONS", "carp.policies.carp.family:FAMILY"),
-    "diffusion_unet": ("carp.policies.diffusion.config:UNET_SECTIONS", "carp.policies.diffusion.family:UNET_FAMILY"),
-    "diffusion_transformer": (
-        "carp.policies.diffusion.config:TRANSFORMER_SECTIONS",
-        "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
-    ),
-    "next_token": ("carp.policies.next_token.config:SECTIONS", "carp.policies.next_token.family:FAMILY"),
-    "vq_bet": ("carp.policies.vq_bet.config:SECTIONS", "carp.policies.vq_bet.family:FAMILY"),
-    "edm_unet": (
-        "carp.policies.consistency.config:TEACHER_SECTIONS",
-        "carp.policies.consistency.family:TEACHER_FAMILY",
-    ),
-    "consistency_policy": (
-        "carp.policies.consistency.config:STUDENT_SECTIONS",
-        "carp.policies.consistency.family:STUDENT_FAMILY",
-    ),
+    "carp": "carp.policies.carp.family:FAMILY",
+    "diffusion_unet": "carp.policies.diffusion.family:UNET_FAMILY",
+    "diffusion_transformer": "carp.policies.diffusion.family:TRANSFORMER_FAMILY",
+    "next_token": "carp.policies.next_token.family:FAMILY",
+    "vq_bet": "carp.policies.vq_bet.family:FAMILY",
+    "edm_unet": "carp.policies.consistency.family:TEACHER_FAMILY",
+    "consistency_policy": "carp.policies.consistency.family:STUDENT_FAMILY",
 }
-"""One entry per family: registry name -> (`module:attribute` of its (config class, inference class),
-`module:attribute` of its :class:`PolicyFamily`)."""
+"""One entry per family: registry name -> `module:attribute` of its :class:`PolicyFamily`. The family's params
+sections are the other half of the table (`carp.policies.sections.SECTION_MODULES`), under the same names."""
 
 _registered: dict[str, PolicyFamily] = {}
 
@@ -60,8 +58,6 @@ class PolicyFamily:
         train: `train(config, run)` -> the trained policy in eval mode, given a :class:`TrainingRun`: builds the
             policy and runs the resumable loop on it (the shared loop, through :meth:`TrainingRun.train_with_loss`);
             see :func:`train_policy`.
-        teacher: the family whose trained policy this family's training distils (a distilled student's teacher),
-            given to `train` as :attr:`TrainingRun.teacher`; None for a family trained from the data alone.
     """
 
     name: str
@@ -70,7 +66,15 @@ class PolicyFamily:
     build: Callable[..., Policy]
     from_checkpoint: Callable[[dict[str, Any]], Policy]
     train: Callable[..., Policy]
-    teacher: str | None = None
+
+    @property
+    def teacher(self) -> str | None:
+        """The family whose trained policy this family's training distils, or None.
+
+        Declared by the config class's `TEACHER` (the params section trained first); given to `train` as
+        :attr:`TrainingRun.teacher`. None for a family trained from the data alone.
+        """
+        return getattr(self.config_class, "TEACHER", None)
 
 
 @dataclass(frozen=True)
@@ -144,29 +148,6 @@ class TrainingRun:
         )
 
 
-def family_names() -> tuple[str, ...]:
-    """Registered family names, built-in ones first."""
-    return tuple(FAMILY_MODULES) + tuple(name for name in _registered if name not in FAMILY_MODULES)
-
-
-def _attribute(path: str) -> Any:
-    module, attribute = path.split(":")
-    return getattr(importlib.import_module(module), attribute)
-
-
-def get_sections(name: str) -> tuple[type, type]:
-    """(config class, inference class) of family `name`, without importing its model code.
-
-    Raises:
-        KeyError: no such family; the message lists the known ones.
-    """
-    if name in _registered:
-        return _registered[name].config_class, _registered[name].inference_class
-    if name not in FAMILY_MODULES:
-        raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
-    return _attribute(FAMILY_MODULES[name][0])
-
-
 def get_family(name: str) -> PolicyFamily:
     """The family registered under `name`.
 
@@ -177,7 +158,7 @@ def get_family(name: str) -> PolicyFamily:
         return _registered[name]
     if name not in FAMILY_MODULES:
         raise KeyError(f"unknown policy family {name!r} (known: {', '.join(family_names())})")
-    family = _attribute(FAMILY_MODULES[name][1])
+    family = module_attribute(FAMILY_MODULES[name])
     _registered[name] = family
     return family
 
@@ -185,6 +166,7 @@ def get_family(name: str) -> PolicyFamily:
 def register_family(family: PolicyFamily) -> None:
     """Add a family defined outside `FAMILY_MODULES` (e.g. in a test); re-registering a name replaces it."""
     _registered[family.name] = family
+    register_sections(family.name, family.config_class, family.inference_class)
 
 
 def build_policy(name: str, config: Any, context: Any) -> Policy:
@@ -229,6 +211,7 @@ def unregister_family(name: str) -> None:
     """Forget a family added by :func:`register_family` (built-in families stay)."""
     if name not in FAMILY_MODULES:
         _registered.pop(name, None)
+        unregister_sections(name)
 
 
 def policy_from_checkpoint(checkpoint: Any) -> Policy:

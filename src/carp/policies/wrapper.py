@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import (
     POLICY_FORMAT_VERSION,

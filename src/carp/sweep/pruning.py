@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import optuna
 
-from carp.config import SweepConfig
+from carp.config.experiments import SweepConfig
 from carp.evaluation.progress import ValidatedCandidate
 
 REDUCTION_FACTOR = 3

@@ -9,7 +9,7 @@ import json
 import shlex
 from dataclasses import dataclass
 
-from carp.config import SweepConfig
+from carp.config.experiments import SweepConfig
 
 SCALES_PARAM = "scales"
 CODEBOOK_PARAM = "codebook_size"

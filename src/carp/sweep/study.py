@@ -25,7 +25,7 @@ from typing import Protocol
 import optuna
 from optuna.trial import FrozenTrial, TrialState
 
-from carp.config import SweepConfig
+from carp.config.experiments import SweepConfig
 from carp.evaluation.progress import ValidatedCandidate
 from carp.sweep.claims import ClaimStore
 from carp.sweep.confirmation import ConfirmationPlan, ConfirmationResult, LabelledRuns, confirm

@@ -29,7 +29,7 @@ from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback, fail_s
 from optuna.trial import FrozenTrial, TrialState
 from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
-from carp.config import SweepConfig
+from carp.config.experiments import SweepConfig
 from carp.sweep.claims import ClaimLostError, ClaimStore
 from carp.sweep.space import (
     CODEBOOK_PARAM,

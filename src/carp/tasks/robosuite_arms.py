@@ -37,19 +37,19 @@ _ACTION_FORMATS = {"absolute": ABSOLUTE_ACTIONS, "delta": DELTA_ACTIONS}
 
 
 def _insertion_offset() -> EpisodeMeasure:
-    from carp.evaluation.insertion_offset import InsertionOffset  # imported on use: the registry stays light
+    from carp.tasks.insertion_offset import InsertionOffset  # imported on use: the registry stays light
 
     return InsertionOffset()
 
 
 def _nut_assembly_offsets() -> EpisodeMeasure:
-    from carp.evaluation.insertion_offset import NUT_ASSEMBLY_PAIRS, InsertionOffset
+    from carp.tasks.insertion_offset import NUT_ASSEMBLY_PAIRS, InsertionOffset
 
     return InsertionOffset(NUT_ASSEMBLY_PAIRS)
 
 
 def _threading_offset() -> EpisodeMeasure:
-    from carp.evaluation.insertion_offset import THREADING_PAIRS, InsertionOffset
+    from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 
     return InsertionOffset(THREADING_PAIRS)
 

@@ -31,7 +31,7 @@ from mlflow import MlflowClient
 from mlflow.models import ModelSignature
 from mlflow.types import ParamSchema, ParamSpec
 
-from carp.config import require_registry_alias
+from carp.config.checks import require_registry_alias
 from carp.data.sources import file_sha256
 from carp.evaluation.selection import confirmed_checkpoint, find_candidates
 from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact

@@ -31,7 +31,7 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel
 from tqdm.auto import tqdm
 
-from carp.config import TrainingConfig
+from carp.config.training import TrainingConfig
 from carp.policies.base import Policy
 from carp.training import distributed
 from carp.training.checkpoint import resume_training_state, save_training_state

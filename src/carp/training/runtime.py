@@ -6,7 +6,7 @@ import random
 import numpy as np
 import torch
 
-from carp.config import TRAINING_PRECISIONS
+from carp.config.checks import TRAINING_PRECISIONS
 
 
 def resolve_device(device: str) -> torch.device:

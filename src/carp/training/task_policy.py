@@ -22,7 +22,9 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from carp.config import DataConfig, ImageEncoderConfig, TrainingConfig
+from carp.config.data import DataConfig
+from carp.config.image_encoder import ImageEncoderConfig
+from carp.config.training import TrainingConfig
 from carp.data.dataset import (
     TaskWindows,
     load_multitask_windows,

@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from carp.config import TokenizerConfig
+from carp.config.tokenizer import TokenizerConfig
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec

@@ -6,7 +6,7 @@ section, defined in :mod:`carp.config`). Rendering the images from simulator sta
 in :mod:`carp.data.rendering`.
 """
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.vision.encoder import CameraEncoder, ImageEncoder
 
 __all__ = ["CameraEncoder", "ImageEncoder", "ImageEncoderConfig"]

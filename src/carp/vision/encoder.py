@@ -13,7 +13,7 @@ import torch
 from einops import rearrange
 from torch import Tensor, nn
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.vision.crop import ImageCrop
 from carp.vision.keypoints import SpatialSoftmax
 from carp.vision.resnet import ResNetTrunk

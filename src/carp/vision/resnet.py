@@ -13,7 +13,7 @@ Deviations from the torchvision ``resnet18`` layout:
 
 from torch import Tensor, nn
 
-from carp.config import CHANNELS_PER_GROUP
+from carp.config.image_encoder import CHANNELS_PER_GROUP
 
 STAGE_MULTIPLIERS = (1, 2, 4, 8)
 BLOCKS_PER_STAGE = 2

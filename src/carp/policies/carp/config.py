@@ -8,7 +8,8 @@ precision of the training loop are the shared `training` section (`carp.config.T
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from carp.config import TASK_NAMES, ConfigError, _require, require_optimizer_settings, require_positive_int
+from carp.config.checks import ConfigError, _require, require_optimizer_settings, require_positive_int
+from carp.tasks import TASK_NAMES
 
 SECTION = "carp"
 ATTENTION_SETTINGS = ("auto", "masked", "blockwise")

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import POLICY_FORMAT_VERSION, Deployment, TimedPrediction
 from carp.policies.carp.sampling import generate_chunk

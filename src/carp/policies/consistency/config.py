@@ -12,7 +12,7 @@ loss (weights 1 and 1), at most one teacher step per sample, a target network th
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from carp.config import _require, require_optimizer_settings, require_positive_int
+from carp.config.checks import _require, require_optimizer_settings, require_positive_int
 from carp.policies.diffusion.config import check_unet_shape, horizon_multiple
 
 TEACHER = "edm_unet"
@@ -156,6 +156,7 @@ class ConsistencyConfig:
     """
 
     SECTION: ClassVar[str] = STUDENT
+    TEACHER: ClassVar[str] = TEACHER  # the family whose trained policy this one distils, trained first
 
     learning_rate: float = 1e-4
     weight_decay: float = 1e-6

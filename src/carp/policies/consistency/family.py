@@ -184,5 +184,4 @@ STUDENT_FAMILY = PolicyFamily(
     build_student,
     ConsistencyPolicy.from_checkpoint,
     train_student,
-    teacher=TEACHER,
 )

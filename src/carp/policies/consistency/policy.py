@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.consistency.config import STUDENT, TEACHER, ConsistencyConfig, EDMConfig

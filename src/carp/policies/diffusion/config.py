@@ -12,7 +12,7 @@ configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transfor
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
-from carp.config import _require, require_optimizer_settings, require_positive_int
+from carp.config.checks import _require, require_optimizer_settings, require_positive_int
 
 SAMPLERS = ("ddpm", "ddim")
 

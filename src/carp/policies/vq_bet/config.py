@@ -11,7 +11,7 @@ window its `data.obs_steps`; the loop settings (epochs, batch size, seed) are th
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from carp.config import _require, require_optimizer_settings, require_positive_int
+from carp.config.checks import _require, require_optimizer_settings, require_positive_int
 
 SECTION = "vq_bet"
 CODE_CHOICES = ("sample", "greedy")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from carp.config import ImageEncoderConfig
+from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.carp.sampling import gumbel_top_k, sampling_uniforms

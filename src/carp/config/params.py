@@ -1,0 +1,506 @@
+"""All of ``params.yaml`` as one validated object, and reading, flattening and writing it."""
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from ruamel.yaml import YAML, YAMLError
+
+from carp.config.checks import SET_BY_PIPELINE, ConfigError, _require
+from carp.config.data import DataConfig
+from carp.config.evaluation import EvalConfig
+from carp.config.experiments import ComparisonConfig, StudyConfig, SweepConfig, TrackingConfig
+from carp.config.image_encoder import ImageEncoderConfig
+from carp.config.tokenizer import TokenizerConfig
+from carp.config.training import TrainingConfig
+from carp.policies.sections import family_sections, teacher_of
+from carp.tasks import TASK_NAMES, get_task
+from carp.tasks.base import ActionFormat
+
+FAMILY_SECTIONS = "family_sections"
+"""Marks the two `Params` fields whose YAML sections are named after the registered policy families."""
+
+
+@dataclass(frozen=True)
+class Params:
+    """All of ``params.yaml``. ``scales`` and ``codebook_size`` are top-level so ``dvc exp run -S`` reaches them.
+
+    Attributes:
+        scales: ``s_k``, tokens per action dimension at each scale, coarse to fine; ``K`` is the number of scales and
+            a chunk has ``L = A * sum(scales)`` tokens. Positive, strictly increasing integers, the last at most
+            ``data.action_horizon``. The scales quantize a latent of length ``l = max(e, s_K)``, where ``e =
+            data.action_horizon / 2**len(tokenizer.channel_mult)`` is the encoder's output length (4 by default): a
+            last scale below ``e`` reconstructs from coarser maps only (``[1, 2, 3]``), one above it quantizes a
+            latent resampled to its own length (``[1, 2, 3, 4, 5]``, as the paper's Fig. 10 does for K = 5 and 6).
+        codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
+            >= 2 and at least ``inference.carp.top_k``.
+        tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
+            square, stack, nut_assembly, stack_three and threading, and pusht), each at most once, all in one action
+            space (one tokenizer serves them: the arms and Push-T do not mix); the per-task stages (``collect``,
+            ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
+        policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
+            (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
+            has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.
+            Empty only when ``multitask`` lists a family: the run then trains multi-task policies alone, and its
+            report compares them with single-task policies of other runs (``comparison.references``).
+        seeds: Training seeds: every family is trained and evaluated once per seed on every task (``train_policy``
+            and ``evaluate`` fan out over tasks x policies x seeds); integers >= 0, each at most once. The tokenizer
+            stays one per pipeline.
+        multitask: Policy families that also train one multi-task policy over all of ``tasks`` (each demo labelled
+            with its task, a learned task embedding in the observation encoder, each task normalized with its own
+            statistics), evaluated on every task beside the single-task policies; registered families, each at most
+            once, not necessarily in ``policies``. Empty (the default) adds no stage. Needs at least two tasks with
+            state observations and the same observation keys; a key narrower in one task than in another (Lift's
+            ``object`` is 10 wide, Can's 14) is zero-padded to the widest inside the policy. The ``train_multitask``
+            and ``evaluate_multitask`` stages fan out over multitask x seeds (x tasks).
+        register: Policy families whose trained policies the pipeline registers in the MLflow Model Registry, each at
+            most once and each also in ``policies``. The ``register_policy`` stage fans out over tasks x register x
+            seeds: it registers the checkpoint that ``evaluate`` ran on the test seeds (``eval.selection``) as
+            ``carp-policy-<task>-<family>``, tagged with its evaluation, and points ``tracking.policy_alias`` at it.
+            Empty (the default) adds no stage.
+        device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
+            rollouts run on the CPU.
+        data: Demonstrations, ingestion and the time convention.
+        tokenizer: The action tokenizer and its training.
+        training: The training loop shared by every policy family.
+        eval: Simulated evaluation.
+        tracking: MLflow tracking.
+        sweep: The Optuna sweep.
+        comparison: The report's comparison of families: equivalence margin and significance level.
+        study: The paper's studies run as DVC experiments (``make study``).
+        image_encoder: The camera encoder every family puts in front of its network with ``data.observations:
+            image``; its cameras and image size are ``data.cameras`` and ``data.image_size``, which the section
+            must not restate otherwise.
+        families: Family -> its section (the top-level key named after the family), for every registered family;
+            a missing section takes the family's defaults, a section of an unknown family is refused.
+        inference: Family -> its inference settings (``inference.<family>``), read by evaluation only, so a change
+            reruns evaluation and not training; a missing entry takes the family's defaults.
+    """
+
+    scales: tuple[int, ...] = (1, 2, 3, 4)
+    codebook_size: int = 512
+    tasks: tuple[str, ...] = ("lift",)
+    policies: tuple[str, ...] = ("carp",)
+    seeds: tuple[int, ...] = (0,)
+    multitask: tuple[str, ...] = ()
+    register: tuple[str, ...] = ()
+    device: str = "auto"
+    data: DataConfig = field(default_factory=DataConfig)
+    tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    comparison: ComparisonConfig = field(default_factory=ComparisonConfig)
+    study: StudyConfig = field(default_factory=StudyConfig)
+    image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
+    families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
+    inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
+
+    def __post_init__(self) -> None:
+        _require(len(self.tasks) >= 1, "tasks", self.tasks, "must list at least one task")
+        for task in self.tasks:
+            _require(task in TASK_NAMES, "tasks", self.tasks, f"every task must be one of {TASK_NAMES}")
+        _require(len(set(self.tasks)) == len(self.tasks), "tasks", self.tasks, "must not repeat a task")
+        known = family_sections()
+        _require(
+            len(self.policies) >= 1 or len(self.multitask) >= 1,
+            "policies",
+            list(self.policies),
+            "must list at least one policy family (empty only when multitask lists one)",
+        )
+        for name in self.policies:
+            _require(name in known, "policies", list(self.policies), f"every family must be one of {list(known)}")
+        _require(len(set(self.policies)) == len(self.policies), "policies", self.policies, "must not repeat a family")
+        _require(len(self.seeds) >= 1, "seeds", list(self.seeds), "must list at least one training seed")
+        _require(all(seed >= 0 for seed in self.seeds), "seeds", list(self.seeds), "every seed must be >= 0")
+        _require(len(set(self.seeds)) == len(self.seeds), "seeds", list(self.seeds), "must not repeat a seed")
+        self._check_multitask(known)
+        self._check_register(known)
+        # Families without a section in the file take their defaults, so every registered family has a config.
+        object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
+        object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
+        for section in (*self.families.values(), *self.inference.values()):
+            if hasattr(section, "check_with"):  # constraints across sections, e.g. CARP's top_k <= codebook_size
+                section.check_with(self)
+        _require(self.device in ("auto", "cpu", "cuda"), "device", self.device, "must be auto, cpu or cuda")
+        self._bind_image_encoder()
+        _require(self.codebook_size >= 2, "codebook_size", self.codebook_size, "must be >= 2")
+        horizon = self.data.action_horizon
+        checked = (
+            ("scales", [self.scales]),
+            ("sweep.scale_schedules", self.sweep.scale_schedules),
+            ("study.scale_schedules", self.study.scale_schedules),
+        )
+        for key, schedules in checked:
+            for schedule in schedules:
+                _require(
+                    len(schedule) >= 1
+                    and all(size >= 1 for size in schedule)
+                    and all(a < b for a, b in zip(schedule, schedule[1:]))
+                    and schedule[-1] <= horizon,
+                    key,
+                    list(self.scales) if key == "scales" else [list(s) for s in schedules],
+                    f"every schedule must be positive, strictly increasing and end at most at data.action_horizon = "
+                    f"{horizon}",
+                )
+        self.encoder_length  # noqa: B018 (checks that the horizon divides into the encoder's levels)
+        _require(
+            len(self.sweep.confirm_seeds) >= self.comparison.min_seeds,
+            "sweep.confirm_seeds",
+            list(self.sweep.confirm_seeds),
+            f"must hold at least comparison.min_seeds = {self.comparison.min_seeds} seeds: a family verdict needs them",
+        )
+        # Collection may try up to 3 seeds per kept demo (see carp.data.collect); evaluation must never reuse them.
+        collection_end = self.data.collection_seed + 3 * max(self.data.demos_for(task) for task in self.tasks)
+        evaluation_end = self.eval.seed + self.eval.episodes
+        _require(
+            evaluation_end <= self.data.collection_seed or self.eval.seed >= collection_end,
+            "eval.seed",
+            self.eval.seed,
+            f"evaluation seeds [{self.eval.seed}, {evaluation_end}) overlap the collection seeds "
+            f"[{self.data.collection_seed}, {collection_end})",
+        )
+        validation_end = self.eval.validation_seed + self.eval.validation_episodes
+        _require(
+            self.eval.validation_episodes == 0
+            or validation_end <= self.data.collection_seed
+            or self.eval.validation_seed >= collection_end,
+            "eval.validation_seed",
+            self.eval.validation_seed,
+            f"validation seeds [{self.eval.validation_seed}, {validation_end}) overlap the collection seeds "
+            f"[{self.data.collection_seed}, {collection_end})",
+        )
+        for task in self.tokenizer.tasks:
+            _require(
+                task in self.tasks,
+                "tokenizer.tasks",
+                list(self.tokenizer.tasks),
+                f"every tokenizer task must also be in tasks={list(self.tasks)} (its demos are ingested there)",
+            )
+        self._check_tasks_share_actions_and_observations()
+        for task in self.tasks:
+            _require(
+                self.data.subset_size <= self.data.demos_for(task) or task in self.data.raw_files,
+                "data.subset_size",
+                self.data.subset_size,
+                f"must be <= the {self.data.demos_for(task)} demos collected for {task}",
+            )
+
+    def _check_multitask(self, known: dict[str, Any]) -> None:
+        """Multi-task families are registered and distinct, over two tasks or more of state observations."""
+        families = list(self.multitask)
+        for name in families:
+            _require(name in known, "multitask", families, f"every family must be one of {list(known)}")
+        _require(len(set(families)) == len(families), "multitask", families, "must not repeat a family")
+        if not families:
+            return
+        for name in families:
+            _require(
+                teacher_of(name) is None,
+                "multitask",
+                families,
+                f"{name} distils its {teacher_of(name)} teacher, which trains on one task only",
+            )
+        _require(
+            len(self.tasks) >= 2,
+            "multitask",
+            families,
+            f"a multi-task policy needs at least two tasks, tasks={list(self.tasks)}",
+        )
+        _require(
+            self.data.observations == "state",
+            "multitask",
+            families,
+            f"multi-task policies train on state observations, data.observations={self.data.observations!r}",
+        )
+
+    def _check_register(self, known: dict[str, Any]) -> None:
+        """Registered families are distinct families the pipeline trains (``policies``)."""
+        families = list(self.register)
+        for name in families:
+            _require(name in known, "register", families, f"every family must be one of {list(known)}")
+            _require(
+                name in self.policies,
+                "register",
+                families,
+                f"every family must also be in policies={list(self.policies)} (the pipeline registers what it trains)",
+            )
+        _require(len(set(families)) == len(families), "register", families, "must not repeat a family")
+
+    def _check_tasks_share_actions_and_observations(self) -> None:
+        """Every task must take ``data.controller`` and the observation kind, and all must share one action space."""
+        spaces = {}
+        for task in self.tasks:
+            try:
+                spaces[task] = get_task(task).action_format(self.data.controller).space
+            except ValueError as error:
+                raise ConfigError(f"data.controller={self.data.controller!r}: {error}") from None
+            _require(
+                self.data.observations != "image" or get_task(task).supports_cameras,
+                "data.observations",
+                self.data.observations,
+                f"{task} has no camera observations; use state",
+            )
+        _require(
+            len(set(spaces.values())) == 1,
+            "tasks",
+            list(self.tasks),
+            f"tasks must share one action space (one tokenizer serves them all), got {spaces}",
+        )
+
+    @property
+    def action_format(self) -> ActionFormat:
+        """How the tasks' stored actions map to the policy's (the same for every task in ``tasks``)."""
+        return get_task(self.tasks[0]).action_format(self.data.controller)
+
+    def obs_keys_for(self, task: str) -> tuple[str, ...]:
+        """Low-dim obs keys of `task` in the replay buffer: ``data.low_dim_keys``, or the task's fixed observation."""
+        task_spec = get_task(task)
+        return self.data.low_dim_keys if task_spec.configurable_obs_keys else task_spec.default_obs_keys
+
+    def max_steps_for(self, task: str) -> int:
+        """Step limit of one evaluation episode of `task`: its ``eval.max_steps`` entry, else the task's default."""
+        return self.eval.max_steps.get(task, get_task(task).default_max_steps)
+
+    def training_for_seed(self, seed: int) -> TrainingConfig:
+        """The training settings of the run with training seed `seed` (one entry of `seeds`)."""
+        return replace(self.training, seed=seed)
+
+    def family_config(self, name: str) -> Any:
+        """The params section of policy family `name` (its model and optimizer)."""
+        return self.families[name]
+
+    def inference_settings(self, name: str, task: str) -> dict[str, Any]:
+        """Keyword arguments of family `name`'s `configure_inference` when evaluating `task`."""
+        return self.inference[name].settings_for(task)
+
+    @property
+    def policy_image_encoder(self) -> ImageEncoderConfig | None:
+        """The camera encoder the policies train with: ``image_encoder`` with image observations, else None."""
+        return self.image_encoder if self.data.observations == "image" else None
+
+    def _bind_image_encoder(self) -> None:
+        """The encoder sees the images ingest stored: ``data.cameras`` at ``data.image_size``."""
+        encoder, data, defaults = self.image_encoder, self.data, ImageEncoderConfig()
+        for name, value in (("cameras", data.cameras), ("image_size", data.image_size)):
+            written = getattr(encoder, name)
+            _require(
+                written in (getattr(defaults, name), value),
+                f"image_encoder.{name}",
+                list(written) if name == "cameras" else written,
+                f"is data.{name}; set data.{name} instead",
+            )
+        if data.observations == "image":
+            object.__setattr__(
+                self, "image_encoder", replace(encoder, cameras=data.cameras, image_size=data.image_size)
+            )
+
+    @property
+    def latent_length(self) -> int:
+        """``l``, the latent the scales quantize: the encoder's length, or the last scale where that is longer."""
+        return max(self.encoder_length, self.scales[-1])
+
+    @property
+    def encoder_length(self) -> int:
+        """``H / 2**len(channel_mult)``, the tokenizer encoder's output length; raises if ``H`` is not divisible."""
+        downsampling = 2 ** len(self.tokenizer.channel_mult)
+        _require(
+            self.data.action_horizon % downsampling == 0,
+            "data.action_horizon",
+            self.data.action_horizon,
+            f"must be divisible by 2**len(tokenizer.channel_mult) = {downsampling}",
+        )
+        return self.data.action_horizon // downsampling
+
+    @property
+    def tokenizer_tasks(self) -> tuple[str, ...]:
+        """Tasks whose demos train the tokenizer (``tokenizer.tasks`` or, when empty, ``tasks``)."""
+        return self.tokenizer.tasks or self.tasks
+
+    @property
+    def action_space(self) -> str:
+        """Name of the action space, e.g. ``panda-abs10``; part of the registered tokenizer's name."""
+        return self.action_format.space
+
+
+def params_from_dict(raw: dict[str, Any]) -> Params:
+    """Build validated :class:`Params` from a parsed YAML mapping.
+
+    Raises:
+        ConfigError: unknown key, wrong type or broken constraint; the message names the dotted key.
+    """
+    return _build(Params, raw, prefix="")
+
+
+def load_params(path: Path | str = "params.yaml") -> Params:
+    """Load and validate a params file.
+
+    Raises:
+        ConfigError: the file is missing, is not YAML, or does not validate (message names the file and key).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: params file not found")
+    try:
+        raw = _read_yaml(path.read_text()) or {}
+    except YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(error)})") from None
+    try:
+        return params_from_dict(raw)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
+
+
+def _read_yaml(text: str) -> Any:
+    # DVC parses params.yaml with ruamel.yaml's YAML 1.2 safe loader. Reading it with the same loader makes every
+    # value mean here what DVC hashed and `dvc exp run -S` wrote: `1e-3` is a float (PyYAML's YAML 1.1 reads a
+    # string), `yes` is a string (YAML 1.1: true), and a repeated key is an error (PyYAML keeps the last one).
+    return YAML(typ="safe").load(text)
+
+
+def _yaml_problem(error: YAMLError) -> str:
+    problem = getattr(error, "problem", None)
+    mark = getattr(error, "problem_mark", None)
+    if problem and mark is not None:
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return str(error).strip().splitlines()[0]
+
+
+def params_to_dict(params: Params) -> dict[str, Any]:
+    """Plain nested dict (lists instead of tuples) of validated params, shaped as ``params.yaml``.
+
+    Each family's section comes out at the top level under its name, as it is written in the file; settings the
+    pipeline sets per run (``training.seed``) are left out, as the file does not hold them.
+    """
+    values = _plain(dataclasses.asdict(params))
+    for section_name, hint in typing.get_type_hints(Params).items():
+        if dataclasses.is_dataclass(hint):
+            for field_ in dataclasses.fields(hint):
+                if field_.metadata.get(SET_BY_PIPELINE):
+                    values[section_name].pop(field_.name)
+    families = values.pop("families")
+    return {**values, **families}
+
+
+def flatten_params(params: Params) -> dict[str, str]:
+    """Dotted-key view (``carp.depth`` -> ``"8"``) for MLflow params."""
+    flat: dict[str, str] = {}
+
+    def visit(prefix: str, value: Any) -> None:
+        if isinstance(value, dict) and value:
+            for key, inner in value.items():
+                visit(f"{prefix}.{key}" if prefix else str(key), inner)
+        else:
+            flat[prefix] = str(value)
+
+    visit("", params_to_dict(params))
+    return flat
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {key: _plain(inner) for key, inner in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(inner) for inner in value]
+    return value
+
+
+def _build(cls: type, raw: Any, prefix: str) -> Any:
+    section = prefix.rstrip(".") or "params"
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{section}: expected a mapping, got {type(raw).__name__}")
+    hints = typing.get_type_hints(cls)
+    dynamic = [f.name for f in dataclasses.fields(cls) if f.metadata.get(FAMILY_SECTIONS)]
+    known = {f.name for f in dataclasses.fields(cls) if f.name not in dynamic}
+    values = {}
+    if dynamic:
+        raw, values = _build_family_sections(raw, prefix)
+        named = known | set(family_sections()) | {"inference"}
+    derived = {f.name for f in dataclasses.fields(cls) if f.metadata.get(SET_BY_PIPELINE)}
+    for key in raw:
+        if key in derived:
+            raise ConfigError(
+                f"{prefix}{key}={raw[key]!r}: set by the pipeline for each run, not in params.yaml"
+                + (" (training seeds are the top-level list `seeds`, e.g. seeds: [0, 1, 2])" if key == "seed" else "")
+            )
+        if key not in known:
+            names = ", ".join(sorted((named if dynamic else known) - derived))
+            raise ConfigError(f"{prefix}{key}: unknown key (known: {names})")
+    for name, value in raw.items():
+        hint = hints[name]
+        key = f"{prefix}{name}"
+        if dataclasses.is_dataclass(hint):
+            values[name] = _build(hint, value if value is not None else {}, prefix=f"{key}.")
+        else:
+            values[name] = _coerce(value, hint, key)
+    return cls(**values)
+
+
+def _build_family_sections(raw: dict, prefix: str) -> tuple[dict, dict[str, Any]]:
+    """Split the family sections (`<family>:` and `inference: {<family>: ...}`) off `raw` and build them.
+
+    Returns:
+        The rest of `raw`, and `{"families": ..., "inference": ...}` with each family's built sections.
+    """
+    known = family_sections()
+    rest = {key: value for key, value in raw.items() if key not in known and key != "inference"}
+    families = {
+        name: _build(classes[0], raw[name] if raw[name] is not None else {}, f"{prefix}{name}.")
+        for name, classes in known.items()
+        if name in raw
+    }
+    inference_raw = raw.get("inference") or {}
+    if not isinstance(inference_raw, dict):
+        raise ConfigError(f"{prefix}inference: expected a mapping, got {type(inference_raw).__name__}")
+    for name in inference_raw:
+        if name not in known:
+            raise ConfigError(f"{prefix}inference.{name}: unknown policy family (known: {', '.join(known)})")
+    inference = {
+        name: _build(known[name][1], value if value is not None else {}, f"{prefix}inference.{name}.")
+        for name, value in inference_raw.items()
+    }
+    return rest, {"families": families, "inference": inference}
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    origin = typing.get_origin(hint)
+    arguments = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in arguments:
+            return None
+        inner = [argument for argument in arguments if argument is not type(None)]
+        return _coerce(value, inner[0], key)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}={value!r}: expected a list")
+        element = arguments[0]
+        return tuple(_coerce(item, element, key) for item in value)
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}={value!r}: expected a mapping")
+        key_type, value_type = arguments
+        return {
+            _coerce(inner_key, key_type, key): _coerce(inner, value_type, f"{key}.{inner_key}")
+            for inner_key, inner in value.items()
+        }
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}={value!r}: expected true or false")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}={value!r}: expected an integer")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}={value!r}: expected a number")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}={value!r}: expected a string")
+        return value
+    raise ConfigError(f"{key}: unsupported type {hint}")
