@@ -5,23 +5,29 @@ the default configuration (A = 10, H = 16, depth 8, D = 64; `--tiny` for the tes
 on the weights), measures per chunk, after a warm-up:
 - in-process: `predict_action_timed` on a (1, To, Do) observation history, as evaluation calls the policy;
 - loopback: `PolicyClient.infer` with one step's per-key observation to a `ServerThread` on 127.0.0.1 in this
-  process, from 1 and 4 clients at once (`--clients`), each on its own thread and connection, sending back to back.
-  The server predicts one call at a time; each client count runs with batching off (`max_batch_size` 1: a request
-  waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting together share a call, for a
-  policy that draws nothing random, e.g. greedy CARP).
-Both for each backend of `--backends` (`carp serve --backend`): PyTorch, and CARP's exported graphs in ONNX Runtime,
-which take one request per call (no batching rows).
+  process, from 1, 4 and 8 clients at once (`--clients`), each on its own thread and connection, sending back to
+  back. PyTorch predicts one call at a time; each client count runs with batching off (`max_batch_size` 1, the
+  server's default: a request waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting
+  together share a call, for a policy that draws nothing random, e.g. greedy CARP; `--batch-window-ms` lets a lone
+  request wait for company). CARP's exported graphs in ONNX Runtime take one request per call and run calls
+  concurrently: each client count runs on one prediction thread and on `--prediction-threads` (default: one per
+  CPU core, the server's default).
+Both for each backend of `--backends` (`carp serve --backend`) in the same run.
 
 Prints p50 and p99 in milliseconds, the throughput in chunks per second (in-process: one over the mean; loopback:
 all clients' timed requests over the wall time of the run) and the mean chunks per prediction call (warm-up
-requests included). Predictions run on one torch thread (`--threads`), as
-evaluation workers do.
+requests included). Predictions run on one torch thread (`--threads`), as evaluation workers do. Then two
+agreement lines over `--agreement-histories` random histories: the ONNX graphs' chunks against PyTorch's (largest
+difference, chunks further apart than 1e-3), and, for a greedy PyTorch policy, batched rows (8 per call) against
+each history predicted alone (a row further than 1e-3 away chose another token somewhere: a flip on a near tie).
 
-Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [--requests 200] [--clients 1 4]
-       [--max-batch 8] [--backends torch onnxruntime]
+Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [--requests 200] [--clients 1 4 8]
+       [--max-batch 8] [--batch-window-ms 0] [--prediction-threads 0] [--backends torch onnxruntime]
+       [--agreement-histories 512]
 """
 
 import argparse
+import os
 import sys
 import tempfile
 import threading
@@ -43,6 +49,8 @@ from carp.serving.startup import ServingStartError, load_served_model  # noqa: E
 from tests.serving.random_policy import random_lift_policy  # noqa: E402
 
 WARM_UP_REQUESTS = 5
+FLIP_TOLERANCE = 1e-3
+"""A chunk further than this from another chose another token somewhere (float rounding alone moves it ~1e-6)."""
 
 
 def percentiles_ms(seconds: list[float]) -> tuple[float, float]:
@@ -107,28 +115,79 @@ def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int
 
 
 def measure_backend(checkpoint: Path, backend: str, args: argparse.Namespace, label: str) -> list[tuple]:
-    """The table rows of `checkpoint` served by `backend`: in-process, then loopback per batching and client count."""
+    """The table rows of `checkpoint` served by `backend`: in-process, then loopback per setting and client count."""
     model, spec = load_served_model(checkpoint, backend=backend)
+    threads = args.prediction_threads or os.cpu_count() or 1
+    if model.batches:
+        mode = "batching possible"
+        settings = [(1, 1, "off"), (args.max_batch, 1, "on")] if args.max_batch > 1 else [(1, 1, "off")]
+    elif model.concurrent:
+        mode = f"batching never (graphs take one request), calls on 1 and {threads} threads"
+        settings = sorted({(1, 1, "off"), (1, threads, "off")}, key=lambda setting: setting[1])
+    else:
+        mode = "batching never (the policy samples)"
+        settings = [(1, 1, "off")]
     print(
         f"{model.backend}: {label}, {model.policy.description}; To={spec.obs_steps}, Do={spec.obs_dim}, "
         f"(H, A)=({spec.action_horizon}, {spec.action_dim}); {args.requests} requests per client after "
-        f"{WARM_UP_REQUESTS} warm-up; {args.threads} thread(s); batching "
-        f"{'possible' if model.batches else 'never (the policy samples, or its graphs take one request)'}"
+        f"{WARM_UP_REQUESTS} warm-up; {args.threads} torch thread(s); {mode}"
     )
     seconds = in_process_seconds(model.policy, spec.obs_steps, spec.obs_dim, args.requests)
-    rows = [(model.backend, "in-process prediction", 1, "-", seconds, sum(seconds), 1.0)]
+    rows = [(model.backend, "in-process prediction", 1, "-", 1, seconds, sum(seconds), 1.0)]
     keys = dict(zip(spec.obs_keys, spec.obs_widths))
-    for max_batch in sorted({1, args.max_batch} if model.batches else {1}):
-        settings = ServerSettings(port=0, max_batch_size=max_batch)
-        with ServerThread(PolicyServer(model, spec, settings)) as server:
+    for max_batch, prediction_threads, batching in settings:
+        server_settings = ServerSettings(
+            port=0,
+            max_batch_size=max_batch,
+            prediction_threads=prediction_threads,
+            batch_window_s=args.batch_window_ms / 1e3 if batching == "on" else 0.0,
+        )
+        with ServerThread(PolicyServer(model, spec, server_settings)) as server:
             metrics = server.policy_server.metrics
             for clients in args.clients:
                 calls, chunks = metrics.model_calls, metrics.predicted_chunks
                 seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
                 mean_batch = (metrics.predicted_chunks - chunks) / (metrics.model_calls - calls)
-                batching = "off" if max_batch == 1 else "on"
-                rows.append((model.backend, "loopback round trip", clients, batching, seconds, wall, mean_batch))
+                rows.append(
+                    (model.backend, "loopback round trip", clients, batching, prediction_threads, seconds, wall,
+                     mean_batch)
+                )  # fmt: skip
     return rows
+
+
+def agreement_lines(checkpoint: Path, histories: int) -> list[str]:
+    """How far the ONNX graphs' chunks are from PyTorch's, and batched greedy rows from their chunks alone."""
+    from carp.serving.session import Observed
+
+    in_torch, spec = load_served_model(checkpoint, backend="torch")
+    in_onnx, _ = load_served_model(checkpoint, backend="onnxruntime")
+    rng = np.random.default_rng(1)
+    observed = [
+        Observed(rng.uniform(-1, 1, size=(spec.obs_steps, spec.obs_dim)).astype(np.float32), None, torch.Generator())
+        for _ in range(histories)
+    ]
+    alone = np.stack([in_torch.predict(item)[0].actions[0] for item in observed])  # (N, H, A)
+    lines = []
+    if in_onnx.backend == "onnxruntime":
+        graphs = np.stack([in_onnx.predict(item)[0].actions[0] for item in observed])
+        differences = np.abs(graphs - alone).reshape(histories, -1).max(axis=1)
+        lines.append(
+            f"onnxruntime against torch, {histories} histories: largest difference {differences.max():.2e}, "
+            f"chunks further apart than {FLIP_TOLERANCE:g}: {int((differences > FLIP_TOLERANCE).sum())}"
+        )
+    if in_torch.batches:
+        batched = np.concatenate(
+            [in_torch.predict_batch(observed[start : start + 8])[0].actions for start in range(0, histories, 8)]
+        )
+        differences = np.abs(batched - alone).reshape(histories, -1).max(axis=1)
+        flips = int((differences > FLIP_TOLERANCE).sum())
+        rounding = differences[differences <= FLIP_TOLERANCE]
+        lines.append(
+            f"torch batched (8 per call) against alone, {histories} histories: {flips} rows flipped a token "
+            f"({100 * flips / histories:.1f}%), largest difference {differences.max():.2e}, the others within "
+            f"{(rounding.max() if rounding.size else 0.0):.2e}"
+        )
+    return lines
 
 
 def main() -> int:
@@ -138,9 +197,16 @@ def main() -> int:
     source.add_argument("--checkpoint", type=Path, help="a policy.pt that records its serving protocol")
     source.add_argument("--tiny", action="store_true", help="the test-sized random policy instead of the default")
     parser.add_argument("--requests", type=int, default=200, help="timed requests per client (and in-process)")
-    parser.add_argument("--clients", type=int, nargs="+", default=[1, 4], help="concurrent clients of each run")
+    parser.add_argument("--clients", type=int, nargs="+", default=[1, 4, 8], help="concurrent clients of each run")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the predictions")
     parser.add_argument("--max-batch", type=int, default=8, help="most requests per call with batching on")
+    parser.add_argument("--batch-window-ms", type=float, default=0.0, help="batching window with batching on")
+    parser.add_argument(
+        "--prediction-threads", type=int, default=0, help="ONNX Runtime calls at once (0: one per CPU core)"
+    )
+    parser.add_argument(
+        "--agreement-histories", type=int, default=512, help="histories of the agreement lines (0: none)"
+    )
     parser.add_argument(
         "--backends",
         nargs="+",
@@ -151,6 +217,9 @@ def main() -> int:
     args = parser.parse_args()
     if min(args.requests, *args.clients, args.threads, args.max_batch) < 1:
         print("error: --requests, --clients, --threads and --max-batch must be positive", file=sys.stderr)
+        return 1
+    if min(args.prediction_threads, args.agreement_histories, args.batch_window_ms) < 0:
+        print("error: --prediction-threads, --agreement-histories and --batch-window-ms must be >= 0", file=sys.stderr)
         return 1
     torch.set_num_threads(args.threads)
 
@@ -166,21 +235,24 @@ def main() -> int:
         )
         try:
             rows = [row for backend in args.backends for row in measure_backend(checkpoint, backend, args, label)]
+            agreement = agreement_lines(checkpoint, args.agreement_histories) if args.agreement_histories else []
         except ServingStartError as error:
             print(f"error: {error}", file=sys.stderr)
             return 1
     header = (
-        f"{'backend':<13}{'path':<24}{'clients':>8}{'batching':>10}{'p50 ms':>10}{'p99 ms':>10}{'chunks/s':>10}"
-        f"{'per call':>10}"
+        f"{'backend':<13}{'path':<24}{'clients':>8}{'batching':>10}{'threads':>8}{'p50 ms':>10}{'p99 ms':>10}"
+        f"{'chunks/s':>10}{'per call':>10}"
     )
     print(header)
-    for backend, name, clients, batching, seconds, wall, mean_batch in rows:
+    for backend, name, clients, batching, threads, seconds, wall, mean_batch in rows:
         p50, p99 = percentiles_ms(seconds)
         throughput = len(seconds) / wall
         print(
-            f"{backend:<13}{name:<24}{clients:>8}{batching:>10}{p50:>10.2f}{p99:>10.2f}{throughput:>10.1f}"
-            f"{mean_batch:>10.2f}"
+            f"{backend:<13}{name:<24}{clients:>8}{batching:>10}{threads:>8}{p50:>10.2f}{p99:>10.2f}"
+            f"{throughput:>10.1f}{mean_batch:>10.2f}"
         )
+    for line in agreement:
+        print(line)
     return 0
 
 

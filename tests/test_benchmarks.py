@@ -253,7 +253,11 @@ def test_image_windows_refuses_a_buffer_without_images_in_one_line(tmp_path):
 
 
 def test_serving_latency_prints_in_process_and_loopback_rows_per_backend():
-    completed = run_benchmark("serving_latency.py", "--tiny", "--requests", "6", "--clients", "1", "2")
+    completed = run_benchmark(
+        "serving_latency.py",
+        *("--tiny", "--requests", "6", "--clients", "1", "2", "--prediction-threads", "2"),
+        *("--agreement-histories", "16"),
+    )
     assert completed.returncode == 0, completed.stderr[-2000:]
     torch_header, onnx_header = completed.stdout.splitlines()[:2]
     for header in (torch_header, onnx_header):
@@ -261,23 +265,27 @@ def test_serving_latency_prints_in_process_and_loopback_rows_per_backend():
     assert torch_header.startswith("torch:") and "batching possible" in torch_header  # greedy by default
     assert onnx_header.startswith("onnxruntime:") and "batching never" in onnx_header  # graphs take one request
     pattern = (
-        rf"^(torch|onnxruntime)\s+(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+{NUMBER}"
-        rf"\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}$"
+        rf"^(torch|onnxruntime)\s+(in-process prediction|loopback round trip)\s+(\d+)\s+(-|on|off)\s+(\d+)"
+        rf"\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}\s+{NUMBER}$"
     )
     rows = re.findall(pattern, completed.stdout, flags=re.MULTILINE)
-    assert [tuple(row[:4]) for row in rows] == [
-        ("torch", "in-process prediction", "1", "-"),
-        ("torch", "loopback round trip", "1", "off"),
-        ("torch", "loopback round trip", "2", "off"),
-        ("torch", "loopback round trip", "1", "on"),
-        ("torch", "loopback round trip", "2", "on"),
-        ("onnxruntime", "in-process prediction", "1", "-"),
-        ("onnxruntime", "loopback round trip", "1", "off"),
-        ("onnxruntime", "loopback round trip", "2", "off"),
+    assert [tuple(row[:5]) for row in rows] == [
+        ("torch", "in-process prediction", "1", "-", "1"),
+        ("torch", "loopback round trip", "1", "off", "1"),
+        ("torch", "loopback round trip", "2", "off", "1"),
+        ("torch", "loopback round trip", "1", "on", "1"),
+        ("torch", "loopback round trip", "2", "on", "1"),
+        ("onnxruntime", "in-process prediction", "1", "-", "1"),
+        ("onnxruntime", "loopback round trip", "1", "off", "1"),
+        ("onnxruntime", "loopback round trip", "2", "off", "1"),
+        ("onnxruntime", "loopback round trip", "1", "off", "2"),
+        ("onnxruntime", "loopback round trip", "2", "off", "2"),
     ]
-    for *_, batching, p50, p99, throughput, per_call in rows:
+    for *_, batching, _threads, p50, p99, throughput, per_call in rows:
         assert 0 < float(p50) <= float(p99) and float(throughput) > 0
         assert 1.0 <= float(per_call) <= (8.0 if batching == "on" else 1.0)
+    assert re.search(r"^onnxruntime against torch, 16 histories: largest difference ", completed.stdout, re.M)
+    assert re.search(r"^torch batched \(8 per call\) against alone, 16 histories: \d+ rows", completed.stdout, re.M)
 
 
 def test_serving_latency_refuses_a_checkpoint_without_its_protocol_in_one_line(tmp_path):
