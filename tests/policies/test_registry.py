@@ -1,6 +1,9 @@
 """The policy seam: every family builds from tiny params, trains, saves and loads through `load_policy` unchanged."""
 
 import functools
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from carp.policies.context import PolicyContext
 from carp.policies.diffusion.config import DiffusionTransformerConfig, DiffusionUNetConfig
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.registry import (
+    FAMILY_MODULES,
     average_policies,
     build_policy,
     family_names,
@@ -23,6 +27,7 @@ from carp.policies.registry import (
     train_policy,
     unregister_family,
 )
+from carp.policies.sections import SECTION_MODULES, get_sections, teacher_of
 from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
@@ -30,6 +35,8 @@ from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tin
 from tests.policies.consistency.factories import tiny_student_config, tiny_teacher_config
 from tests.policies.stub_family import STUB_FAMILY, StubConfig
 from tests.policies.vq_bet.factories import tiny_config as vq_bet_config
+
+REPO = Path(__file__).resolve().parents[2]
 
 TINY_CONFIGS = {
     "carp": CarpConfig(depth=1, width=16, num_heads=2),
@@ -178,6 +185,22 @@ def test_carp_checkpoints_name_their_family(tmp_path):
     tiny_policy().save(path)
     checkpoint = torch.load(path, weights_only=True)
     assert checkpoint["policy_type"] == "carp" and checkpoint["format_version"] == 3
+
+
+def test_the_two_halves_of_the_family_table_agree_and_sections_load_without_the_models():
+    assert list(SECTION_MODULES) == list(FAMILY_MODULES)
+    for name in FAMILY_MODULES:
+        family = get_family(name)
+        assert (family.config_class, family.inference_class) == get_sections(name), name
+        assert family.teacher == teacher_of(name)
+    assert teacher_of("consistency_policy") == "edm_unet" and teacher_of("carp") is None
+    # Validating params never imports a family's model code or torch.
+    script = (
+        "import sys; import carp.config as c; c.load_params('params.yaml'); "
+        "print(sorted(m for m in sys.modules if m == 'torch' or m.endswith('.family')))"
+    )
+    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True, cwd=REPO)
+    assert loaded.stdout.strip() == "[]"
 
 
 def test_an_unknown_family_is_refused_with_the_known_ones_named():
