@@ -87,9 +87,10 @@ def evaluate_policy(
                 checkpoint_path = Path(scratch) / "selected_task.pt"
                 policy.save(checkpoint_path)
         deployment = policy.deployment(Path(checkpoint_path), backend, scratch)
+        load = deployment.load or functools.partial(load_policy, Path(checkpoint_path))
         factory = functools.partial(
             PolicySource,
-            deployment.load,
+            load,
             action_format=action_format,
             obs_steps=obs_steps,
             action_steps=action_steps,

@@ -54,11 +54,13 @@ class Deployment:
 
     Attributes:
         backend: name of the runtime that executes the policy (`torch`, `onnxruntime`); reported per row.
-        load: picklable zero-argument callable that builds the policy inside a worker process.
+        load: picklable zero-argument callable that builds the policy inside a worker process; None to run the
+            checkpoint itself in PyTorch, read by the caller (`carp.policies.registry.load_policy`), which the
+            families cannot call without importing the registry that imports them.
     """
 
     backend: str
-    load: Callable[[], Policy]
+    load: Callable[[], Policy] | None
 
 
 @runtime_checkable

@@ -9,13 +9,12 @@ table's, kept here for the callers that use the registry alone.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from carp.policies.base import POLICY_FORMAT_VERSION, Policy
+from carp.policies.policy_family import PolicyFamily
 from carp.policies.sections import (
     family_names,
     module_attribute,
@@ -23,6 +22,7 @@ from carp.policies.sections import (
     unregister_sections,
 )
 from carp.policies.sections import get_sections as get_sections  # the registry's callers look sections up here too
+from carp.training.run import TrainingRun
 
 if TYPE_CHECKING:
     import torch
@@ -40,112 +40,6 @@ FAMILY_MODULES = {
 sections are the other half of the table (`carp.policies.sections.SECTION_MODULES`), under the same names."""
 
 _registered: dict[str, PolicyFamily] = {}
-
-
-@dataclass(frozen=True)
-class PolicyFamily:
-    """A policy family as the rest of carp sees it.
-
-    Attributes:
-        name: registry name, stored as `policy_type` in every checkpoint and used as the params section name.
-        config_class: frozen dataclass of the family's params section `<name>` (its model and optimizer).
-        inference_class: frozen dataclass of the `inference.<name>` section, read by evaluation only; its
-            `settings_for(task)` gives the keyword arguments of the policy's `configure_inference`.
-        build: `build(config, context)` -> an untrained :class:`~carp.policies.base.Policy` sized by `config` and
-            by a :class:`~carp.policies.context.PolicyContext` (the data's shapes, normalizers, tokenizer).
-        from_checkpoint: rebuilds a policy from a checkpoint dict, loading weights strictly; raises KeyError,
-            ValueError, RuntimeError or TypeError on a checkpoint that does not fit.
-        train: `train(config, run)` -> the trained policy in eval mode, given a :class:`TrainingRun`: builds the
-            policy and runs the resumable loop on it (the shared loop, through :meth:`TrainingRun.train_with_loss`);
-            see :func:`train_policy`.
-    """
-
-    name: str
-    config_class: type
-    inference_class: type
-    build: Callable[..., Policy]
-    from_checkpoint: Callable[[dict[str, Any]], Policy]
-    train: Callable[..., Policy]
-
-    @property
-    def teacher(self) -> str | None:
-        """The family whose trained policy this family's training distils, or None.
-
-        Declared by the config class's `TEACHER` (the params section trained first); given to `train` as
-        :attr:`TrainingRun.teacher`. None for a family trained from the data alone.
-        """
-        return getattr(self.config_class, "TEACHER", None)
-
-
-@dataclass(frozen=True)
-class TrainingRun:
-    """What a family's `train` gets besides its own params section.
-
-    The data, the shared loop's settings, where the resumable state lives, and the epoch callback.
-
-    Attributes:
-        training: the shared loop settings (`carp.config.TrainingConfig`).
-        context: the data's shapes, normalizers and tokenizer (`carp.policies.context.PolicyContext`); its metadata
-            goes into the checkpoint.
-        data: normalized windows (`carp.training.loop.PolicyTrainingData`).
-        checkpoint_dir: where the resumable training state lives.
-        device: training device ("auto", "cpu", "cuda", ...).
-        epochs: passes over the windows; None takes `training.epochs`.
-        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based); `metrics` has at least
-            `loss` and `epoch_seconds`.
-        teacher: the trained policy of the family's `teacher` family; None for other families.
-    """
-
-    training: Any
-    context: Any
-    data: Any
-    checkpoint_dir: Path
-    device: str | torch.device = "cpu"
-    epochs: int | None = None
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None
-    teacher: Policy | None = None
-
-    def train_with_loss(
-        self,
-        policy: Policy,
-        recipe: Any,
-        identity: dict[str, Any],
-        prepare_data: Callable[[Any], Any] | None = None,
-        training_step: Callable[[dict[str, Any]], Any] | None = None,
-    ) -> Policy:
-        """Train `policy` in the shared resumable loop (`carp.training.loop.train_with_loss`).
-
-        Args:
-            policy: the freshly built policy.
-            recipe: its optimizer (`carp.training.loop.OptimizerRecipe`).
-            identity: plain values that must match for a saved state to be resumed (family, config, shapes); the
-                observation kind and camera encoder settings, and a multi-task policy's tasks, are added here for
-                every family.
-            prepare_data: the family's one-time derivation from the windows (e.g. their token targets), or None.
-            training_step: the family's loss and metric sums of a batch; None trains on `policy.training_loss`.
-        """
-        from carp.training.loop import check_task_ids, train_with_loss
-
-        check_task_ids(self.data, self.context.num_tasks)
-        encoder = self.context.image_encoder
-        observations = {"image_encoder": None if encoder is None else dataclasses.asdict(encoder)}
-        tasks = self.context.tasks
-        if tasks is not None:
-            # The task order fixes the ids; the statistics are part of the windows' digest already.
-            observations["tasks"] = {"names": list(tasks.names), "embedding_dim": tasks.embedding_dim}
-        return train_with_loss(
-            policy,
-            self.data,
-            recipe,
-            self.training,
-            self.checkpoint_dir,
-            identity | {"observations": observations},
-            self.epochs,
-            self.device,
-            self.on_epoch_end,
-            prepare_data=prepare_data,
-            training_step=training_step,
-        )
 
 
 def get_family(name: str) -> PolicyFamily:
@@ -236,22 +130,16 @@ def policy_from_checkpoint(checkpoint: Any) -> Policy:
 
 
 def load_policy(path: Path, map_location: str | torch.device = "cpu") -> Policy:
-    """Read any family's checkpoint onto `map_location`.
+    """Read any family's checkpoint onto `map_location`, through the family its `policy_type` names.
 
     Raises:
         FileNotFoundError: no file at `path`.
         CheckpointError: the file is truncated or corrupt, of another format version, of an unknown family,
             incomplete, or its parts do not fit together; the message is one line that starts with `path`.
     """
-    from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
+    from carp.policies.checkpoint_files import read_policy
 
-    checkpoint = read_checkpoint(Path(path), weights_only=True)
-    try:
-        return policy_from_checkpoint(checkpoint).to(map_location)
-    except KeyError as error:
-        raise CheckpointError(f"{path}: policy checkpoint lacks the entry {error}") from error
-    except (AttributeError, RuntimeError, TypeError, ValueError) as error:
-        raise CheckpointError(f"{path}: {one_line(error)}") from error
+    return read_policy(Path(path), policy_from_checkpoint, map_location)
 
 
 def average_policies(paths: Sequence[Path]) -> Policy:

@@ -9,7 +9,6 @@ rest of carp types against `Policy`, never against these classes.
 """
 
 import abc
-import functools
 from pathlib import Path
 from typing import Any
 
@@ -238,11 +237,10 @@ class PolicyModule(nn.Module, abc.ABC):
     def deployment(self, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
         """PyTorch (inference mode) whatever `backend` asks; the report names the backend that ran.
 
-        Workers load `checkpoint_path` again; `directory` is not used.
+        Workers load `checkpoint_path` again, as the caller loads any checkpoint (`Deployment.load` is None);
+        `directory` is not used.
         """
-        from carp.policies.registry import load_policy
-
-        return Deployment(TORCH_BACKEND, functools.partial(load_policy, Path(checkpoint_path)))
+        return Deployment(TORCH_BACKEND, None)
 
     @abc.abstractmethod
     def family_checkpoint(self) -> dict[str, Any]:

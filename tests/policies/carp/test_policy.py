@@ -148,7 +148,7 @@ DAMAGED_POLICIES = {
     ),
     "unknown policy type": (
         lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.update(policy_type="lstm")),
-        "policy_type='lstm': unknown policy family 'lstm' (known: carp",
+        "policy_type='lstm': not a carp checkpoint",
     ),
     "another format version": (
         lambda path: _save_changed(tiny_policy(), path, lambda checkpoint: checkpoint.update(format_version=1)),

@@ -6,7 +6,8 @@ from carp.policies.carp.spec import PolicySpec
 from carp.policies.carp.trainer import train_carp
 from carp.policies.carp.transformer import CoarseToFineTransformer
 from carp.policies.context import PolicyContext
-from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.policies.policy_family import PolicyFamily
+from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
 
 

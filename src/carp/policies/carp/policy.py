@@ -24,6 +24,7 @@ from carp.policies.carp.sampling import generate_chunk
 from carp.policies.carp.spec import POLICY_TYPE, PolicySpec
 from carp.policies.carp.trainer import compute_token_targets, teacher_forced_step
 from carp.policies.carp.transformer import CoarseToFineTransformer
+from carp.policies.checkpoint_files import read_policy
 from carp.policies.wrapper import (
     TokenizedPolicy,
     check_policy_type,
@@ -31,7 +32,6 @@ from carp.policies.wrapper import (
 )
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
-from carp.training.checkpoint import CheckpointError
 
 logger = logging.getLogger(__name__)
 
@@ -202,15 +202,10 @@ class CarpPolicy(TokenizedPolicy):
 
     @classmethod
     def load(cls, path: Path, map_location: str | torch.device = "cpu") -> "CarpPolicy":
-        """Read a CARP checkpoint written by :meth:`save` onto `map_location` (through `load_policy`).
+        """Read a CARP checkpoint written by :meth:`save` onto `map_location`.
 
         Raises:
             FileNotFoundError: no file at `path`.
             CheckpointError: as `carp.policies.registry.load_policy`, or the file holds another family.
         """
-        from carp.policies.registry import load_policy
-
-        policy = load_policy(Path(path), map_location)
-        if not isinstance(policy, cls):
-            raise CheckpointError(f"{path}: holds a {policy.policy_type} policy, not a {POLICY_TYPE} one")
-        return policy
+        return read_policy(Path(path), cls.from_checkpoint, map_location)

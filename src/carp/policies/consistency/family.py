@@ -28,8 +28,9 @@ from carp.policies.consistency.policy import ConsistencyPolicy, EDMPolicy, Karra
 from carp.policies.context import PolicyContext
 from carp.policies.diffusion.ema import exponential_moving_average
 from carp.policies.diffusion.unet import ConditionalUNet1D
-from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.policies.policy_family import PolicyFamily
 from carp.training.loop import OptimizerRecipe, TrainingStep
+from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.95, 0.999)

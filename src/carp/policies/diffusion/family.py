@@ -21,8 +21,9 @@ from carp.policies.diffusion.ema import exponential_moving_average
 from carp.policies.diffusion.policy import DenoiserFactory, DiffusionPolicy, from_checkpoint
 from carp.policies.diffusion.transformer import DiffusionTransformer
 from carp.policies.diffusion.unet import ConditionalUNet1D
-from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.policies.policy_family import PolicyFamily
 from carp.training.loop import OptimizerRecipe
+from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.95, 0.999)

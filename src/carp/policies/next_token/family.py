@@ -14,8 +14,9 @@ from carp.policies.context import PolicyContext
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
-from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.policies.policy_family import PolicyFamily
 from carp.training.loop import OptimizerRecipe, matrix_decay_groups
+from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.9, 0.95)

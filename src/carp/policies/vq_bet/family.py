@@ -19,7 +19,7 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from carp.policies.context import PolicyContext
-from carp.policies.registry import PolicyFamily, TrainingRun
+from carp.policies.policy_family import PolicyFamily
 from carp.policies.vq_bet.autoencoder import ActionAutoencoder, AutoencoderTraining, train_autoencoder
 from carp.policies.vq_bet.config import VqBetConfig, VqBetInference
 from carp.policies.vq_bet.policy import POLICY_TYPE, VqBetPolicy, autoencoder_shape
@@ -27,6 +27,7 @@ from carp.policies.vq_bet.transformer import BehaviorTransformer
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError, atomic_torch_save, read_checkpoint
 from carp.training.loop import OptimizerRecipe, data_digest, matrix_decay_groups
+from carp.training.run import TrainingRun
 from carp.training.runtime import resolve_device, seed_everything
 
 logger = logging.getLogger(__name__)
