@@ -30,7 +30,7 @@ LIBRARY = Path("src/carp")
 PIPELINE = Path("pipeline")
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("carp", "carp.outputs", "carp.config.checks", "carp.training.checkpoint"),
+    ("carp", "carp.outputs", "carp.config.checks", "carp.training.checkpoint", "carp.serving.protocol"),
     ("carp.simulation", "carp.tasks", "carp.data"),
     ("carp.config", "carp.config_docs", "carp.policies.sections", "carp.policies.*.config"),
     (

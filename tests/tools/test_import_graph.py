@@ -138,3 +138,9 @@ def test_layers_name_every_library_module(repo_graph):
         tool.layer_of(module)  # raises for a module outside every layer
     with pytest.raises(ValueError, match="belongs to no layer"):
         tool.layer_of("elsewhere.module")
+
+
+def test_the_library_has_no_import_circle_and_no_import_up_a_layer(repo_graph):
+    graph = repo_graph.library_graph()
+    assert tool.cycles(graph) == []
+    assert tool.upward_imports(graph) == []

@@ -1,5 +1,8 @@
 """The serving protocol a checkpoint records about itself, so that `carp serve` needs nothing but the file.
 
+Training writes the record (a leaf module: it imports nothing of carp's, so the training stage does not reach the
+server); `carp.serving.startup.spec_from_protocol` reads it back into the server's spec.
+
 Training stores, under the checkpoint metadata's `SERVING_METADATA_KEY`, what a robot must send and how it must
 execute the replies: the low-dim observation keys in order with each key's width (the replay buffer's `obs_keys` and
 `obs_widths`, which ingestion read from the demo file), `To`, `H`, `Ta`, the observation kind and, for an image
@@ -14,8 +17,6 @@ The stored value is a map of plain values::
 
 from collections.abc import Mapping
 from typing import Any
-
-from carp.serving.session import ServingSpec
 
 SERVING_METADATA_KEY = "serving"
 PROTOCOL_FORMAT = 1
@@ -57,47 +58,6 @@ def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None)
         "cameras": [] if image_encoder is None else list(image_encoder.cameras),
         "image_size": None if image_encoder is None else image_encoder.image_size,
     }
-
-
-def spec_from_protocol(
-    protocol: Mapping[str, Any], obs_dim: int, action_dim: int, control_period_s: float
-) -> ServingSpec:
-    """The serving spec a recorded protocol describes.
-
-    Args:
-        protocol: the map :func:`training_protocol` made.
-        obs_dim: `Do` of the policy (its observation normalizer's width); must equal the sum of the key widths.
-        action_dim: `A` of the policy.
-        control_period_s: seconds between two control steps of the policy's task.
-
-    Raises:
-        ProtocolError: another format, a missing entry, or key widths that do not add up to `obs_dim`.
-    """
-    if protocol.get("format") != PROTOCOL_FORMAT:
-        raise ProtocolError(f"serving protocol format {protocol.get('format')!r}, this carp reads {PROTOCOL_FORMAT}")
-    try:
-        keys, widths = tuple(protocol["obs_keys"]), tuple(protocol["obs_widths"])
-        image_shape = None
-        if protocol["observations"] == "image":
-            size = protocol["image_size"]
-            image_shape = (len(protocol["cameras"]), 3, size, size)
-        spec = ServingSpec(
-            obs_keys=keys,
-            obs_steps=protocol["obs_steps"],
-            obs_dim=obs_dim,
-            action_horizon=protocol["action_horizon"],
-            action_dim=action_dim,
-            action_steps=protocol["action_steps"],
-            control_period_s=control_period_s,
-            image_shape=image_shape,
-            obs_widths=widths,
-            cameras=tuple(protocol["cameras"]),
-        )
-    except KeyError as error:
-        raise ProtocolError(f"the serving protocol lacks {error}") from None
-    except ValueError as error:
-        raise ProtocolError(f"the serving protocol does not fit the policy: {error}") from None
-    return spec
 
 
 def recorded_protocol(metadata: Mapping[str, Any]) -> Mapping[str, Any] | None:

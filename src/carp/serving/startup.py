@@ -18,12 +18,13 @@ concatenated ``obs`` (the per-key widths are unknown). The warm-up checks the pr
 
 import logging
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 from carp.policies.base import TORCH_BACKEND, Policy
 from carp.serving.model import ModelSource, ServedModel, file_sha256
-from carp.serving.protocol import recorded_protocol, spec_from_protocol
+from carp.serving.protocol import PROTOCOL_FORMAT, ProtocolError, recorded_protocol
 from carp.serving.server import PolicyServer, ServerSettings, is_loopback, serve_forever, tls_context
 from carp.serving.session import ServingSpec
 
@@ -33,6 +34,47 @@ logger = logging.getLogger(__name__)
 
 class ServingStartError(RuntimeError):
     """The server cannot start; the message is one line that names the file or setting at fault."""
+
+
+def spec_from_protocol(
+    protocol: Mapping[str, Any], obs_dim: int, action_dim: int, control_period_s: float
+) -> ServingSpec:
+    """The serving spec a recorded protocol describes.
+
+    Args:
+        protocol: the map :func:`training_protocol` made.
+        obs_dim: `Do` of the policy (its observation normalizer's width); must equal the sum of the key widths.
+        action_dim: `A` of the policy.
+        control_period_s: seconds between two control steps of the policy's task.
+
+    Raises:
+        ProtocolError: another format, a missing entry, or key widths that do not add up to `obs_dim`.
+    """
+    if protocol.get("format") != PROTOCOL_FORMAT:
+        raise ProtocolError(f"serving protocol format {protocol.get('format')!r}, this carp reads {PROTOCOL_FORMAT}")
+    try:
+        keys, widths = tuple(protocol["obs_keys"]), tuple(protocol["obs_widths"])
+        image_shape = None
+        if protocol["observations"] == "image":
+            size = protocol["image_size"]
+            image_shape = (len(protocol["cameras"]), 3, size, size)
+        spec = ServingSpec(
+            obs_keys=keys,
+            obs_steps=protocol["obs_steps"],
+            obs_dim=obs_dim,
+            action_horizon=protocol["action_horizon"],
+            action_dim=action_dim,
+            action_steps=protocol["action_steps"],
+            control_period_s=control_period_s,
+            image_shape=image_shape,
+            obs_widths=widths,
+            cameras=tuple(protocol["cameras"]),
+        )
+    except KeyError as error:
+        raise ProtocolError(f"the serving protocol lacks {error}") from None
+    except ValueError as error:
+        raise ProtocolError(f"the serving protocol does not fit the policy: {error}") from None
+    return spec
 
 
 def _selected_padding(policy: Policy):
