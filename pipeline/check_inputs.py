@@ -28,7 +28,12 @@ def main() -> None:
     params_file = parse_args(__doc__).params
     params = load(params_file)
     try:
-        records = {task: describe_source(task, params.data.raw_files.get(task), PROJECT_DIR) for task in params.tasks}
+        # An image run's cameras: collect decodes a LeRobotDataset's videos for them.
+        cameras = params.data.cameras if params.data.image_keys else ()
+        records = {
+            task: describe_source(task, params.data.raw_files.get(task), PROJECT_DIR, cameras, params.data.image_size)
+            for task in params.tasks
+        }
     except SourceError as error:
         fail(f"{params_file}: {error}")
     # A fixed staging name: a run killed mid-write leaves nothing that the next run does not clear first.

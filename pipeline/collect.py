@@ -35,6 +35,8 @@ def main() -> None:
                 staging_dir=STAGING_DIR,
                 env_name=task.env_name,
                 env_args=lambda: task.make_env_args(params.data.controller),
+                cameras=params.data.cameras if params.data.image_keys else (),
+                image_size=params.data.image_size,
             )
         except DatasetError as error:
             fail(str(error))

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import zarr
 
 from carp.data.demo_sources import LEROBOT, ROBOMIMIC, demo_format, import_demos
 from carp.data.robomimic_io import read_demonstrations
@@ -49,3 +50,30 @@ def test_the_filter_key_must_name_a_split(tmp_path):
     with pytest.raises(DatasetError, match=r"filter key 'mask/valid' not found \(masks: \['train'\]\)"):
         import_demos(FIXTURES / "v3.0", tmp_path / "out.hdf5", OBS_KEYS, filter_key="valid", env_args=lambda: ENV_ARGS)
     assert not (tmp_path / "out.hdf5").exists()
+
+
+def test_a_lerobot_camera_is_stored_as_the_image_key_ingestion_reads(tmp_path):
+    destination = tmp_path / "raw" / "pusht.hdf5"
+    import_demos(FIXTURES / "v2.1", destination, OBS_KEYS, env_args=lambda: ENV_ARGS, cameras=("top",), image_size=32)
+    demos = read_demonstrations(destination, (*OBS_KEYS, "top_image"))
+    assert [episode.obs["top_image"].shape for episode in demos.episodes] == [
+        (12, 32, 32, 3),
+        (9, 32, 32, 3),
+        (15, 32, 32, 3),
+    ]
+
+
+def test_an_imported_camera_ingests_into_the_image_buffer(tmp_path):
+    from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
+    from carp.data.rendering import RenderSettings
+    from carp.tasks.pusht import make_env_args
+
+    raw = tmp_path / "raw" / "pusht.hdf5"
+    demos = import_demos(
+        FIXTURES / "v3.0", raw, OBS_KEYS, action_dim=2, env_args=make_env_args, cameras=("top",), image_size=32
+    )
+    ingest_demonstrations(
+        raw, tmp_path / "processed", OBS_KEYS, camera_settings=RenderSettings(cameras=("top",), image_size=32)
+    )
+    stored = zarr.open(str(tmp_path / "processed" / BUFFER_DIRNAME), mode="r")["data/top_image"][:]
+    assert np.array_equal(stored, np.concatenate([episode.obs["top_image"] for episode in demos.episodes]))

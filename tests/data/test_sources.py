@@ -3,6 +3,7 @@ import hashlib
 import pytest
 
 from carp.data.sources import SourceError, describe_source
+from tests.conftest import write_synthetic_file
 
 
 def test_scripted_source_record_names_only_the_task():
@@ -43,11 +44,16 @@ def test_a_lerobot_folder_is_recorded_by_the_hash_of_its_files(tmp_path):
 
     shutil.copytree(FIXTURES / "v3.0", tmp_path / "pusht")
     record = describe_source("pusht", "pusht", tmp_path)
-    assert record["source"] == "lerobot" and record["files"] == 6
+    assert record["source"] == "lerobot" and record["files"] == 7 and "cameras" not in record
     assert describe_source("pusht", "pusht", tmp_path) == record
     (tmp_path / "pusht" / "meta" / "extra.json").write_text("{}")
     added = describe_source("pusht", "pusht", tmp_path)
-    assert added["sha256"] != record["sha256"] and added["files"] == 7
+    assert added["sha256"] != record["sha256"] and added["files"] == 8
     (tmp_path / "pusht" / "meta" / "extra.json").unlink()
     (tmp_path / "pusht" / "meta" / "info.json").write_text("{}")
     assert describe_source("pusht", "pusht", tmp_path)["sha256"] != record["sha256"]
+    cameras = describe_source("pusht", "pusht", tmp_path, cameras=("top",), image_size=32)
+    assert cameras["cameras"] == ["top"] and cameras["image_size"] == 32
+    # A robomimic file's record does not depend on the cameras: ingestion, not collect, reads its images.
+    write_synthetic_file(tmp_path / "lift.hdf5")
+    assert "cameras" not in describe_source("lift", "lift.hdf5", tmp_path, cameras=("top",), image_size=32)

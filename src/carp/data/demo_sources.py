@@ -25,8 +25,8 @@ class DemoFormat:
     Attributes:
         name: the format's name, recorded by :mod:`carp.data.sources`.
         holds: whether a path is in this format.
-        importer: ``(source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args)`` ->
-            the demos read; see :func:`import_demos`.
+        importer: ``(source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args,
+            cameras, image_size)`` -> the demos read; see :func:`import_demos`.
     """
 
     name: str
@@ -34,19 +34,30 @@ class DemoFormat:
     importer: Callable[..., Demonstrations]
 
 
-def _import_robomimic(source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args):
+def _import_robomimic(
+    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size
+):
+    # A robomimic file's cameras are its `<camera>_image` keys, which ingestion reads (or renders) itself.
     return import_demonstrations(
         source, destination, obs_keys, action_dim=action_dim, filter_key=filter_key, staging_dir=staging_dir,
         env_name=env_name,
     )  # fmt: skip
 
 
-def _import_lerobot(source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args):
+def _import_lerobot(
+    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size
+):
     from carp.data.lerobot.reader import read_lerobot_demonstrations
 
     # Every episode is converted (ingestion applies the filter), after checking that the filter selects some.
     demos = read_lerobot_demonstrations(
-        source, obs_keys, action_dim=action_dim, env_name=env_name, env_args=env_args() if env_args else None
+        source,
+        obs_keys,
+        action_dim=action_dim,
+        env_name=env_name,
+        env_args=env_args() if env_args else None,
+        cameras=cameras,
+        image_size=image_size,
     )
     check_valid_mask(source, select_demos(source, demos.names, demos.masks, filter_key), demos.masks, filter_key)
     write_demonstrations(
@@ -81,6 +92,8 @@ def import_demos(
     staging_dir: Path | None = None,
     env_name: str | None = None,
     env_args: Callable[[], dict] | None = None,
+    cameras: Sequence[str] = (),
+    image_size: int = 84,
 ) -> Demonstrations:
     """Check a user's demos in any format of :data:`FORMATS` and write them to ``destination`` as a robomimic file.
 
@@ -94,6 +107,9 @@ def import_demos(
         env_name: the ``env_name`` the demos' env_args must name; ``None`` accepts any.
         env_args: gives the env_args of a source that records none (a LeRobotDataset not exported by carp);
             called only then.
+        cameras: cameras a LeRobotDataset's videos are decoded for, stored as ``obs/<camera>_image`` uint8
+            (T, image_size, image_size, 3) (:mod:`carp.data.lerobot.videos`).
+        image_size: side of those images in pixels.
 
     Raises:
         DatasetError: ``source`` is unusable; ``destination`` is left as it was.
@@ -101,5 +117,14 @@ def import_demos(
     """
     format_ = demo_format(source)
     return format_.importer(
-        Path(source), Path(destination), obs_keys, action_dim, filter_key, staging_dir, env_name, env_args
+        Path(source),
+        Path(destination),
+        obs_keys,
+        action_dim,
+        filter_key,
+        staging_dir,
+        env_name,
+        env_args,
+        tuple(cameras),
+        image_size,
     )

@@ -5,10 +5,12 @@ depends on this record instead: the ``check_inputs`` stage rewrites it on every 
 and its bytes change when, and only when, the user's file changes (its sha256) or the source kind does. A replaced
 file at the same path therefore reruns collect and everything downstream, and an unchanged one reruns nothing.
 A LeRobotDataset folder (:mod:`carp.data.lerobot`) is recorded the same way, its sha256 taken over the relative path
-and the bytes of every file in it, so that a changed, added or removed file reruns collect as well.
+and the bytes of every file in it, so that a changed, added or removed file reruns collect as well. Collect decodes
+its videos for the cameras of an image run, so the record of such a folder also holds the cameras and image size.
 """
 
 import hashlib
+from collections.abc import Sequence
 from pathlib import Path
 
 from carp.data.lerobot import is_lerobot_dataset
@@ -41,7 +43,9 @@ def folder_sha256(root: Path) -> tuple[str, int, int]:
     return digest.hexdigest(), len(files), sum(path.stat().st_size for path in files)
 
 
-def describe_source(task: str, user_file: str | None, project_root: Path) -> dict:
+def describe_source(
+    task: str, user_file: str | None, project_root: Path, cameras: Sequence[str] = (), image_size: int | None = None
+) -> dict:
     """The record of one task's demonstration source.
 
     Args:
@@ -49,10 +53,14 @@ def describe_source(task: str, user_file: str | None, project_root: Path) -> dic
         user_file: the ``data.raw_files`` entry of the task (relative to ``project_root`` or absolute), or ``None``
             for scripted collection.
         project_root: directory that relative paths refer to.
+        cameras: the cameras of an image run (``()`` for state); recorded for a LeRobotDataset folder, whose videos
+            collect decodes for them.
+        image_size: side of the camera images in pixels, recorded with ``cameras``.
 
     Returns:
         ``{"task", "source": "scripted"}``, ``{"task", "source": "file", "path", "sha256", "bytes"}``, or for a
-        LeRobotDataset folder ``{"task", "source": "lerobot", "path", "sha256", "files", "bytes"}``.
+        LeRobotDataset folder ``{"task", "source": "lerobot", "path", "sha256", "files", "bytes"}`` (plus
+        ``"cameras"`` and ``"image_size"`` when ``cameras`` are given).
 
     Raises:
         SourceError: the user's file is missing, neither a regular file nor a LeRobotDataset folder, or unreadable
@@ -69,7 +77,10 @@ def describe_source(task: str, user_file: str | None, project_root: Path) -> dic
             sha256, files, size = folder_sha256(path)
         except OSError as error:
             raise SourceError(f"{key}: cannot be read ({error.strerror or error})") from None
-        return {"task": task, "source": "lerobot", "path": user_file, "sha256": sha256, "files": files, "bytes": size}
+        record = {"task": task, "source": "lerobot", "path": user_file, "sha256": sha256, "files": files, "bytes": size}
+        if cameras:
+            record.update(cameras=list(cameras), image_size=image_size)
+        return record
     if not path.is_file():
         raise SourceError(f"{key}: not a regular file nor a LeRobotDataset folder (meta/info.json) ({path})")
     try:

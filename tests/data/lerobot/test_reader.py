@@ -91,9 +91,9 @@ DAMAGES = {
         "feature 'action': shape=[3]: expected [2]",
     ),
     "camera feature as obs key": (
-        lambda root, version: edit_info(root, lambda info: info["features"]["observation.state"].update(dtype="video")),
+        lambda root, version: edit_info(root, lambda info: info["features"]["observation.state"].update(dtype="image")),
         "meta/info.json",
-        "feature 'observation.state': dtype='video': camera features are not read",
+        "feature 'observation.state': dtype='image': camera features are not read",
     ),
     "total frames contradict the index": (
         lambda root, version: edit_info(root, lambda info: info.update(total_frames=35)),
@@ -229,3 +229,68 @@ def test_a_dataset_without_env_args_needs_the_tasks(tmp_path):
         read(FIXTURES / "v3.0", env_args=None)
     with pytest.raises(DatasetError, match=r"env_name='PushT': this task's demos come from 'Lift'"):
         read(FIXTURES / "v3.0", env_name="Lift")
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+def test_camera_frames_are_decoded_at_every_step_and_resized(version):
+    demos = read(FIXTURES / version, cameras=("top",), image_size=32)
+    given = inputs(version)
+    for index, episode in enumerate(demos.episodes):
+        images = episode.obs["top_image"]
+        assert images.dtype == np.uint8 and images.shape == (LENGTHS[index], 32, 32, 3)
+        # Flat colours: resizing keeps them, AV1 compression moves them by a few levels at most.
+        colours = given[f"observation.images.top_{index}"][:, 0, 0].astype(int)
+        assert np.abs(images.astype(int) - colours[:, None, None, :]).max() <= 4
+
+
+def _shift_video_start(root, episode, seconds):
+    path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    key = "videos/observation.images.top/from_timestamp"
+    edit_rows(path, lambda rows: rows[episode].update({key: rows[episode][key] + seconds}))
+
+
+CAMERA_DAMAGES = {
+    "video missing": (
+        lambda root: [path.unlink() for path in (root / "videos").rglob("*.mp4")],
+        r"\.mp4: episode 0: key 'observation\.images\.top': file not found",
+    ),
+    "video unreadable": (
+        lambda root: [path.write_bytes(b"not a video") for path in (root / "videos").rglob("*.mp4")],
+        r"\.mp4: episode 0: key 'observation\.images\.top': cannot be decoded",
+    ),
+}
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+@pytest.mark.parametrize("name", sorted(CAMERA_DAMAGES))
+def test_every_camera_damage_names_the_video_episode_and_key(tmp_path, version, name):
+    damage, message = CAMERA_DAMAGES[name]
+    root = fixture_copy(version, tmp_path)
+    damage(root)
+    with pytest.raises(DatasetError, match=message):
+        read(root, cameras=("top",), image_size=32)
+
+
+def test_a_video_that_disagrees_with_the_timestamps_is_refused(tmp_path):
+    root = fixture_copy("v3.0", tmp_path)
+    _shift_video_start(root, 1, 0.05)
+    with pytest.raises(DatasetError, match=r"episode 1: key 'observation\.images\.top': step 0: no frame at 1\.25 s"):
+        read(root, cameras=("top",), image_size=32)
+
+
+def test_a_camera_must_be_a_video_feature(tmp_path):
+    with pytest.raises(DatasetError, match=r"camera 'wrist': no feature 'observation\.images\.wrist' or"):
+        read(FIXTURES / "v3.0", cameras=("wrist",))
+    with pytest.raises(
+        DatasetError, match=r"feature 'observation\.state': dtype='float32': cameras are read from video"
+    ):
+        read(FIXTURES / "v3.0", cameras=("state",))
+
+
+def test_an_episode_index_without_its_video_columns_is_refused(tmp_path):
+    root = fixture_copy("v3.0", tmp_path)
+    path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    key = "videos/observation.images.top/chunk_index"
+    edit_rows(path, lambda rows: [row.pop(key) for row in rows], without_field(path, key))
+    with pytest.raises(DatasetError, match=rf"file-000\.parquet: key '{key}': column missing"):
+        read(root)

@@ -33,6 +33,10 @@ NUMERIC_DTYPES = ("float16", "float32", "float64", "int8", "int16", "int32", "in
 CAMERA_DTYPES = ("video", "image")
 # The fields each layout's data_path template may name (str.format); anything else is refused before formatting.
 DATA_PATH_FIELDS = {V3: {"chunk_index", "file_index"}, "legacy": {"episode_chunk", "episode_index"}}
+VIDEO_PATH_FIELDS = {
+    V3: {"video_key", "chunk_index", "file_index"},
+    "legacy": {"episode_chunk", "video_key", "episode_index"},
+}
 
 
 @dataclass(frozen=True)
@@ -53,12 +57,14 @@ class EpisodeEntry:
         length: frames T the index lists.
         tasks: the task texts it records.
         data_file: the Parquet file holding its frames, relative to the dataset root.
+        videos: video feature -> (its MP4 file relative to the root, the episode's start time in it in seconds).
     """
 
     index: int
     length: int
     tasks: tuple[str, ...]
     data_file: Path
+    videos: dict[str, tuple[Path, float]]
 
 
 @dataclass(frozen=True)
@@ -104,17 +110,21 @@ def read_metadata(root: Path) -> Metadata:
     if isinstance(fps, bool) or not math.isfinite(fps) or fps <= 0:
         raise DatasetError(f"{info_file}: key 'fps'={fps!r}: expected a positive number of frames per second")
     features = _features(info_file, _require(info, "features", dict, info_file))
+    layout = V3 if version == V3 else "legacy"
     template = _require(info, "data_path", str, info_file)
-    _check_template(info_file, template, DATA_PATH_FIELDS[V3 if version == V3 else "legacy"])
+    _check_template(info_file, "data_path", template, DATA_PATH_FIELDS[layout])
+    video_keys = [name for name, feature in features.items() if feature.dtype == "video"]
+    video_template = _require(info, "video_path", str, info_file) if video_keys else ""
+    _check_template(info_file, "video_path", video_template, VIDEO_PATH_FIELDS[layout])
     if version == V3:
         tasks = _v3_tasks(root)
-        episodes = _v3_episodes(root, template)
+        episodes = _v3_episodes(root, template, video_template, video_keys)
     else:
         chunks_size = _require(info, "chunks_size", int, info_file)
         if chunks_size <= 0:
             raise DatasetError(f"{info_file}: key 'chunks_size'={chunks_size}: expected a positive number")
         tasks = _legacy_tasks(root)
-        episodes = _legacy_episodes(root, template, chunks_size)
+        episodes = _legacy_episodes(root, template, chunks_size, video_template, video_keys)
     _check_episodes(root, episodes, tasks)
     _check_totals(info_file, info, episodes)
     splits = _splits(info_file, info.get("splits") or {}, {entry.index for entry in episodes})
@@ -166,13 +176,13 @@ def _features(info_file: Path, raw: dict) -> dict[str, Feature]:
     return features
 
 
-def _check_template(info_file: Path, template: str, allowed: set[str]) -> None:
+def _check_template(info_file: Path, key: str, template: str, allowed: set[str]) -> None:
     try:
         fields = {field.split(".")[0].split("[")[0] for _, field, _, _ in string.Formatter().parse(template) if field}
     except ValueError as error:
-        raise DatasetError(f"{info_file}: key 'data_path'={template!r}: not a path template ({error})") from None
+        raise DatasetError(f"{info_file}: key '{key}'={template!r}: not a path template ({error})") from None
     if not fields <= allowed or ".." in Path(template).parts:
-        raise DatasetError(f"{info_file}: key 'data_path'={template!r}: may only name {sorted(allowed)}")
+        raise DatasetError(f"{info_file}: key '{key}'={template!r}: may only name {sorted(allowed)}")
 
 
 def _v3_tasks(root: Path) -> dict[int, str]:
@@ -206,16 +216,18 @@ def _task_table(path: Path, indices: list, texts: list[str]) -> dict[int, str]:
     return table
 
 
-def _v3_episodes(root: Path, template: str) -> list[EpisodeEntry]:
+def _v3_episodes(root: Path, template: str, video_template: str, video_keys: list[str]) -> list[EpisodeEntry]:
     files = sorted((root / EPISODES_DIR).glob("chunk-*/file-*.parquet"))
     if not files:
         raise DatasetError(f"{root / EPISODES_DIR}: no episode index files (chunk-*/file-*.parquet)")
     entries = []
     for path in files:
         frame = _read_parquet_frame(path)
-        for key in ("episode_index", "length", "tasks", "data/chunk_index", "data/file_index"):
+        video_columns = [f"videos/{key}/{part}" for key in video_keys for part in ("chunk_index", "file_index")]
+        for key in ("episode_index", "length", "tasks", "data/chunk_index", "data/file_index", *video_columns):
             if key not in frame.columns:
-                raise DatasetError(f"{path}: key '{key}': column missing (columns: {list(frame.columns)})")
+                named = [column for column in frame.columns if not column.startswith("stats/")]
+                raise DatasetError(f"{path}: key '{key}': column missing (columns besides stats/: {named})")
         for row in frame.itertuples(index=False):
             values = dict(zip(frame.columns, row, strict=True))
             index = _integer(path, values["episode_index"], "episode_index", None)
@@ -224,13 +236,25 @@ def _v3_episodes(root: Path, template: str) -> list[EpisodeEntry]:
             file = _integer(path, values["data/file_index"], "data/file_index", where)
             length = _integer(path, values["length"], "length", where)
             tasks = _task_texts(path, values["tasks"], where)
-            entries.append(
-                EpisodeEntry(index, length, tasks, Path(template.format(chunk_index=chunk, file_index=file)))
-            )
+            videos = {key: _v3_video(path, values, key, video_template, where) for key in video_keys}
+            data_file = Path(template.format(chunk_index=chunk, file_index=file))
+            entries.append(EpisodeEntry(index, length, tasks, data_file, videos))
     return sorted(entries, key=lambda entry: entry.index)
 
 
-def _legacy_episodes(root: Path, template: str, chunks_size: int) -> list[EpisodeEntry]:
+def _v3_video(path: Path, values: dict, key: str, template: str, where: str) -> tuple[Path, float]:
+    """(MP4 file, start time in seconds) of one episode's video feature ``key`` in a v3.0 episode-index row."""
+    chunk = _integer(path, values[f"videos/{key}/chunk_index"], f"videos/{key}/chunk_index", where)
+    file = _integer(path, values[f"videos/{key}/file_index"], f"videos/{key}/file_index", where)
+    start = values.get(f"videos/{key}/from_timestamp", 0.0)
+    if isinstance(start, bool) or not isinstance(start, int | float) or not math.isfinite(start) or start < 0:
+        raise DatasetError(f"{path}: {where}: key 'videos/{key}/from_timestamp'={start!r}: expected seconds >= 0")
+    return Path(template.format(video_key=key, chunk_index=chunk, file_index=file)), float(start)
+
+
+def _legacy_episodes(
+    root: Path, template: str, chunks_size: int, video_template: str, video_keys: list[str]
+) -> list[EpisodeEntry]:
     path = root / LEGACY_EPISODES_PATH
     entries = []
     for number, row in enumerate(_read_json_lines(path), start=1):
@@ -240,8 +264,13 @@ def _legacy_episodes(root: Path, template: str, chunks_size: int) -> list[Episod
         index = _integer(path, row["episode_index"], "episode_index", f"line {number}")
         length = _integer(path, row["length"], "length", f"episode {index}")
         tasks = _task_texts(path, row.get("tasks", []), f"episode {index}")
-        data_file = Path(template.format(episode_chunk=index // chunks_size, episode_index=index))
-        entries.append(EpisodeEntry(index, length, tasks, data_file))
+        chunk = index // chunks_size
+        data_file = Path(template.format(episode_chunk=chunk, episode_index=index))
+        videos = {
+            key: (Path(video_template.format(episode_chunk=chunk, video_key=key, episode_index=index)), 0.0)
+            for key in video_keys
+        }
+        entries.append(EpisodeEntry(index, length, tasks, data_file, videos))
     return sorted(entries, key=lambda entry: entry.index)
 
 

@@ -11,7 +11,9 @@ the caller writes anything:
    equals its listed length, its ``frame_index`` runs 0, 1, ..., T-1 and consecutive timestamps differ by 1 / fps
    (within LeRobot's own tolerance), and its ``task_index`` values are in the task table;
 4. values are finite in float32 with column ranges that normalization can divide by (the robomimic checks,
-   :mod:`carp.data.robomimic_schema`).
+   :mod:`carp.data.robomimic_schema`);
+5. with cameras, each is a video feature of (H, W, 3) frames with a frame at every step's time
+   (:mod:`carp.data.lerobot.videos`).
 """
 
 import json
@@ -33,6 +35,7 @@ from carp.data.lerobot.metadata import (
     read_metadata,
     read_parquet_table,
 )
+from carp.data.lerobot.videos import camera_feature_names, decode_episode, image_key
 from carp.data.robomimic_io import Demonstrations, Episode, check_env_name, select_demos
 from carp.data.robomimic_schema import DatasetError, check_stored_dtype, check_stored_ranges, check_valid_mask
 
@@ -65,6 +68,8 @@ def read_lerobot_demonstrations(
     filter_key: str | None = None,
     env_name: str | None = None,
     env_args: dict | None = None,
+    cameras: Sequence[str] = (),
+    image_size: int = 84,
 ) -> Demonstrations:
     """Read and check the episodes of a LeRobotDataset folder.
 
@@ -76,6 +81,8 @@ def read_lerobot_demonstrations(
         env_name: the ``env_name`` the env_args must name; ``None`` accepts any.
         env_args: the env_args of a dataset without carp's ``meta/carp.json`` (the task's own); ``None`` requires
             that file.
+        cameras: cameras whose video features are decoded into ``obs["<camera>_image"]``, (T, S, S, 3) uint8.
+        image_size: S, the side of the camera images.
 
     Returns:
         Demonstrations whose episodes hold ``obs[key]`` (T, D_key) float64, ``actions`` (T, A) float64, ``rewards``
@@ -90,13 +97,14 @@ def read_lerobot_demonstrations(
     env_args = _env_args(meta, env_args)
     check_env_name(root, env_args, env_name)
     columns = _columns(meta, obs_keys, action_dim)
+    videos = {camera: _video_feature(meta, camera) for camera in cameras}
     all_names = [demo_name(entry.index) for entry in meta.episodes]
     masks = {name: [demo_name(index) for index in indices] for name, indices in meta.splits.items()}
     names = select_demos(root, all_names, masks, filter_key)
     check_valid_mask(root, names, masks, filter_key)
     wanted = set(names)
     entries = [entry for entry in meta.episodes if demo_name(entry.index) in wanted]
-    episodes = _read_episodes(meta, entries, columns)
+    episodes = _read_episodes(meta, entries, columns, videos, image_size)
     check_stored_ranges(root, names, f"key '{ACTION}'", [episode.actions for episode in episodes])
     for key in obs_keys:
         check_stored_ranges(root, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
@@ -146,6 +154,23 @@ def _columns(meta: Metadata, obs_keys: Sequence[str], action_dim: int | None) ->
     return columns
 
 
+def _video_feature(meta: Metadata, camera: str) -> Feature:
+    info = meta.root / INFO_PATH
+    names = camera_feature_names(camera)
+    name = next((name for name in names if name in meta.features), None)
+    if name is None:
+        raise DatasetError(
+            f"{info}: camera '{camera}': no feature {' or '.join(repr(n) for n in names)} (features: "
+            f"{sorted(meta.features)})"
+        )
+    feature = meta.features[name]
+    if feature.dtype != "video":
+        raise DatasetError(f"{info}: feature '{name}': dtype={feature.dtype!r}: cameras are read from video features")
+    if len(feature.shape) != 3 or feature.shape[-1] != 3:
+        raise DatasetError(f"{info}: feature '{name}': shape={list(feature.shape)}: expected [H, W, 3] RGB frames")
+    return feature
+
+
 def _low_dim(info: Path, feature: Feature) -> Feature:
     where = f"{info}: feature '{feature.name}'"
     if feature.dtype in CAMERA_DTYPES:
@@ -157,7 +182,13 @@ def _low_dim(info: Path, feature: Feature) -> Feature:
     return feature
 
 
-def _read_episodes(meta: Metadata, entries: list[EpisodeEntry], columns: dict[str, Feature]) -> list[Episode]:
+def _read_episodes(
+    meta: Metadata,
+    entries: list[EpisodeEntry],
+    columns: dict[str, Feature],
+    videos: dict[str, Feature],
+    image_size: int,
+) -> list[Episode]:
     """The episodes of ``entries``, reading each data file once."""
     by_file: dict[Path, list[EpisodeEntry]] = {}
     for entry in meta.episodes:
@@ -167,7 +198,7 @@ def _read_episodes(meta: Metadata, entries: list[EpisodeEntry], columns: dict[st
     for data_file, placed in by_file.items():
         if not wanted & {entry.index for entry in placed}:
             continue
-        frames = _FileFrames(meta, meta.root / data_file, columns)
+        frames = _FileFrames(meta, meta.root / data_file, columns, videos, image_size)
         frames.check_episodes(placed)
         for entry in placed:
             if entry.index in wanted:
@@ -178,8 +209,11 @@ def _read_episodes(meta: Metadata, entries: list[EpisodeEntry], columns: dict[st
 class _FileFrames:
     """The frames of one data file, with every check that names the file, an episode and a key."""
 
-    def __init__(self, meta: Metadata, path: Path, columns: dict[str, Feature]):
+    def __init__(
+        self, meta: Metadata, path: Path, columns: dict[str, Feature], videos: dict[str, Feature], image_size: int
+    ):
         self.meta, self.path, self.columns = meta, path, columns
+        self.videos, self.image_size = videos, image_size
         if not path.is_file():
             raise DatasetError(f"{path}: file not found (the episode index places episodes in it)")
         try:
@@ -277,7 +311,7 @@ class _FileFrames:
                 f"{where}: key 'frame_index': step {step}: value={int(frame_index[step])}: expected {step} "
                 "(frames 0, 1, ..., T-1 in order)"
             )
-        self._check_timestamps(where, start, stop)
+        times = self._check_timestamps(where, start, stop)
         task_index = self._integers("task_index")[start:stop]
         unknown = [int(value) for value in np.unique(task_index) if int(value) not in self.meta.tasks]
         if unknown:
@@ -288,6 +322,14 @@ class _FileFrames:
             array = self.values(feature)[start:stop]
             check_stored_dtype(array, f"{where}: key '{feature.name}'")
             values[key] = array
+        for camera, feature in self.videos.items():
+            video, start_s = entry.videos[feature.name]
+            label = f"episode {entry.index}: key '{feature.name}'"
+            # Frame t is shown at the episode's start in the file plus its timestamp, measured from the first frame.
+            offsets = times - times[0]
+            values[image_key(camera)] = decode_episode(
+                self.meta.root / video, start_s + times[0], offsets, feature.shape, self.image_size, label
+            )
         actions = values.pop(ACTION)
         rewards, dones, states = values.pop(REWARD, None), values.pop(DONE, None), values.pop(SIM_STATE, None)
         attrs = {
@@ -304,7 +346,8 @@ class _FileFrames:
             attrs=attrs,
         )
 
-    def _check_timestamps(self, where: str, start: int, stop: int) -> None:
+    def _check_timestamps(self, where: str, start: int, stop: int) -> np.ndarray:
+        """The episode's (T,) timestamps in seconds, checked to advance by 1 / fps."""
         column = self._column("timestamp")
         if not pa.types.is_floating(column.type):
             raise DatasetError(f"{self.path}: key 'timestamp': type={column.type}: expected seconds (floats)")
@@ -319,6 +362,7 @@ class _FileFrames:
                 f"a gap of {gaps[step - 1]:.6g} s where fps={self.meta.fps:g} needs {period:.6g} s "
                 "(a dropped, repeated or misordered frame)"
             )
+        return times
 
     def _carp_attrs(self, episode_index: int) -> dict:
         attrs = self.meta.carp.get("episode_attrs", {}).get(str(episode_index), {})
