@@ -23,9 +23,10 @@ A frame row holds one column per feature of ``info.json`` (a number for shape ``
 carp's side (:mod:`carp.data.lerobot.reader`, :mod:`carp.data.lerobot.writer`): an obs key ``k`` of ``data.obs_keys``
 names the feature ``k`` or ``observation.k`` (``state`` reads ``observation.state``), ``action`` holds the actions,
 ``next.reward`` and ``next.done`` the rewards and done flags, and ``sim_state`` the simulator states that carp renders
-camera images from. carp's own export adds ``meta/carp.json`` (the env_args and per-demo attributes of the robomimic
-file), which LeRobot ignores. Deviations from LeRobot: camera features are neither read nor written (state only), and
-``meta/stats.json`` is never read.
+camera images from, and a camera ``c`` of an image run the video feature ``observation.images.c``
+(:mod:`carp.data.lerobot.videos`). carp's own export adds ``meta/carp.json`` (the env_args and per-demo attributes of
+the robomimic file), which LeRobot ignores. Deviations from LeRobot: PNG image features are not read, the export
+writes no camera, and ``meta/stats.json`` is never read.
 """
 
 from pathlib import Path
