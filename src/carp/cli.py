@@ -199,8 +199,8 @@ def _export_lerobot(source: Path, output: Path) -> None:
     except (DatasetError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)
-    skipped = f"; camera keys not exported: {list(summary.skipped_keys)}" if summary.skipped_keys else ""
-    print(f"{output}: {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps{skipped}")
+    cameras = f", cameras {list(summary.cameras)}" if summary.cameras else ""
+    print(f"{output}: {summary.episodes} episodes, {summary.frames} frames at {summary.fps} fps{cameras}")
 
 
 if __name__ == "__main__":

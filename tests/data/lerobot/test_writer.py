@@ -9,11 +9,13 @@ import pytest
 from carp.data.demo_sources import import_demos
 from carp.data.lerobot.export import export_lerobot
 from carp.data.lerobot.reader import read_lerobot_demonstrations
+from carp.data.lerobot.videos import decode_episode
 from carp.data.lerobot.writer import write_lerobot_dataset
 from carp.data.robomimic_io import read_demonstrations, write_demonstrations
 from carp.data.robomimic_schema import DatasetError
 from tests.conftest import OBS_KEYS, write_synthetic_file
 from tests.data.lerobot.fixtures import FIXTURES
+from tests.fixtures.lerobot.make_carp_export import CAMERA_KEY, write_source
 
 EXPORT = FIXTURES / "carp-export"
 
@@ -66,7 +68,8 @@ def test_observation_state_concatenates_the_state_keys(tmp_path):
 def test_the_export_is_what_lerobots_loader_read(tmp_path):
     """carp's export of the fixture's source equals ``carp-export/``, which LeRobot's own loader read."""
     source = tmp_path / "lift.hdf5"
-    written = write_synthetic_file(source, lengths=(6, 5, 4))
+    write_source(source)
+    written = read_demonstrations(source, (*OBS_KEYS, CAMERA_KEY)).episodes
     export_lerobot(source, tmp_path / "export")
     committed = sorted(path.relative_to(EXPORT) for path in EXPORT.rglob("*") if path.is_file())
     assert committed == sorted(
@@ -76,6 +79,10 @@ def test_the_export_is_what_lerobots_loader_read(tmp_path):
         ours, theirs = tmp_path / "export" / relative, EXPORT / relative
         if relative.suffix == ".parquet":
             assert pq.read_table(ours).equals(pq.read_table(theirs)), relative
+        elif relative.suffix == ".mp4":
+            times = np.arange(15) / 20
+            frames = [decode_episode(path, 0.0, times, (32, 32, 3), 32, "camera") for path in (ours, theirs)]
+            assert np.abs(frames[0].astype(int) - frames[1].astype(int)).max() <= 2
         else:
             assert json.loads(ours.read_text()) == json.loads(theirs.read_text()), relative
     with np.load(FIXTURES / "carp-export-read.npz") as read:
@@ -86,6 +93,9 @@ def test_the_export_is_what_lerobots_loader_read(tmp_path):
         assert np.array_equal(read["observation.object"], objects.astype(np.float32))
         assert np.array_equal(read["episode_index"], np.repeat([0, 1, 2], [6, 5, 4]))
         assert set(read["task"].tolist()) == {"lift"}
+        # Camera frames come back as float (C, H, W) in [0, 1], within a few levels of the compressed originals.
+        images = np.concatenate([episode.obs[CAMERA_KEY] for episode in written]).transpose(0, 3, 1, 2) / 255
+        assert np.abs(read["observation.images.agentview"] - images).max() <= 4 / 255
 
 
 def test_a_mask_of_non_consecutive_demos_is_refused(tmp_path):
@@ -121,3 +131,24 @@ def test_scripted_lift_demos_round_trip_exactly(tmp_path, lift_demo_collection):
     back = tmp_path / "back.hdf5"
     import_demos(tmp_path / "lift", back, OBS_KEYS, action_dim=7, env_name="Lift")
     assert_same_demos(read_demonstrations(source, OBS_KEYS), read_demonstrations(back, OBS_KEYS))
+
+
+def test_camera_images_round_trip_within_the_video_compression(tmp_path):
+    source = tmp_path / "lift.hdf5"
+    write_source(source)
+    summary = export_lerobot(source, tmp_path / "lift")
+    assert summary.cameras == ("agentview",)
+    back = tmp_path / "back.hdf5"
+    import_demos(tmp_path / "lift", back, OBS_KEYS, action_dim=7, cameras=("agentview",), image_size=32)
+    ours, theirs = (read_demonstrations(path, (*OBS_KEYS, CAMERA_KEY)) for path in (source, back))
+    assert_same_demos(ours, theirs)
+    for original, decoded in zip(ours.episodes, theirs.episodes, strict=True):
+        assert np.abs(decoded.obs[CAMERA_KEY].astype(int) - original.obs[CAMERA_KEY].astype(int)).max() <= 4
+
+
+def test_an_odd_image_size_is_refused_before_anything_is_written(tmp_path):
+    source = tmp_path / "lift.hdf5"
+    write_synthetic_file(source, lengths=(5, 6), image_size=33)
+    with pytest.raises(DatasetError, match=r"obs key 'agentview_image': image size 33 x 33: MP4 video \(4:2:0\)"):
+        export_lerobot(source, tmp_path / "lift")
+    assert not (tmp_path / "lift").exists()

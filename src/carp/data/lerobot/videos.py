@@ -91,3 +91,40 @@ def _resized(rgb: np.ndarray, image_size: int) -> np.ndarray:
     if rgb.shape[:2] == (image_size, image_size):
         return rgb
     return np.asarray(Image.fromarray(rgb).resize((image_size, image_size), Image.BILINEAR), dtype=np.uint8)
+
+
+# LeRobot's own video settings (its encoder's defaults): AV1 through SVT-AV1, 4:2:0 chroma, a key frame every two
+# frames so that any frame decodes quickly, constant quality 30.
+VIDEO_CODEC = "libsvtav1"
+VIDEO_CODEC_NAME = "av1"
+PIXEL_FORMAT = "yuv420p"
+VIDEO_OPTIONS = {"g": "2", "crf": "30"}
+
+
+def encode_video(path: Path, frames: np.ndarray, fps: int) -> None:
+    """Write (N, H, W, 3) uint8 RGB frames as an MP4 file, frame n shown at n / fps seconds.
+
+    H and W must be even (4:2:0 chroma halves both). Compression is lossy: decoded frames differ by a few levels.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream(VIDEO_CODEC, rate=fps, options=VIDEO_OPTIONS)
+        stream.pix_fmt = PIXEL_FORMAT
+        stream.height, stream.width = int(frames.shape[1]), int(frames.shape[2])
+        for rgb in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")))
+        container.mux(stream.encode())
+
+
+def video_info(shape: tuple[int, ...], fps: int) -> dict:
+    """The ``info`` entry LeRobot records for a video feature of (H, W, 3) frames."""
+    return {
+        "video.height": int(shape[0]),
+        "video.width": int(shape[1]),
+        "video.codec": VIDEO_CODEC_NAME,
+        "video.pix_fmt": PIXEL_FORMAT,
+        "video.is_depth_map": False,
+        "video.fps": int(fps),
+        "video.channels": int(shape[2]),
+        "has_audio": False,
+    }
