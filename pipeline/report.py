@@ -24,13 +24,8 @@ from carp.data.image_windows import episode_images
 from carp.data.ingest import BUFFER_DIRNAME
 from carp.evaluation.runner import episode_videos
 from carp.outputs import MULTITASK_SUFFIX
-from carp.reporting.comparison import (
-    add_referenced_runs,
-    pooled_metrics,
-    read_run_results,
-    split_multitask,
-)
 from carp.reporting.report import ReportInputs, write_report
+from carp.reporting.runs import add_referenced_runs, pooled_metrics, read_run_results, split_multitask
 from carp.tasks import get_task
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"

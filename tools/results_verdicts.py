@@ -11,16 +11,9 @@ import argparse
 from pathlib import Path
 
 from carp.outputs import MULTITASK_SUFFIX
-from carp.reporting.comparison import (
-    claims_table,
-    decide_report,
-    family_pairs,
-    merge_runs,
-    multitask_pairs,
-    precision_tests,
-    referenced_runs,
-    split_multitask,
-)
+from carp.reporting.claims import claims_table, precision_tests
+from carp.reporting.comparison import decide_report, family_pairs, multitask_pairs
+from carp.reporting.runs import merge_runs, referenced_runs, split_multitask
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 GROUPS = {

@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
         _export_lerobot(args.source, args.out)
         return
     from carp.config.checks import ConfigError
-    from carp.config.params import load_params
+    from carp.config.loading import load_params
     from carp.serving.startup import ServingStartError
     from carp.tracking.runs import resolve_tracking_uri
 

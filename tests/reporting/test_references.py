@@ -5,7 +5,7 @@ import json
 import pandas as pd
 import pytest
 
-from carp.reporting.comparison import (
+from carp.reporting.runs import (
     RunResults,
     add_referenced_runs,
     merge_runs,

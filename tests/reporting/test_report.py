@@ -13,7 +13,7 @@ import pytest
 from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EpisodeResult
 from carp.evaluation.runner import write_episode_videos
-from carp.reporting.comparison import RunResults, compare_multitask, pooled_metrics, seed_table
+from carp.reporting.comparison import compare_multitask, seed_table
 from carp.reporting.report import (
     ReportInputs,
     comparison_table,
@@ -23,6 +23,7 @@ from carp.reporting.report import (
     success_table,
     write_report,
 )
+from carp.reporting.runs import RunResults, pooled_metrics
 
 
 @pytest.fixture

@@ -5,7 +5,8 @@ import pandas as pd
 import pytest
 
 from carp.reporting.calibration import Regime, simulate_run
-from carp.reporting.verdicts import compare_pair, comparison_table, decide_pairs, decide_pairs_and_tests
+from carp.reporting.verdict_text import pairs_table
+from carp.reporting.verdicts import compare_pair, decide_pairs, decide_pairs_and_tests
 
 
 def paired_table(both: int, first_only: int, second_only: int, neither: int) -> tuple[np.ndarray, np.ndarray]:
@@ -147,7 +148,7 @@ def test_decide_pairs_refuses_another_alpha_and_the_table_is_strings():
     with pytest.raises(ValueError, match="alpha"):
         decide_pairs([comparison], margin=0.05, alpha=0.01)
     one_seed = compare_pair("a", {0: outcomes[0][0]}, "b", {0: outcomes[1][0]})
-    table = comparison_table(decide_pairs([comparison, one_seed], margin=0.05))
+    table = pairs_table(decide_pairs([comparison, one_seed], margin=0.05))
     assert isinstance(table, pd.DataFrame) and len(table) == 2
     assert all(isinstance(value, str) for value in table.to_numpy().ravel())
     assert table.loc[0, "comparison"] == "a vs b" and table.loc[0, "training seeds"] == "3"

@@ -8,7 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from carp.reporting.comparison import RunResults, decide_groups, family_pairs
+from carp.reporting.comparison import decide_groups, family_pairs
+from carp.reporting.runs import RunResults
 from carp.studies.data_efficiency import (
     StudyLayout,
     add_referenced_studies,

@@ -10,7 +10,7 @@ import pytest
 from carp.config import EvalConfig, SweepConfig
 from carp.evaluation.progress import ValidatedCandidate
 from carp.evaluation.selection import Candidate, evaluate_as_configured
-from carp.reporting.comparison import RunResults
+from carp.reporting.runs import RunResults
 from carp.sweep.dvc_runner import CONFIRMATION_EVAL_OVERRIDES, TRIAL_EVAL_OVERRIDES
 from carp.sweep.outcome import ExperimentResult
 from carp.sweep.space import TrialSettings

@@ -36,7 +36,8 @@ from carp.config.image_encoder import (
     STANDARD_BASE_CHANNELS,
     ImageEncoderConfig,
 )
-from carp.config.params import FAMILY_SECTIONS, Params, flatten_params, load_params, params_from_dict, params_to_dict
+from carp.config.loading import flatten_params, load_params, params_from_dict, params_to_dict
+from carp.config.params import FAMILY_SECTIONS, Params
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.training import TrainingConfig
 from carp.policies.sections import family_sections

@@ -22,12 +22,14 @@ import pandas as pd  # noqa: E402
 from carp.evaluation.metrics import wilson_interval  # noqa: E402
 from carp.outputs import MULTITASK_SUFFIX  # noqa: E402
 from carp.reporting import (
+    claims,  # noqa: E402
     comparison,  # noqa: E402
+    verdict_text,  # noqa: E402
     verdicts,  # noqa: E402
 )
-from carp.reporting.comparison import Runs  # noqa: E402
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
+from carp.reporting.runs import Runs
 from carp.tokenizer.task_metrics import task_errors  # noqa: E402
 
 
@@ -58,9 +60,9 @@ class ReportInputs:
             report draws a grid of them per task to check by eye that the rendered observations look right.
         videos: task -> the evaluation's recorded episodes as GIFs (``eval.video``), shown under each task.
         runs: task -> policy family -> training seed -> that seed's summary and test episodes
-            (`carp.reporting.comparison.RunResults`); with it the report adds the per-seed tables, the paired
+            (`carp.reporting.runs.RunResults`); with it the report adds the per-seed tables, the paired
             comparisons with their verdicts, the steps-to-success curves and the paper's claims. `evaluation` then
-            holds each family's figures pooled over its seeds (`carp.reporting.comparison.pooled_metrics`).
+            holds each family's figures pooled over its seeds (`carp.reporting.runs.pooled_metrics`).
         multitask: task -> policy family -> the evaluation metrics of that family's multi-task policy (one policy
             trained over every task of the run) on the task, pooled over its seeds like `evaluation`
             (``reports/eval/<task>/<policy>-multitask/``); the report sets it next to the single-task policy of the
@@ -554,7 +556,7 @@ def multitask_section(inputs: ReportInputs, decided: "ReportVerdicts") -> Sectio
             f'"on par" means within +-{100 * inputs.margin:.0f} points).'
         )
         section.paragraphs += [f"{task}, {pair.verdict}: {pair.explanation}" for task, pair in pairs]
-        table = verdicts.comparison_table([pair for _, pair in pairs])
+        table = verdict_text.pairs_table([pair for _, pair in pairs])
         table.insert(0, "task", [task for task, _ in pairs])
         section.tables.append(table)
     for task, families in inputs.multitask_runs.items():
@@ -562,19 +564,19 @@ def multitask_section(inputs: ReportInputs, decided: "ReportVerdicts") -> Sectio
         if not measures.empty:
             section.paragraphs.append(f"The multi-task policies' own measures on {task} (as in the task's comparison).")
             section.tables.append(measures)
-    claims = comparison.claims_table(
+    claims_rows = claims.claims_table(
         inputs.multitask_runs,
         decided.multitask,
         decided.multitask_precision,
         alpha=inputs.alpha,
         suffix=MULTITASK_SUFFIX,
     )
-    if not claims.empty:
+    if not claims_rows.empty:
         section.paragraphs.append(
             "The paper's claims checked on the multi-task policies (its Table 4 sets a multi-task CARP against a "
             "multi-task diffusion policy), as for the single-task families."
         )
-        section.tables.append(claims)
+        section.tables.append(claims_rows)
     return section
 
 
@@ -591,8 +593,8 @@ class ReportVerdicts:
 
     single_task: Mapping[str, Sequence[verdicts.PairComparison]]
     multitask: Mapping[str, Sequence[verdicts.PairComparison]]
-    single_task_precision: Sequence[comparison.PrecisionTest]
-    multitask_precision: Sequence[comparison.PrecisionTest]
+    single_task_precision: Sequence[claims.PrecisionTest]
+    multitask_precision: Sequence[claims.PrecisionTest]
 
 
 def decide_verdicts(inputs: ReportInputs) -> ReportVerdicts:
@@ -601,8 +603,8 @@ def decide_verdicts(inputs: ReportInputs) -> ReportVerdicts:
         (list(inputs.runs), comparison.family_pairs(inputs.runs)),
         (list(inputs.multitask_runs), comparison.multitask_pairs(inputs.runs, inputs.multitask_runs, MULTITASK_SUFFIX)),
     ]
-    single_tests = comparison.precision_tests(inputs.runs, inputs.min_seeds)
-    multitask_tests = comparison.precision_tests(inputs.multitask_runs, inputs.min_seeds)
+    single_tests = claims.precision_tests(inputs.runs, inputs.min_seeds)
+    multitask_tests = claims.precision_tests(inputs.multitask_runs, inputs.min_seeds)
     (single, multi), tests = comparison.decide_report(
         groups, single_tests + multitask_tests, inputs.margin, inputs.alpha, min_seeds=inputs.min_seeds
     )
@@ -643,7 +645,7 @@ def comparison_sections(inputs: ReportInputs, decided: ReportVerdicts, figures_d
                 "uncorrected) describes the trained networks only."
             )
             section.paragraphs += [f"{pair.verdict}: {pair.explanation}" for pair in pairs]
-            section.tables.append(verdicts.comparison_table(pairs))
+            section.tables.append(verdict_text.pairs_table(pairs))
         measures = comparison.measure_table(task_runs)
         if not measures.empty:
             section.paragraphs.append(
@@ -661,10 +663,10 @@ def comparison_sections(inputs: ReportInputs, decided: ReportVerdicts, figures_d
                 )
             )
         sections.append(section)
-    claims = comparison.claims_table(
+    claims_rows = claims.claims_table(
         inputs.runs, decided.single_task, decided.single_task_precision, alpha=inputs.alpha
     )
-    if not claims.empty:
+    if not claims_rows.empty:
         sections.append(
             Section(
                 "The paper's claims on this run",
@@ -672,7 +674,7 @@ def comparison_sections(inputs: ReportInputs, decided: ReportVerdicts, figures_d
                     "Each claim of the CARP paper that this run's families can check, with the verdict of the paired "
                     "comparison, the latency ratio or the precision measure behind it."
                 ],
-                tables=[claims],
+                tables=[claims_rows],
             )
         )
     return sections

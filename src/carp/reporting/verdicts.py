@@ -31,6 +31,13 @@ from carp.reporting.statistics import (
     mcnemar_exact,
     newcombe_paired_difference,
 )
+from carp.reporting.verdict_text import (
+    disagreement_text,
+    interval_bounds,
+    networks_text,
+    seeds_text,
+    summary_text,
+)
 
 DEFAULT_MIN_SEEDS = 3
 """Training seeds per family a family verdict needs unless the params say otherwise (never fewer than 2)."""
@@ -339,17 +346,17 @@ def _with_verdict(
     """
     alpha, margin = comparison.alpha, comparison.margin
     margin_text = f"±{100.0 * margin:g} points"
-    networks = _networks_text(comparison)
+    networks = networks_text(comparison)
     seeds_needed = None
     if not comparison.decidable:
-        verdict = f"not decided ({_seeds_text(comparison.seeds)})"
+        verdict = f"not decided ({seeds_text(comparison.seeds)})"
         explanation = (
-            f"{_seeds_text(comparison.seeds)} per family, fewer than the {comparison.min_seeds} a family verdict "
+            f"{seeds_text(comparison.seeds)} per family, fewer than the {comparison.min_seeds} a family verdict "
             f"needs: these figures compare the trained networks, not the families. {networks}."
         )
         return replace(comparison, verdict=verdict, explanation=explanation)
     assert difference_p is not None and equivalence_p is not None and comparison.estimate is not None
-    summary = _summary_text(comparison, difference_p, equivalence_p)
+    summary = summary_text(comparison, difference_p, equivalence_p)
     better = difference_p < alpha
     equivalent = equivalence_p < alpha
     if better:
@@ -361,7 +368,7 @@ def _with_verdict(
         verdict = f"on par within {margin_text}"
         explanation = (
             f"{summary}; the {1 - 2 * alpha:.0%} interval over training seeds "
-            f"({_interval_bounds(comparison.equivalence_difference)}) lies within {margin_text}, so the two are on par."
+            f"({interval_bounds(comparison.equivalence_difference)}) lies within {margin_text}, so the two are on par."
         )
     else:
         verdict = "not decided"
@@ -372,7 +379,7 @@ def _with_verdict(
             if seeds_needed is not None
             else "no number of training seeds up to 100 would likely decide at this difference and spread"
         )
-        explanation = f"{summary}; {_disagreement(comparison)}{outlook}."
+        explanation = f"{summary}; {disagreement_text(comparison)}{outlook}."
     return replace(
         comparison,
         adjusted_p_value=difference_p,
@@ -381,67 +388,6 @@ def _with_verdict(
         verdict=verdict,
         explanation=f"{explanation} {networks}.",
     )
-
-
-def _summary_text(comparison: PairComparison, difference_p: float, equivalence_p: float) -> str:
-    """The family rates, the difference with its interval over seeds and both corrected p-values."""
-    design = "the same" if comparison.shared_states else "distinct"
-    return (
-        f"{comparison.first} {comparison.first_rate:.1%} vs {comparison.second} {comparison.second_rate:.1%} "
-        f"(means over {comparison.seeds} training seeds, {comparison.episodes} episodes each on {design} initial "
-        f"states): difference {_signed_points(comparison.difference.estimate)} points, {comparison.level:.0%} "
-        f"interval over training seeds {_interval_bounds(comparison.difference)}, "
-        f"corrected {_p_phrase(difference_p)} for a difference and {_p_phrase(equivalence_p)} for equivalence"
-    )
-
-
-def _disagreement(comparison: PairComparison) -> str:
-    differences = [first - second for first, second in zip(comparison.first_seed_rates, comparison.second_seed_rates)]
-    if any(value > 0 for value in differences) and any(value < 0 for value in differences):
-        return "the training seeds disagree in sign; "
-    return ""
-
-
-def _networks_text(comparison: PairComparison) -> str:
-    """Each seed pair's networks in one clause: rates, Newcombe interval, McNemar p (uncorrected, networks only)."""
-    parts = [
-        f"seed {network.first_seed}"
-        + (f"/{network.second_seed}" if network.second_seed != network.first_seed else "")
-        + f": {network.first_rate:.1%} vs {network.second_rate:.1%}, "
-        f"{_interval_bounds(network.difference)}, McNemar {_p_phrase(network.mcnemar.p_value)}"
-        for network in comparison.networks
-    ]
-    return f"Per network pair ({comparison.level:.0%} intervals, uncorrected): " + "; ".join(parts)
-
-
-def comparison_table(comparisons: Sequence[PairComparison]) -> "pd.DataFrame":  # noqa: F821
-    """One row per pair of families, every cell a human-readable string; differences in percentage points."""
-    import pandas as pd
-
-    rows = []
-    for comparison in comparisons:
-        level = f"{comparison.level:.0%}"
-        rows.append(
-            {
-                "comparison": f"{comparison.first} vs {comparison.second}",
-                "training seeds": str(comparison.seeds),
-                "episodes per seed": str(comparison.episodes),
-                "success (mean over seeds)": f"{comparison.first_rate:.1%} vs {comparison.second_rate:.1%}",
-                f"difference, {level} interval over seeds (points)": (
-                    _interval_text(comparison.difference) if comparison.difference is not None else "n/a"
-                ),
-                "corrected p: difference / equivalence": (
-                    f"{_p_text(comparison.adjusted_p_value)} / {_p_text(comparison.adjusted_equivalence_p_value)}"
-                ),
-                "networks per seed pair: difference (McNemar p)": "; ".join(
-                    f"{_signed_points(network.difference.estimate)} ({_p_text(network.mcnemar.p_value)})"
-                    for network in comparison.networks
-                ),
-                "verdict": comparison.verdict,
-                "note": comparison.pairing_note,
-            }
-        )
-    return pd.DataFrame(rows)
 
 
 def _check_settings(min_seeds: int, margin: float, alpha: float, level: float) -> None:
@@ -504,34 +450,5 @@ def _steps_curves(
     )
 
 
-def _seeds_text(seeds: int) -> str:
-    return "1 training seed" if seeds == 1 else f"{seeds} training seeds"
-
-
 def _join_notes(first: str, second: str) -> str:
     return f"{first}; {second}" if first else second
-
-
-def _signed_points(share: float) -> str:
-    return f"{100.0 * share:+.1f}"
-
-
-def _interval_bounds(interval: Interval) -> str:
-    return f"{_signed_points(interval.low)} to {_signed_points(interval.high)}"
-
-
-def _interval_text(interval: Interval) -> str:
-    return f"{_signed_points(interval.estimate)} [{_signed_points(interval.low)}, {_signed_points(interval.high)}]"
-
-
-def _p_phrase(p_value: float) -> str:
-    # Four digits between 0.01 and 0.1, so a p just below alpha does not print as alpha itself.
-    if p_value < 1e-4:
-        return "p < 0.0001"
-    return f"p = {p_value:.4g}" if 0.01 <= p_value < 0.1 else f"p = {p_value:.2g}"
-
-
-def _p_text(p_value: float | None) -> str:
-    if p_value is None:
-        return "n/a"
-    return "<0.0001" if p_value < 1e-4 else f"{p_value:.2g}"

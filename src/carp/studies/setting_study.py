@@ -26,16 +26,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from carp.reporting import verdicts  # noqa: E402
-from carp.reporting.comparison import (  # noqa: E402
-    Runs,
-    decide_groups,
-    family_rate,
-    family_rate_cells,
-    merge_runs,
-    oriented_verdict,
-    outcomes_by_seed,
-    referenced_runs,
-)
+from carp.reporting.claims import oriented_verdict
+from carp.reporting.comparison import decide_groups, family_rate, family_rate_cells
+from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, referenced_runs
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.report import Section, write_sections  # noqa: E402
 from carp.studies.data_efficiency import COMPLETE_MARKER, Evaluations  # noqa: E402

@@ -20,7 +20,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from carp.reporting.comparison import RunResults, compare_families, read_run_results
+from carp.reporting.comparison import compare_families
+from carp.reporting.runs import RunResults, read_run_results
 from carp.sweep.outcome import TrialRecord
 from carp.sweep.space import TrialSettings
 

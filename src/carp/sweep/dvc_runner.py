@@ -21,7 +21,7 @@ from pathlib import Path
 from dvc.utils.hydra import apply_overrides
 
 from carp.evaluation.progress import PROGRESS_VARIABLE, ProgressFile, ValidatedCandidate
-from carp.reporting.comparison import read_run_results
+from carp.reporting.runs import read_run_results
 from carp.sweep.confirmation import LabelledRuns
 from carp.sweep.outcome import ExperimentResult
 from carp.sweep.space import TrialSettings, schedule_label
