@@ -14,14 +14,13 @@ from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EpisodeResult
 from carp.evaluation.runner import write_episode_videos
 from carp.reporting.comparison import compare_multitask, seed_table
-from carp.reporting.report import (
-    ReportInputs,
+from carp.reporting.report import ReportInputs, write_report
+from carp.reporting.report_tables import (
     comparison_table,
     inference_budget_lines,
     latency_table,
     multitask_table,
     success_table,
-    write_report,
 )
 from carp.reporting.runs import RunResults, pooled_metrics
 

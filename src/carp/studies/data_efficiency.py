@@ -26,9 +26,9 @@ import pandas as pd  # noqa: E402
 from carp.reporting import verdicts as verdicts_module  # noqa: E402
 from carp.reporting.claims import find_pair, oriented_verdict
 from carp.reporting.comparison import decide_groups, family_pairs, family_rate, family_rate_cells
-from carp.reporting.runs import RunResults, Runs, add_referenced_runs, outcomes_by_seed, referenced_runs
+from carp.reporting.document import Section, write_sections
 from carp.reporting.figures import finish_figure  # noqa: E402
-from carp.reporting.report import Section, write_sections  # noqa: E402
+from carp.reporting.runs import RunResults, Runs, add_referenced_runs, outcomes_by_seed, referenced_runs
 
 logger = logging.getLogger(__name__)
 

@@ -28,9 +28,9 @@ import pandas as pd  # noqa: E402
 from carp.reporting import verdicts  # noqa: E402
 from carp.reporting.claims import oriented_verdict
 from carp.reporting.comparison import decide_groups, family_rate, family_rate_cells
-from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, referenced_runs
+from carp.reporting.document import Section, write_sections
 from carp.reporting.figures import finish_figure  # noqa: E402
-from carp.reporting.report import Section, write_sections  # noqa: E402
+from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, referenced_runs
 from carp.studies.data_efficiency import COMPLETE_MARKER, Evaluations  # noqa: E402
 
 TOKENIZER_METRICS = "tokenizer_metrics.json"
