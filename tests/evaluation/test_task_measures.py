@@ -8,12 +8,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from carp import simulation
-from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
 from carp.tasks import get_task
 from carp.tasks.base import NoMeasure
+from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 EPISODE_COLUMNS = ["seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]

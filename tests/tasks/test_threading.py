@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 from carp import simulation
 from carp.data.collect import collect_demonstrations
 from carp.data.robomimic_io import read_demonstrations
-from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.tasks import get_task, task_for_env_args
+from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
 from carp.tasks.threading import RING_HALF_DEPTH_M, RING_INNER_RADIUS_M
 from tests.conftest import OBS_KEYS
 
