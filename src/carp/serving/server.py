@@ -21,7 +21,8 @@ exchanged, and a request with several ``Authorization`` headers gets 400. With a
 
 Decoding and validating a frame run on a thread of their own (`decoding_threads`), off the event loop, and the
 decoder refuses a frame with more values or deeper nesting than `carp.serving.wire` allows before building any of
-it: a hostile or malformed frame costs its own connection a few milliseconds and delays nobody else's replies.
+it: a hostile or malformed frame costs at most about a millisecond of decoding, and its connection then waits
+`refusal_pause_s` before its next frame is read, so that a flood of such frames delays nobody else's replies.
 Predictions run off the event loop too (`carp.serving.batching`): a policy in PyTorch one call at a time, where the
 requests that wait together share the next call when the policy draws nothing random; exported ONNX Runtime graphs
 on `prediction_threads` threads at once, one request per call. Frames larger than `max_request_bytes` get an error
@@ -77,6 +78,10 @@ DEFAULT_MAX_BATCH_SIZE = 1
 """Batching is opt-in: a batched row may differ from the chunk predicted alone (a greedy token flips on a near tie,
 docs/serving.md measures how often), so by default every request is predicted as the in-process evaluation would."""
 DEFAULT_DECODING_THREADS = 2
+DEFAULT_REFUSAL_PAUSE_S = 0.05
+"""After refusing a request, the seconds before the server reads that connection's next frame: a correct client
+rarely pays it, and a client that sends nothing but refused frames (a hostile one) gets at most 20 of them a second
+decoded, so that their decoding cannot crowd out the other connections' frames."""
 AUTHORIZATION_SCHEMES = ("bearer", "api-key")
 """Accepted ``Authorization`` schemes, compared in lower case: the usual bearer token, and openpi's client's."""
 SPEC_CHANGED_CLOSE_CODE = 1012
@@ -106,6 +111,8 @@ class ServerSettings:
         tls_key: PEM private key of `tls_certificate`; None when the certificate file holds it.
         allow_no_token: serve a non-loopback `host` without a token (anyone who reaches the port may drive the
             robot's policy); refused otherwise.
+        refusal_pause_s: seconds a connection waits, after a request of its was refused, before its next frame is
+            read; 0 reads it at once.
     """
 
     host: str = DEFAULT_HOST
@@ -120,6 +127,7 @@ class ServerSettings:
     tls_certificate: str | None = None
     tls_key: str | None = None
     allow_no_token: bool = False
+    refusal_pause_s: float = DEFAULT_REFUSAL_PAUSE_S
 
     def __post_init__(self) -> None:
         if self.token is not None and not self.token:
@@ -135,6 +143,8 @@ class ServerSettings:
             raise ValueError(f"batch_window_s must be between 0 and 1 second, got {self.batch_window_s}")
         if self.prediction_threads < 0:
             raise ValueError(f"prediction_threads must be >= 0 (0: one per CPU core), got {self.prediction_threads}")
+        if not 0 <= self.refusal_pause_s <= 10:
+            raise ValueError(f"refusal_pause_s must be between 0 and 10 seconds, got {self.refusal_pause_s}")
         if self.decoding_threads < 1:
             raise ValueError(f"decoding_threads must be >= 1, got {self.decoding_threads}")
         if self.tls_key is not None and self.tls_certificate is None:
@@ -433,6 +443,8 @@ class PolicyServer:
         except RequestError as error:
             self.metrics.errors += 1
             await connection.send(str(error))
+            if self.settings.refusal_pause_s:
+                await asyncio.sleep(self.settings.refusal_pause_s)  # this connection's frames wait; no other's do
             return
         if not observed.predict:
             await connection.send(encode({**observed.echo, "model_version": model.source.model_version}))

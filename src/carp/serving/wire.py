@@ -24,9 +24,10 @@ import numpy as np
 
 ARRAY_KINDS = "biuf"
 """numpy dtype kinds an array on the wire may have: bool, signed and unsigned integers, floating point."""
-DEFAULT_MAX_OBJECTS = 4096
+DEFAULT_MAX_OBJECTS = 1024
 """Values (containers, keys and scalars) in one request frame: a request of every observation key with its array
-maps holds about a hundred; 4096 bounds a hostile frame's decoding to a few milliseconds."""
+maps holds about a hundred (Lift's four keys: 60); 1024 bounds a hostile frame's decoding to about half a
+millisecond."""
 DEFAULT_MAX_DEPTH = 16
 """Containers nested in one request frame: a request is a map of maps (array maps, openpi's nested observations)."""
 
