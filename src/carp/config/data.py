@@ -35,10 +35,12 @@ class DataConfig:
         filter_key: Optional robomimic filter key: only the demos listed in the file's ``mask/<filter_key>`` are
             ingested; null ingests every demo.
         valid_fraction: Share of each task's demos held out for validation metrics when the file has no
-            ``mask/valid`` (that mask wins when present); a number in [0, 1).
-        raw_files: Task -> path of your own robomimic-schema HDF5 file (relative to the project root), validated and
-            used instead of scripted collection; tasks among the registered ones (``carp.tasks``). Its ``env_args``
-            must name the task's env and its actions the task's width (7 for the arms, 2 for Push-T).
+            ``mask/valid`` (that mask wins when present; one that lists every demo is refused); a number in [0, 1).
+        raw_files: Task -> path of your own robomimic-schema HDF5 file or LeRobotDataset folder (v3.0 or v2.x, the
+            folder holding ``meta/info.json``; ``carp.data.demo_sources``), relative to the project root, validated
+            and used instead of scripted collection; tasks among the registered ones (``carp.tasks``). A file's
+            ``env_args`` must name the task's env (a LeRobotDataset carp did not export takes the task's own), and
+            its actions must have the task's width (7 for the arms, 2 for Push-T).
         num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
             among the registered ones (``carp.tasks``). DVC tracks the whole mapping: changing one entry reruns every
             ``collect`` stage, but collection is deterministic, so only that task's data and what depends on it change.
