@@ -50,11 +50,11 @@ class PolicyClient:
         token: the token when the server requires one (sent as ``Authorization: Bearer <token>``).
         timeout: seconds one attempt to connect (the opening handshake and the metadata frame) may take, and the
             most one `infer` on an open connection takes from sending to raising `TimeoutError`.
-        reconnect_budget_s: the most seconds `connect` spends in all (attempts and the waits between them) before
-            it gives up; a server being restarted is waited for this long.
         connect_attempts: most connection attempts within the budget; None for as many as it allows.
         initial_backoff_s: wait after the first failed attempt; doubled after each further one.
         max_backoff_s: the longest wait between two attempts.
+        reconnect_budget_s: the most seconds `connect` spends in all (attempts and the waits between them) before
+            it gives up; a server being restarted is waited for this long.
         ssl_context: TLS settings for a ``wss://`` server, e.g. ``ssl.create_default_context(cafile=...)`` for a
             certificate no public authority signed; None for the system's defaults.
     """
@@ -64,10 +64,10 @@ class PolicyClient:
         url: str = "ws://127.0.0.1:8000",
         token: str | None = None,
         timeout: float = 10.0,
-        reconnect_budget_s: float = 30.0,
         connect_attempts: int | None = None,
         initial_backoff_s: float = 0.1,
         max_backoff_s: float = 2.0,
+        reconnect_budget_s: float = 30.0,
         ssl_context: ssl.SSLContext | None = None,
     ) -> None:
         if connect_attempts is not None and connect_attempts < 1:
