@@ -32,7 +32,7 @@ from carp.data.image_windows import ImageWindowReader
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.rendering import RenderSettings
 from carp.data.robomimic_io import Episode, write_demonstrations
-from carp.training.task_policy import IMAGE_PRELOAD_LIMIT_BYTES
+from carp.training.policy_inputs import IMAGE_PRELOAD_LIMIT_BYTES
 
 PROPRIOCEPTION = {"robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
 HORIZON, ACTION_STEPS = 16, 8

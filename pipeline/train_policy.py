@@ -7,7 +7,6 @@ With `training.num_processes` above 1 the script checks its inputs, then starts 
 under torchrun (`carp.training.distributed`); rank 0 logs to MLflow and writes the outputs, the others only train.
 """
 
-import functools
 import logging
 import os
 import sys
@@ -33,17 +32,9 @@ from carp.policies.registry import get_family
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError
+from carp.training.policy_inputs import load_multitask_policy_inputs, load_task_policy_inputs
 from carp.training.runtime import precision_name, resolve_precision
-from carp.training.task_policy import (
-    TaskPolicyOutputs,
-    load_multitask_policy_inputs,
-    load_task_policy_inputs,
-    train_and_write_multitask_policy,
-    train_and_write_task_policy,
-    train_multitask_policy,
-    train_task_policy,
-    train_task_teacher,
-)
+from carp.training.task_policy import PolicyTrainingRequest, TaskPolicyOutputs, train_and_write, train_with_teacher
 
 TORCHRUN_VARIABLES = ("RANK", "LOCAL_RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
 
@@ -116,31 +107,13 @@ def main() -> None:
     training = params.training_for_seed(args.seed)
     model_dir, report_dir, _ = stage_policy_paths(args)
     checkpoint_dir = CHECKPOINT_DIR / "policy" / model_dir.relative_to(POLICY_DIR)
-    # Both kinds take (checkpoint_dir, device, ...) after what names the training.
-    if args.multitask:
-        train = functools.partial(train_multitask_policy, args.policy, family_config, training, params.data, inputs)
-        train_and_write = functools.partial(
-            train_and_write_multitask_policy, args.policy, family_config, training, params.data, inputs
-        )
-    else:
-        # A distilled family's teacher trains first, then the student from it (`train_and_write_task_policy` does both).
-        def train(checkpoint_dir: Path, device: torch.device) -> None:
-            teacher_policy = train_task_teacher(
-                args.policy, teacher_config, training, params.data, inputs, args.task, checkpoint_dir, device
-            )
-            train_task_policy(
-                args.policy, family_config, training, params.data, inputs, args.task, checkpoint_dir, device,
-                teacher=teacher_policy,
-            )  # fmt: skip
-
-        train_and_write = functools.partial(
-            train_and_write_task_policy, args.policy, family_config, training, params.data, inputs, args.task,
-            teacher_config=teacher_config,
-        )  # fmt: skip
+    request = PolicyTrainingRequest(
+        args.policy, family_config, training, params.data, checkpoint_dir, device, teacher_config
+    )  # fmt: skip
     trained = MULTITASK_DIRNAME if args.multitask else args.task
     try:
         if rank != 0:
-            train(checkpoint_dir, device)
+            train_with_teacher(request, inputs)
             return
         tags = {
             "carp.tokenizer": inputs.reference.uri,
@@ -153,7 +126,7 @@ def main() -> None:
             f"train_policy@{args.task}-{args.policy}-{args.seed}"
         )  # fmt: skip
         with mlflow_stage(params, stage, trained, tags) as run:
-            metrics = train_and_write(checkpoint_dir, device, outputs, run)
+            metrics = train_and_write(request, inputs, outputs, run)
     finally:
         distributed.stop_process_group()
     # A multi-task policy's held-out errors are per task (`<task>/valid_action_rmse`).

@@ -21,12 +21,8 @@ from carp.policies.registry import load_policy
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.tracking.registry import TokenizerReference
 from carp.training.checkpoint import CheckpointError
-from carp.training.task_policy import (
-    TaskPolicyInputs,
-    TaskPolicyOutputs,
-    load_task_policy_inputs,
-    train_and_write_task_policy,
-)
+from carp.training.policy_inputs import MultiTaskPolicyInputs, TaskPolicyInputs, load_task_policy_inputs
+from carp.training.task_policy import PolicyTrainingRequest, TaskPolicyOutputs, train_and_write
 from tests.conftest import write_synthetic_file
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, TINY_ARCHITECTURE, tiny_artifact, tiny_tokenizer
 
@@ -71,7 +67,7 @@ def _inputs() -> TaskPolicyInputs:
         ),  # fmt: skip
     )
     reference = TokenizerReference("carp-tokenizer-test", "1", "default", "run", artifact.sha256)
-    return TaskPolicyInputs(reference, artifact, windows)
+    return TaskPolicyInputs("lift", reference, artifact, windows)
 
 
 def test_trained_policy_and_its_reports_are_written_and_logged(tmp_path):
@@ -79,9 +75,8 @@ def test_trained_policy_and_its_reports_are_written_and_logged(tmp_path):
     outputs = TaskPolicyOutputs(tmp_path / "models" / "policy.pt", tmp_path / "reports")
     # The task's own epoch count wins over `epochs`.
     training = TrainingConfig(epochs=1, batch_size=16, epochs_per_task={"lift": 3})
-    metrics = train_and_write_task_policy(
-        "carp", CONFIG, training, DATA, inputs, "lift", tmp_path / "states", torch.device("cpu"), outputs, run
-    )
+    request = PolicyTrainingRequest("carp", CONFIG, training, DATA, tmp_path / "states", torch.device("cpu"))
+    metrics = train_and_write(request, inputs, outputs, run)
 
     history = pd.read_csv(outputs.report_dir / "history.csv")
     assert history["epoch"].tolist() == [1, 2, 3]
@@ -110,6 +105,25 @@ def test_trained_policy_and_its_reports_are_written_and_logged(tmp_path):
     again = held_out_action_errors(policy, windows.valid_obs, windows.valid_actions, OBS_STEPS, DATA.action_steps)
     assert again == pytest.approx({key: metrics[key] for key in again}, rel=1e-5)
     assert sorted(p.name for p in outputs.report_dir.iterdir()) == ["history.csv", "metrics.json"]
+
+
+def test_a_multi_task_policy_trains_on_the_same_path_with_errors_per_task(tmp_path):
+    single = _inputs()
+    inputs = MultiTaskPolicyInputs(single.reference, single.artifact, {"lift": single.windows, "can": single.windows})
+    run = RecordingRun()
+    outputs = TaskPolicyOutputs(tmp_path / "policy.pt", tmp_path / "reports")
+    training = TrainingConfig(epochs=1, batch_size=16, epochs_per_task={"can": 2})
+    request = PolicyTrainingRequest("carp", CONFIG, training, DATA, tmp_path / "states", torch.device("cpu"))
+    metrics = train_and_write(request, inputs, outputs, run)
+    # The most epochs any task gets alone; errors per task on its own held-out windows.
+    assert pd.read_csv(outputs.report_dir / "history.csv")["epoch"].tolist() == [1, 2]
+    assert {key.split("/")[0] for key in metrics if "/" in key} == {"lift", "can"}
+    policy = load_policy(outputs.checkpoint)
+    assert policy.tasks.names == ("lift", "can") and "task" not in policy.metadata
+    policy.select_task("can")
+    windows = single.windows
+    again = held_out_action_errors(policy, windows.valid_obs, windows.valid_actions, OBS_STEPS, DATA.action_steps)
+    assert again == pytest.approx({key: metrics[f"can/{key}"] for key in again}, rel=1e-5)
 
 
 def _tokenizer_files(directory: Path, recorded_sha256: str | None = None) -> Path:
@@ -176,10 +190,10 @@ def test_an_image_policy_trains_on_the_buffers_camera_windows(image_task, tmp_pa
         down_dims=(16, 32), kernel_size=3, num_groups=8, step_embedding_dim=16, num_train_steps=10, warmup_steps=0
     )
     training = TrainingConfig(epochs=1, batch_size=32)
-    metrics = train_and_write_task_policy(
-        "diffusion_unet", config, training, IMAGE_DATA, inputs, "lift", tmp_path / "states", torch.device("cpu"),
-        outputs, run,
-    )  # fmt: skip
+    request = PolicyTrainingRequest(
+        "diffusion_unet", config, training, IMAGE_DATA, tmp_path / "states", torch.device("cpu")
+    )
+    metrics = train_and_write(request, inputs, outputs, run)
     assert np.isfinite(metrics["valid_action_rmse"]) and np.isfinite(metrics["final_loss"])
     policy = load_policy(outputs.checkpoint)
     assert policy.observation_encoder.config == IMAGE_ENCODER
