@@ -226,6 +226,7 @@ class _FileFrames:
                 raise DatasetError(f"{path}: key '{name}': column missing (columns: {schema.names})")
         self.table = read_parquet_table(path, columns=list(dict.fromkeys(needed)))
         self.episode_ids = None
+        self.converted: dict[str, np.ndarray] = {}
         self.episode_ids = self._integers("episode_index")
 
     def _locate(self, row: int) -> str:
@@ -243,13 +244,22 @@ class _FileFrames:
         return column
 
     def _integers(self, name: str) -> np.ndarray:
+        # Each column is converted once per file, not once per episode: a v3.0 file holds many episodes.
+        if name in self.converted:
+            return self.converted[name]
         column = self._column(name)
         if not pa.types.is_integer(column.type):
             raise DatasetError(f"{self.path}: key '{name}': type={column.type}: expected integers")
-        return column.to_numpy(zero_copy_only=False).astype(np.int64)
+        self.converted[name] = column.to_numpy(zero_copy_only=False).astype(np.int64)
+        return self.converted[name]
 
     def values(self, feature: Feature) -> np.ndarray:
         """The column of a 1-D feature as (N, D) float64, checked against its dtype and width in every row."""
+        if feature.name not in self.converted:
+            self.converted[feature.name] = self._values(feature)
+        return self.converted[feature.name]
+
+    def _values(self, feature: Feature) -> np.ndarray:
         column, width, name = self._column(feature.name), feature.shape[0], feature.name
         kind = column.type
         if pa.types.is_list(kind) or pa.types.is_large_list(kind) or pa.types.is_fixed_size_list(kind):
@@ -348,10 +358,12 @@ class _FileFrames:
 
     def _check_timestamps(self, where: str, start: int, stop: int) -> np.ndarray:
         """The episode's (T,) timestamps in seconds, checked to advance by 1 / fps."""
-        column = self._column("timestamp")
-        if not pa.types.is_floating(column.type):
-            raise DatasetError(f"{self.path}: key 'timestamp': type={column.type}: expected seconds (floats)")
-        times = column.to_numpy(zero_copy_only=False)[start:stop].astype(np.float64)
+        if "timestamp" not in self.converted:
+            column = self._column("timestamp")
+            if not pa.types.is_floating(column.type):
+                raise DatasetError(f"{self.path}: key 'timestamp': type={column.type}: expected seconds (floats)")
+            self.converted["timestamp"] = column.to_numpy(zero_copy_only=False).astype(np.float64)
+        times = self.converted["timestamp"][start:stop]
         period = 1.0 / self.meta.fps
         gaps = np.diff(times)
         wrong = np.flatnonzero(~(np.abs(gaps - period) <= TIMESTAMP_TOLERANCE_S))
