@@ -294,3 +294,13 @@ def test_an_episode_index_without_its_video_columns_is_refused(tmp_path):
     edit_rows(path, lambda rows: [row.pop(key) for row in rows], without_field(path, key))
     with pytest.raises(DatasetError, match=rf"file-000\.parquet: key '{key}': column missing"):
         read(root)
+
+
+def test_a_malformed_carp_record_is_named(tmp_path):
+    root = fixture_copy("v3.0", tmp_path)
+    (root / "meta" / "carp.json").write_text(json.dumps({"env_args": ENV_ARGS, "attrs": [1]}))
+    with pytest.raises(DatasetError, match=r"meta/carp\.json: key 'attrs'=\[1\]: expected an object"):
+        read(root, env_args=None)
+    (root / "meta" / "carp.json").write_text("{not json")
+    with pytest.raises(DatasetError, match=r"meta/carp\.json: cannot be read as JSON"):
+        read(root)

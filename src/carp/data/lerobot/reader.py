@@ -109,12 +109,20 @@ def read_lerobot_demonstrations(
     for key in obs_keys:
         check_stored_ranges(root, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
     attrs = {
+        **_carp_object(meta, "attrs"),
         "lerobot_codebase_version": meta.version,
         "lerobot_fps": meta.fps,
         "lerobot_tasks": [meta.tasks[index] for index in sorted(meta.tasks)],
-        **meta.carp.get("attrs", {}),
     }
     return Demonstrations(path=root, env_args=env_args, names=names, episodes=episodes, attrs=attrs, masks=masks)
+
+
+def _carp_object(meta: Metadata, key: str) -> dict:
+    """An object-valued entry of ``meta/carp.json`` (``{}`` when absent)."""
+    value = meta.carp.get(key, {})
+    if not isinstance(value, dict):
+        raise DatasetError(f"{meta.root / 'meta/carp.json'}: key '{key}'={value!r}: expected an object")
+    return value
 
 
 def _env_args(meta: Metadata, fallback: dict | None) -> dict:
@@ -343,9 +351,9 @@ class _FileFrames:
         actions = values.pop(ACTION)
         rewards, dones, states = values.pop(REWARD, None), values.pop(DONE, None), values.pop(SIM_STATE, None)
         attrs = {
+            **self._carp_attrs(entry.index),
             "lerobot_episode_index": entry.index,
             "lerobot_tasks": json.dumps(list(entry.tasks)),
-            **self._carp_attrs(entry.index),
         }
         return Episode(
             obs=values,
@@ -377,7 +385,7 @@ class _FileFrames:
         return times
 
     def _carp_attrs(self, episode_index: int) -> dict:
-        attrs = self.meta.carp.get("episode_attrs", {}).get(str(episode_index), {})
+        attrs = _carp_object(self.meta, "episode_attrs").get(str(episode_index), {})
         if not isinstance(attrs, dict):
             raise DatasetError(f"{self.meta.root / 'meta/carp.json'}: episode {episode_index}: expected an object")
         return attrs
