@@ -18,8 +18,9 @@ from carp_client import PolicyClient
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
+from carp.serving.access import is_loopback
 from carp.serving.model import ServedModel
-from carp.serving.server import PolicyServer, ServerSettings, ServerThread, is_loopback
+from carp.serving.server import PolicyServer, ServerSettings, ServerThread
 from tests.serving.conftest import SPEC, observations, served_model, start_server
 
 GOOD = np.zeros(3, np.float32)
@@ -227,7 +228,7 @@ def test_tls_with_a_self_signed_certificate_serves_wss_and_https(checkpoint, tmp
 
 
 def test_a_tls_key_that_does_not_match_its_certificate_is_refused_in_one_line(tmp_path):
-    from carp.serving.server import tls_context
+    from carp.serving.access import tls_context
 
     certificate, _ = self_signed_pair(tmp_path)
     other = tmp_path / "other"

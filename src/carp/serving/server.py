@@ -39,13 +39,10 @@ metadata again (`carp_client` raises `SpecChangedError`).
 """
 
 import asyncio
-import hmac
 import http
-import ipaddress
 import json
 import logging
 import os
-import ssl
 import threading
 import time
 from collections.abc import Callable
@@ -58,6 +55,7 @@ from websockets.datastructures import MultipleValuesError
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
+from carp.serving.access import ProbeQuietLogger, authorized_request, is_loopback, tls_context
 from carp.serving.batching import PredictionQueue
 from carp.serving.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from carp.serving.metrics import ServerMetrics
@@ -82,8 +80,6 @@ DEFAULT_REFUSAL_PAUSE_S = 0.05
 """After refusing a request, the seconds before the server reads that connection's next frame: a correct client
 rarely pays it, and a client that sends nothing but refused frames (a hostile one) gets at most 20 of them a second
 decoded, so that their decoding cannot crowd out the other connections' frames."""
-AUTHORIZATION_SCHEMES = ("bearer", "api-key")
-"""Accepted ``Authorization`` schemes, compared in lower case: the usual bearer token, and openpi's client's."""
 SPEC_CHANGED_CLOSE_CODE = 1012
 SPEC_CHANGED_REASON = "the policy's observation or action spec changed: reconnect and read the metadata again"
 
@@ -155,51 +151,6 @@ class ServerSettings:
             raise ValueError(f"max_batch_size must be >= 1, got {self.max_batch_size}")
         if self.reload_interval_s is not None and not self.reload_interval_s > 0:
             raise ValueError(f"reload_interval_s must be positive, got {self.reload_interval_s}")
-
-
-def is_loopback(host: str) -> bool:
-    """Whether binding `host` accepts connections from the same host only (``localhost`` or a loopback address)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False  # a host name other than localhost may resolve to any interface
-
-
-def tls_context(certificate: str, key: str | None = None) -> ssl.SSLContext:
-    """A server TLS context (TLS 1.2 or later) for the PEM `certificate` chain and its `key`.
-
-    Raises:
-        ValueError: a file is missing, or the two are not a certificate and its key; the message names them.
-    """
-    for path in (certificate, key):
-        if path is not None and not os.path.isfile(path):
-            raise ValueError(f"tls: {path}: no such file")
-    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    context.minimum_version = ssl.TLSVersion.TLSv1_2
-    try:
-        context.load_cert_chain(certificate, key)
-    except ssl.SSLError as error:
-        raise ValueError(f"tls: {certificate}: not a PEM certificate and key that match ({error.reason})") from None
-    return context
-
-
-class _ProbeLogger(logging.LoggerAdapter):
-    """websockets' server logger with its per-connection lines for answered plain routes and connections demoted.
-
-    A load balancer's health probe every few seconds would otherwise write two lines each time ("connection rejected
-    (200 OK)", "connection closed"); refusals (401, 400, 503) stay at info level.
-    """
-
-    QUIET = ("connection open", "connection closed")
-
-    def log(self, level: int, msg: Any, *args: Any, **kwargs: Any) -> None:
-        if level == logging.INFO and (
-            msg in self.QUIET or (str(msg).endswith("(%d %s)") and args and 200 <= int(args[0]) < 300)
-        ):
-            level = logging.DEBUG
-        super().log(level, msg, *args, **kwargs)
 
 
 class PolicyServer:
@@ -283,7 +234,7 @@ class PolicyServer:
             # Raw float and image bytes compress poorly; deflate would only add latency.
             compression=None,
             ssl=tls,
-            logger=_ProbeLogger(logging.getLogger("websockets.server"), {}),
+            logger=ProbeQuietLogger(logging.getLogger("websockets.server"), {}),
         )
         try:
             await asyncio.get_running_loop().run_in_executor(self._executor, self.model.warm_up, self.spec)
@@ -365,25 +316,12 @@ class PolicyServer:
         self.metrics.model_calls += 1
         self.metrics.predicted_chunks += size
 
-    def _authorized(self, request: Request) -> bool:
-        """Whether the request's one ``Authorization`` header carries the token in an accepted scheme.
-
-        Raises:
-            MultipleValuesError: the request has several ``Authorization`` headers.
-        """
-        if self.settings.token is None:
-            return True
-        scheme, _, credential = request.headers.get("Authorization", "").strip().partition(" ")
-        # The comparison runs whatever the scheme, so that its time does not tell a wrong scheme from a wrong token.
-        matches = hmac.compare_digest(credential.strip().encode(), self.settings.token.encode())
-        return matches and scheme.lower() in AUTHORIZATION_SCHEMES
-
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
         path = request.path.split("?", 1)[0]
         if path == "/healthz":
             return connection.respond(http.HTTPStatus.OK, "ok\n")
         try:
-            authorized = self._authorized(request)
+            authorized = authorized_request(request.headers, self.settings.token)
         except MultipleValuesError:
             return connection.respond(http.HTTPStatus.BAD_REQUEST, "send one Authorization header, not several\n")
         if not authorized:

@@ -23,9 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from carp.policies.base import TORCH_BACKEND, Policy
+from carp.serving.access import is_loopback, tls_context
 from carp.serving.model import ModelSource, ServedModel, file_sha256
 from carp.serving.protocol import PROTOCOL_FORMAT, ProtocolError, recorded_protocol
-from carp.serving.server import PolicyServer, ServerSettings, is_loopback, serve_forever, tls_context
+from carp.serving.server import PolicyServer, ServerSettings, serve_forever
 from carp.serving.session import ServingSpec
 
 REGISTRY_PREFIX = "models:/"
