@@ -293,3 +293,27 @@ def test_serving_latency_refuses_a_checkpoint_without_its_protocol_in_one_line(t
     completed = run_benchmark("serving_latency.py", "--checkpoint", str(missing))
     assert completed.returncode == 1
     assert completed.stderr.strip().splitlines() == [f"error: {missing}: no such model file"]
+
+
+@pytest.mark.slow
+def test_serving_soak_reports_the_servers_memory_at_start_and_end_and_no_failed_session():
+    completed = run_benchmark(
+        "serving_soak.py", *("--tiny", "--minutes", "0.15", "--clients", "4", "--settle-s", "2", "--report-s", "3")
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    memory = re.search(
+        rf"^server RSS: {NUMBER} MiB when ready, {NUMBER} MiB after 2 s of load \(start\), {NUMBER} MiB at the end",
+        completed.stdout,
+        flags=re.MULTILINE,
+    )
+    assert memory and all(float(value) > 0 for value in memory.groups())
+    robots = re.search(
+        r"^robots: (\d+) sessions .* (\d+) failed sessions; server: 0 connections open", completed.stdout, re.M
+    )
+    assert robots and int(robots.group(1)) > 4 and int(robots.group(2)) == 0
+
+
+def test_serving_soak_refuses_a_settling_time_longer_than_the_run_in_one_line():
+    completed = run_benchmark("serving_soak.py", "--tiny", "--minutes", "0.5", "--settle-s", "60")
+    assert completed.returncode == 1
+    assert completed.stderr.strip().splitlines() == ["error: --settle-s must be shorter than the run (--minutes)"]
