@@ -4,12 +4,13 @@ For the policy of `--checkpoint` (one that records its serving protocol), else a
 the default configuration (A = 10, H = 16, depth 8, D = 64; `--tiny` for the test-sized one; speed does not depend
 on the weights), measures per chunk, after a warm-up:
 - in-process: `predict_action_timed` on a (1, To, Do) observation history, as evaluation calls the policy;
-- loopback: `PolicyClient.infer` with one step's per-key observation to a `ServerThread` on 127.0.0.1 in this
-  process, from 1, 4 and 8 clients at once (`--clients`), each on its own thread and connection, sending back to
-  back. PyTorch predicts one call at a time; each client count runs with batching off (`max_batch_size` 1, the
-  server's default: a request waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting
-  together share a call, for a policy that draws nothing random, e.g. greedy CARP; `--batch-window-ms` lets a lone
-  request wait for company). CARP's exported graphs in ONNX Runtime take one request per call and run calls
+- loopback: `PolicyClient.infer` with one step's per-key observation to `carp serve` in a child process on
+  127.0.0.1 (so that the clients' Python does not share the server's interpreter lock, as robots' would not), from
+  1, 4 and 8 clients at once (`--clients`), each on its own thread and connection, sending back to back.
+  PyTorch predicts one call at a time; each client count runs with batching off (`--max-batch 1`, the server's
+  default: a request waits for the others' calls) and on (`--max-batch`, 8 by default: requests waiting together
+  share a call, for a policy that draws nothing random, e.g. greedy CARP; `--batch-window-ms` lets a lone request
+  wait for company). CARP's exported graphs in ONNX Runtime take one request per call and run calls
   concurrently: each client count runs on one prediction thread and on `--prediction-threads` (default: one per
   CPU core, the server's default).
 Both for each backend of `--backends` (`carp serve --backend`) in the same run.
@@ -27,11 +28,15 @@ Usage: python benchmarks/serving_latency.py [--checkpoint policy.pt | --tiny] [-
 """
 
 import argparse
+import contextlib
 import os
+import socket
+import subprocess
 import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +49,6 @@ for folder in (ROOT, ROOT / "clients" / "python"):
 
 from carp_client import PolicyClient  # noqa: E402
 
-from carp.serving.server import PolicyServer, ServerSettings, ServerThread  # noqa: E402
 from carp.serving.startup import ServingStartError, load_served_model  # noqa: E402
 from tests.serving.random_policy import random_lift_policy  # noqa: E402
 
@@ -114,6 +118,45 @@ def loopback_seconds(url: str, keys: dict[str, int], clients: int, requests: int
     return [value for result in results for value in result], wall
 
 
+@contextlib.contextmanager
+def served(checkpoint: Path, backend: str, max_batch: int, threads: int, window_ms: float, torch_threads: int):
+    """`carp serve` of `checkpoint` in a child process on a free loopback port; yields the port once it is ready."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    command = [sys.executable, "-m", "carp.cli", "serve", "--model", str(checkpoint), "--port", str(port)]
+    command += ["--backend", backend, "--max-batch", str(max_batch), "--prediction-threads", str(threads)]
+    command += ["--batch-window-ms", str(window_ms), "--reload-interval", "0"]
+    environment = os.environ | {"PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": str(torch_threads)}
+    server = subprocess.Popen(command, env=environment, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while True:
+            if server.poll() is not None:
+                raise RuntimeError(f"carp serve exited: {server.stderr.read().strip()[-500:]}")
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/readyz", timeout=5) as response:
+                    if response.status == 200:
+                        break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("carp serve was not ready within 300 s") from None
+                time.sleep(0.2)
+        yield port
+    finally:
+        server.terminate()
+        server.communicate(timeout=60)
+
+
+def calls_and_chunks(port: int) -> tuple[float, float]:
+    """The server's prediction calls and predicted chunks so far (`/metrics`)."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as response:
+        values = dict(
+            line.split() for line in response.read().decode().splitlines() if line and not line.startswith("#")
+        )
+    return float(values["carp_serving_model_calls_total"]), float(values["carp_serving_predicted_chunks_total"])
+
+
 def measure_backend(checkpoint: Path, backend: str, args: argparse.Namespace, label: str) -> list[tuple]:
     """The table rows of `checkpoint` served by `backend`: in-process, then loopback per setting and client count."""
     model, spec = load_served_model(checkpoint, backend=backend)
@@ -136,18 +179,13 @@ def measure_backend(checkpoint: Path, backend: str, args: argparse.Namespace, la
     rows = [(model.backend, "in-process prediction", 1, "-", 1, seconds, sum(seconds), 1.0)]
     keys = dict(zip(spec.obs_keys, spec.obs_widths))
     for max_batch, prediction_threads, batching in settings:
-        server_settings = ServerSettings(
-            port=0,
-            max_batch_size=max_batch,
-            prediction_threads=prediction_threads,
-            batch_window_s=args.batch_window_ms / 1e3 if batching == "on" else 0.0,
-        )
-        with ServerThread(PolicyServer(model, spec, server_settings)) as server:
-            metrics = server.policy_server.metrics
+        window_ms = args.batch_window_ms if batching == "on" else 0.0
+        with served(checkpoint, backend, max_batch, prediction_threads, window_ms, args.threads) as port:
             for clients in args.clients:
-                calls, chunks = metrics.model_calls, metrics.predicted_chunks
-                seconds, wall = loopback_seconds(server.url, keys, clients, args.requests)
-                mean_batch = (metrics.predicted_chunks - chunks) / (metrics.model_calls - calls)
+                calls, chunks = calls_and_chunks(port)
+                seconds, wall = loopback_seconds(f"ws://127.0.0.1:{port}", keys, clients, args.requests)
+                calls_after, chunks_after = calls_and_chunks(port)
+                mean_batch = (chunks_after - chunks) / (calls_after - calls)
                 rows.append(
                     (model.backend, "loopback round trip", clients, batching, prediction_threads, seconds, wall,
                      mean_batch)
