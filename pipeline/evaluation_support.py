@@ -5,6 +5,7 @@ Apart from `stage_support` so that only the scripts that roll out policies reach
 
 import os
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from stage_support import camera_settings
@@ -25,29 +26,26 @@ def episode_runner(
     `env_args` are the task's environment arguments (its replay buffer's ``env_args``); episodes on exactly
     `video_seeds` are recorded when ``eval.video`` is on.
     """
-    from carp.evaluation.runner import evaluate_policy
+    from carp.evaluation.runner import EvaluationSetup, evaluate_policy
 
-    config, cameras = params.eval, camera_settings(params)
+    config = params.eval
     workers = config.workers or os.cpu_count() or 1
-    inference = params.inference_settings(family, task)
+    setup = EvaluationSetup(
+        env_args=env_args,
+        action_format=params.action_format,
+        obs_keys=params.obs_keys_for(task),
+        obs_steps=params.data.obs_steps,
+        action_steps=params.data.action_steps,
+        max_steps=params.max_steps_for(task),
+        inference=params.inference_settings(family, task),
+        backend=config.backend,
+        cameras=camera_settings(params),
+        task=task,
+        ensemble_m=config.ensemble_m,
+    )
 
     def run_episodes(checkpoint: Path, seeds: list[int]) -> tuple[dict, list]:
-        return evaluate_policy(
-            checkpoint,
-            env_args=env_args,
-            action_format=params.action_format,
-            obs_keys=params.obs_keys_for(task),
-            obs_steps=params.data.obs_steps,
-            action_steps=params.data.action_steps,
-            seeds=seeds,
-            max_steps=params.max_steps_for(task),
-            workers=min(workers, len(seeds)),
-            inference=inference,
-            video_episodes=config.video_episodes if config.video and seeds == video_seeds else 0,
-            backend=config.backend,
-            cameras=cameras,
-            task=task,
-            ensemble_m=config.ensemble_m,
-        )
+        videos = config.video_episodes if config.video and seeds == video_seeds else 0
+        return evaluate_policy(checkpoint, seeds, replace(setup, workers=min(workers, len(seeds))), videos)
 
     return run_episodes

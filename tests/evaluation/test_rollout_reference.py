@@ -20,6 +20,7 @@ from carp import simulation
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.rotation import ROT6D_ACTION_DIM
 from carp.evaluation.rollout import run_episode
+from carp.evaluation.runner import deploy
 from carp.evaluation.sources import PolicySource
 from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.policy import CarpPolicy
@@ -108,7 +109,7 @@ def record_rollout(env, backend: str, directory: Path) -> dict[str, np.ndarray]:
     policy = reference_policy()
     checkpoint = directory / "policy.pt"
     policy.save(checkpoint)
-    deployment = policy.deployment(checkpoint, backend, directory)
+    deployment = deploy(policy, checkpoint, backend, directory)
     source = PolicySource(deployment.load, ABSOLUTE_ACTIONS, OBS_STEPS, ACTION_STEPS, inference={"top_k": 1})
     recorder = RecordingSource(source)
     result = run_episode(get_task(TASK), env, recorder, EPISODE_SEED, OBS_KEYS, OBS_STEPS, CHUNKS * ACTION_STEPS)

@@ -1,5 +1,6 @@
 """The policy seam: every family builds from tiny params, trains, saves and loads through `load_policy` unchanged."""
 
+import dataclasses
 import functools
 import subprocess
 import sys
@@ -235,7 +236,7 @@ def test_inference_settings_are_the_familys_own(tmp_path):
 def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     """Train, save and evaluate a family defined in a test file, in simulation, with no change outside that file."""
     from carp import simulation
-    from carp.evaluation.runner import evaluate_policy
+    from carp.evaluation.runner import EvaluationSetup, evaluate_policy
 
     obs_keys = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]  # Do = 19 on Lift
     shapes = PolicyContext(
@@ -249,18 +250,18 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     policy = train_policy(STUB_FAMILY.name, StubConfig(), training, shapes, data, tmp_path / "state")
     path = tmp_path / "policy.pt"
     policy.save(path)
-    evaluate = functools.partial(
-        evaluate_policy,
-        path,
+    setup = EvaluationSetup(
         env_args=simulation.make_env_args("lift", controller="delta"),
         action_format=DELTA_ACTIONS,
         obs_keys=obs_keys,
         obs_steps=2,
         action_steps=4,
-        seeds=[100_000],
         max_steps=12,
-        workers=1,
     )
+
+    def evaluate(**changes):
+        return evaluate_policy(path, [100_000], dataclasses.replace(setup, **changes))
+
     summary, results = evaluate()
     assert summary["episodes"] == 1 and summary["policy_type"] == "stub" and summary["backend"] == "torch"
     assert summary["inference"] == "linear" and summary["model_calls_per_chunk"] == 1

@@ -3,7 +3,7 @@
 import functools
 import logging
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -16,7 +16,7 @@ from carp.evaluation.metrics import latency_summary, measure_summary, summarize_
 from carp.evaluation.rollout import EpisodeResult, evaluate_episodes
 from carp.evaluation.scratch import scratch_directory
 from carp.evaluation.sources import PolicySource
-from carp.policies.base import Policy
+from carp.policies.base import Deployment, Policy
 from carp.policies.registry import load_policy
 from carp.tasks import get_task
 from carp.tasks.base import ActionFormat
@@ -28,23 +28,46 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class EvaluationSetup:
+    """How a checkpoint's episodes run: the task's env and observation layout, the policy's settings and the workers.
+
+    Attributes:
+        env_args: the task's robomimic-style environment arguments (its replay buffer's ``env_args``).
+        action_format: how the policy's actions become the env's (`carp.tasks.base.ActionFormat`).
+        obs_keys: the low-dim observation keys, in the order the policy concatenates them.
+        obs_steps: `To`.
+        action_steps: `Ta`, actions of a chunk executed before the next prediction.
+        max_steps: the episode's step limit.
+        workers: episode processes (1: in this process).
+        inference: the family's inference settings (`configure_inference`), e.g. CARP's ``{"top_k": 1}``; copied into
+            the summary.
+        backend: "onnxruntime" or "torch" (`Policy.deployment` decides what actually runs).
+        cameras: what an image policy's steps render; None for state observations.
+        task: the evaluated task: a policy trained on other tasks is refused, a multi-task policy runs with that
+            task's statistics and id; None skips the check.
+        task_index: the task id a multi-task policy is given when `task` does not select it; None otherwise.
+        ensemble_m: None executes ``Ta`` actions per chunk; a number predicts at every step and executes the temporal
+            ensemble of the overlapping chunks (`carp.evaluation.sources.ChunkEnsemble`).
+    """
+
+    env_args: dict
+    action_format: ActionFormat
+    obs_keys: Sequence[str]
+    obs_steps: int
+    action_steps: int
+    max_steps: int
+    workers: int = 1
+    inference: Mapping[str, Any] = field(default_factory=dict)
+    backend: str = "onnxruntime"
+    cameras: "RenderSettings | None" = None
+    task: str | None = None
+    task_index: int | None = None
+    ensemble_m: float | None = None
+
+
 def evaluate_policy(
-    checkpoint_path: Path,
-    env_args: dict,
-    action_format: ActionFormat,
-    obs_keys: Sequence[str],
-    obs_steps: int,
-    action_steps: int,
-    seeds: Sequence[int],
-    max_steps: int,
-    workers: int,
-    inference: Mapping[str, Any] | None = None,
-    video_episodes: int = 0,
-    task_index: int | None = None,
-    backend: str = "onnxruntime",
-    cameras: "RenderSettings | None" = None,
-    task: str | None = None,
-    ensemble_m: float | None = None,
+    checkpoint_path: Path, seeds: Sequence[int], setup: EvaluationSetup, video_episodes: int = 0
 ) -> tuple[dict[str, Any], list[EpisodeResult]]:
     """Run one episode per seed with the checkpoint's policy, of any family; returns the summary and the episodes.
 
@@ -59,25 +82,17 @@ def evaluate_policy(
     generator seeded with the episode's seed either way. The directory does not outlive a killed evaluation
     (`carp.evaluation.scratch`).
 
-    `inference` holds the family's inference settings (`configure_inference`), e.g. CARP's `{"top_k": 1}`; they are
-    copied into the summary.
+    An image policy gets `setup.cameras`: every step renders them from the simulator state as ingest rendered the
+    demos, and the summary adds the rendering time per step (`render_step_ms_*`), apart from the policy's latency. A
+    multi-task policy evaluated on `setup.task` runs from a copy of the checkpoint with the task selected, in the
+    temporary directory. The first `video_episodes` episodes are recorded.
 
-    An image policy gets `cameras`: every step renders them from the simulator state as ingest rendered the demos,
-    and the summary adds the rendering time per step (`render_step_ms_*`), apart from the policy's latency.
-
-    `task` names the evaluated task: a policy trained on other tasks is refused (ValueError), and a multi-task policy
-    runs with that task's statistics and task id (a copy of the checkpoint with the task selected, in the temporary
-    directory, is what the workers load). None skips the check.
-
-    `ensemble_m` (None: ``Ta`` actions per chunk) predicts a chunk at every step and executes the temporal ensemble of
-    the overlapping chunks (`carp.evaluation.sources.ChunkEnsemble`); the summary records it.
-
-    With `workers` > 1 the workers are spawned processes, which import the caller's main module again: a script that
-    calls this at module level needs the usual `if __name__ == "__main__":` guard.
+    With `setup.workers` > 1 the workers are spawned processes, which import the caller's main module again: a script
+    that calls this at module level needs the usual `if __name__ == "__main__":` guard.
     """
-    if backend not in EVAL_BACKENDS:
-        raise ValueError(f"backend must be one of {EVAL_BACKENDS}, got {backend!r}")
-    inference = dict(inference or {})
+    if setup.backend not in EVAL_BACKENDS:
+        raise ValueError(f"backend must be one of {EVAL_BACKENDS}, got {setup.backend!r}")
+    inference, task, cameras = dict(setup.inference), setup.task, setup.cameras
     policy = load_policy(Path(checkpoint_path))
     policy.configure_inference(**inference)
     with scratch_directory() as scratch:
@@ -86,26 +101,25 @@ def evaluate_policy(
             if policy.tasks is not None:
                 checkpoint_path = Path(scratch) / "selected_task.pt"
                 policy.save(checkpoint_path)
-        deployment = policy.deployment(Path(checkpoint_path), backend, scratch)
-        load = deployment.load or functools.partial(load_policy, Path(checkpoint_path))
+        deployment = deploy(policy, Path(checkpoint_path), setup.backend, scratch)
         factory = functools.partial(
             PolicySource,
-            load,
-            action_format=action_format,
-            obs_steps=obs_steps,
-            action_steps=action_steps,
+            deployment.load,
+            action_format=setup.action_format,
+            obs_steps=setup.obs_steps,
+            action_steps=setup.action_steps,
             inference=inference,
-            task_index=task_index,
-            ensemble_m=ensemble_m,
+            task_index=setup.task_index,
+            ensemble_m=setup.ensemble_m,
         )
         results = evaluate_episodes(
-            env_args,
+            setup.env_args,
             factory,
             seeds,
-            obs_keys,
-            obs_steps,
-            max_steps,
-            workers=workers,
+            setup.obs_keys,
+            setup.obs_steps,
+            setup.max_steps,
+            workers=setup.workers,
             video_episodes=video_episodes,
             description="evaluate",
             cameras=cameras,
@@ -127,9 +141,21 @@ def evaluate_policy(
     summary.update(policy_facts(policy))
     summary["backend"] = deployment.backend
     # Control steps per chunk, for the report's inference budget: one when every step predicts a chunk.
-    summary["action_steps"] = action_steps if ensemble_m is None else 1
-    summary["ensemble_m"] = ensemble_m
+    summary["action_steps"] = setup.action_steps if setup.ensemble_m is None else 1
+    summary["ensemble_m"] = setup.ensemble_m
     return summary, results
+
+
+def deploy(policy: Policy, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:
+    """How workers obtain `policy` (saved at `checkpoint_path`) on `backend` (`Policy.deployment`), always loadable.
+
+    A family that runs its checkpoint itself in PyTorch leaves the loading to the caller (its `load` is None), since
+    reading any family's checkpoint needs the registry above the families: here it is `load_policy` on the file.
+    """
+    deployment = policy.deployment(Path(checkpoint_path), backend, Path(directory))
+    if deployment.load is None:
+        return Deployment(deployment.backend, functools.partial(load_policy, Path(checkpoint_path)))
+    return deployment
 
 
 def policy_facts(policy: Policy) -> dict[str, Any]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from carp.evaluation.runner import deploy
 from carp.evaluation.sources import PolicySource
 from carp.policies.carp import onnx_policy as onnx_module
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
@@ -171,6 +172,8 @@ def test_deployment_exports_for_onnx_runs_and_falls_back_to_torch(exported, tmp_
     assert isinstance(deployment.load(), OnnxPolicy)
     on_torch = policy.deployment(checkpoint, "torch", tmp_path / "unused")
     assert on_torch.backend == "torch" and on_torch.load is None and not (tmp_path / "unused").exists()
+    # Evaluation fills in the loading of the checkpoint itself.
+    assert deploy(policy, checkpoint, "torch", tmp_path / "unused").load().policy_type == "carp"
     policy.configure_inference(top_k=4)
     try:
         sampling = policy.deployment(checkpoint, "onnxruntime", tmp_path / "sampling")
