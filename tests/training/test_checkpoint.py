@@ -211,6 +211,6 @@ def test_atomic_save_writes_the_same_bytes_from_any_process_under_any_name(tmp_p
     # The temporary file's name carries the process id and the file name; the saved bytes must carry neither.
     payload = {"weights": torch.arange(6.0).reshape(2, 3), "name": "policy"}
     atomic_torch_save(payload, tmp_path / "first.pt")
-    monkeypatch.setattr("carp.training.checkpoint.os.getpid", lambda: 123456)
+    monkeypatch.setattr("carp.outputs.os.getpid", lambda: 123456)
     atomic_torch_save(payload, tmp_path / "first_copy.pt")
     assert (tmp_path / "first.pt").read_bytes() == (tmp_path / "first_copy.pt").read_bytes()

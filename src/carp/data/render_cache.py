@@ -14,7 +14,6 @@ an entry that cannot be read, or holds other shapes than expected, is rendered a
 import hashlib
 import json
 import logging
-import os
 import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
@@ -26,6 +25,7 @@ import numpy as np
 from carp.data import rendering
 from carp.data.rendering import RenderSettings
 from carp.data.staging import remove_path
+from carp.outputs import atomic_path
 
 logger = logging.getLogger(__name__)
 
@@ -84,11 +84,8 @@ class RenderCache:
 
     def save(self, index: int, images: Mapping[str, np.ndarray]) -> None:
         """Save demo ``index``'s frames (obs key -> (T, size, size, 3) uint8) under a temporary name, then rename."""
-        path = self._path(index)
-        temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(temporary, "wb") as handle:
+        with atomic_path(self._path(index)) as temporary, open(temporary, "wb") as handle:
             np.savez_compressed(handle, **images)
-        os.replace(temporary, path)
 
     def saved_count(self) -> int:
         """How many demos have an entry (intact or not)."""

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from carp.outputs import write_text
+
 
 @dataclass
 class Section:
@@ -77,7 +79,5 @@ def write_sections(sections: Sequence[Section], output_dir: Path, title: str) ->
         (markdown_path, render_markdown(sections, title, output_dir)),
         (html_path, render_html(sections, title)),
     ):
-        temporary = path.with_name(f".{path.name}.tmp")
-        temporary.write_text(text)
-        os.replace(temporary, path)
+        write_text(path, text)
     return markdown_path, html_path

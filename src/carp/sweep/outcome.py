@@ -20,11 +20,11 @@ Optuna's pruner may stop it from its snapshots' validation scores (:mod:`carp.sw
 
 import csv
 import math
-import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from carp.outputs import atomic_path
 from carp.sweep.space import TrialSettings, schedule_label
 
 TRIALS_COLUMNS = (
@@ -191,13 +191,10 @@ def write_trials_csv(records: Sequence[TrialRecord], path: Path) -> None:
                 "dvc_experiment": record.dvc_experiment,
             }
         )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    with temporary.open("w", newline="") as handle:
+    with atomic_path(path) as temporary, temporary.open("w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=TRIALS_COLUMNS)
         writer.writeheader()
         writer.writerows(rows)
-    os.replace(temporary, path)
 
 
 def _cell(value: float | None) -> str | float:

@@ -17,7 +17,6 @@ per-task statistics and 83 for Square's own tokenizer.
 import hashlib
 import json
 import math
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.outputs import atomic_path, write_text
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 from carp.training.checkpoint import CheckpointError, one_line, read_checkpoint
 
@@ -216,13 +216,9 @@ def save_tokenizer_artifact(
         "sha256": artifact.sha256,
         "metrics": artifact.metrics,
     }
-    for filename, write in (
-        (WEIGHTS_FILENAME, lambda path: torch.save(payload, path)),
-        (METADATA_FILENAME, lambda path: path.write_text(json.dumps(metadata, indent=2))),
-    ):
-        temporary = directory / f".{filename}.tmp"
-        write(temporary)
-        os.replace(temporary, directory / filename)
+    with atomic_path(directory / WEIGHTS_FILENAME) as temporary, open(temporary, "wb") as handle:
+        torch.save(payload, handle)
+    write_text(directory / METADATA_FILENAME, json.dumps(metadata, indent=2))
     return artifact.sha256
 
 

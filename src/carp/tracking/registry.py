@@ -14,7 +14,6 @@ that evaluation, under one alias per training seed (:func:`policy_aliases`).
 
 import json
 import logging
-import os
 import shutil
 import tempfile
 import time
@@ -34,6 +33,7 @@ from mlflow.types import ParamSchema, ParamSpec
 from carp.config.checks import require_registry_alias
 from carp.data.sources import file_sha256
 from carp.evaluation.selection import confirmed_checkpoint, find_candidates
+from carp.outputs import write_text
 from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact
 
 logger = logging.getLogger(__name__)
@@ -72,9 +72,7 @@ class ModelReference:
 
     def save(self, path: Path) -> None:
         """Write as JSON (atomically)."""
-        temporary = Path(path).with_name(f".{Path(path).name}.tmp")
-        temporary.write_text(json.dumps(asdict(self), indent=2))
-        os.replace(temporary, path)
+        write_text(Path(path), json.dumps(asdict(self), indent=2))
 
     @classmethod
     def load(cls, path: Path) -> "ModelReference":

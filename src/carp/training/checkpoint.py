@@ -12,7 +12,6 @@ never stop the pipeline until someone deletes `checkpoints/` by hand.
 """
 
 import logging
-import os
 import random
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+from carp.outputs import atomic_path
 
 logger = logging.getLogger(__name__)
 
@@ -72,15 +73,8 @@ def atomic_torch_save(payload: Any, path: Path) -> None:
     The payload is written through a file object: given a path, torch names the archive's records after the file,
     here the temporary name with its process id, so that the same payload would save to different bytes per run.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "wb") as handle:
-            torch.save(payload, handle)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_path(path) as temporary, open(temporary, "wb") as handle:
+        torch.save(payload, handle)
 
 
 def _rng_states() -> dict[str, Any]:

@@ -31,7 +31,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import os
 import time
 import warnings
 from pathlib import Path
@@ -43,6 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.outputs import atomic_path
 from carp.policies.base import TimedPrediction
 from carp.policies.carp.blocks import MODULATIONS_PER_BLOCK, NORM_EPS
 from carp.policies.carp.sampling import check_top_k, gumbel_top_k, sampling_uniforms
@@ -185,27 +185,22 @@ def _export(
     about Python values it records as constants (tensor sizes) do not apply, and its deprecation notice is not
     actionable while torch is pinned.
     """
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with torch.no_grad(), warnings.catch_warnings():
-            # One eager call first fills the tokenizer's cached resampling matrices, which the trace then records as
-            # constants.
-            module.eval()(*inputs)
-            for category in (torch.jit.TracerWarning, DeprecationWarning, FutureWarning):
-                warnings.simplefilter("ignore", category)
-            torch.onnx.export(
-                module,
-                inputs,
-                str(temporary),
-                dynamo=False,
-                opset_version=ONNX_OPSET,
-                input_names=names,
-                output_names=outputs,
-                verbose=False,
-            )
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_path(path) as temporary, torch.no_grad(), warnings.catch_warnings():
+        # One eager call first fills the tokenizer's cached resampling matrices, which the trace then records as
+        # constants.
+        module.eval()(*inputs)
+        for category in (torch.jit.TracerWarning, DeprecationWarning, FutureWarning):
+            warnings.simplefilter("ignore", category)
+        torch.onnx.export(
+            module,
+            inputs,
+            str(temporary),
+            dynamo=False,
+            opset_version=ONNX_OPSET,
+            input_names=names,
+            output_names=outputs,
+            verbose=False,
+        )
 
 
 def export_policy_graphs(policy: CarpPolicy, directory: Path, top_k: int = 1) -> Path:
