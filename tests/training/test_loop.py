@@ -15,6 +15,7 @@ from carp.training.loop import (
     snapshot_path,
     train_with_loss,
 )
+from carp.training.run import TrainingRun
 
 COUNT = 10
 
@@ -43,16 +44,9 @@ def _train(tmp_path, prepare_data=None, training_step=None, on_epoch_end=None, e
     torch.manual_seed(0)
     training = TrainingConfig(epochs=epochs, batch_size=4, checkpoint_every=1)
     recipe = OptimizerRecipe(learning_rate=1e-2)
+    run = TrainingRun(training, context=None, data=_data(), checkpoint_dir=tmp_path, on_epoch_end=on_epoch_end)
     return train_with_loss(
-        LinearPolicy(),
-        _data(),
-        recipe,
-        training,
-        tmp_path,
-        {"name": "linear"},
-        on_epoch_end=on_epoch_end,
-        prepare_data=prepare_data,
-        training_step=training_step,
+        LinearPolicy(), run, recipe, {"name": "linear"}, prepare_data=prepare_data, training_step=training_step
     )
 
 
@@ -133,7 +127,8 @@ def _train_with_snapshots(tmp_path, epochs: int, ema: bool = False) -> SavingPol
     training = TrainingConfig(epochs=epochs, batch_size=4, checkpoint_every=1, snapshot_every=2, snapshot_last=1)
     average = (lambda module: AveragedModel(module, multi_avg_fn=get_ema_multi_avg_fn(0.5))) if ema else None
     recipe = OptimizerRecipe(learning_rate=1e-2, ema=average)
-    return train_with_loss(SavingPolicy(), _data(), recipe, training, tmp_path, {"name": "saving"})
+    run = TrainingRun(training, context=None, data=_data(), checkpoint_dir=tmp_path)
+    return train_with_loss(SavingPolicy(), run, recipe, {"name": "saving"})
 
 
 def test_snapshots_are_kept_at_the_asked_epochs_and_hold_the_averaged_weights(tmp_path):

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -31,11 +31,13 @@ from torch import nn
 from torch.optim.swa_utils import AveragedModel
 from tqdm.auto import tqdm
 
-from carp.config.training import TrainingConfig
 from carp.policies.base import Policy
 from carp.training import distributed
 from carp.training.checkpoint import resume_training_state, save_training_state
 from carp.training.runtime import autocast_to, precision_name, resolve_device, resolve_precision
+
+if TYPE_CHECKING:
+    from carp.training.run import TrainingRun
 
 logger = logging.getLogger(__name__)
 
@@ -237,35 +239,28 @@ def _loss_only(policy: Policy) -> Callable[[dict[str, torch.Tensor]], TrainingSt
 
 def train_with_loss(
     policy: Policy,
-    data: PolicyTrainingData,
+    run: "TrainingRun",
     recipe: OptimizerRecipe,
-    training: TrainingConfig,
-    checkpoint_dir: Path,
     run_identity: dict[str, Any],
-    epochs: int | None = None,
-    device: str | torch.device = "cpu",
-    on_epoch_end: Callable[[int, dict[str, float]], None] | None = None,
     prepare_data: Callable[[PolicyTrainingData], PolicyTrainingData] | None = None,
     training_step: Callable[[dict[str, torch.Tensor]], TrainingStep] | None = None,
 ) -> Policy:
-    """Train `policy` on its own `training_loss`; resume from `checkpoint_dir` if a run of this setup left a state.
+    """Train `policy` on its own `training_loss`; resume from the run's checkpoint folder if this setup left a state.
 
     Args:
         policy: an untrained policy; its parameters that require gradients are trained. Initialize it after
             `seed_everything(training.seed)` for reproducible weights (the family's `train` does).
-        data: normalized training windows.
+        run: the training run (`carp.training.run.TrainingRun`): its normalized windows (`data`), the shared loop
+            settings (`training`: batch size, seed, checkpoint cadence, precision; `epochs` unless the run gives
+            them), the folder of the training state (`checkpoint_dir`, created if missing; a state of another setup
+            is ignored and overwritten, an unusable one deleted, each with a warning), the device ("auto", "cpu",
+            "cuda" or "cuda:<index>") and `on_epoch_end`, called as `on_epoch_end(epoch, metrics)` after every epoch
+            (0-based) with `loss` (mean over windows), the means of the training step's metric sums,
+            `learning_rate`, `epoch_seconds` and `samples_per_second` (a resumed run reports its stored epochs
+            first; called on rank 0 only when several processes train).
         recipe: the family's optimizer and weight averaging.
-        training: the shared loop settings (batch size, seed, checkpoint cadence, precision; `epochs` unless given).
-        checkpoint_dir: directory of the training state (`training_state.pt`); created if missing. A state of
-            another setup is ignored and overwritten, an unusable one deleted, each with a warning.
         run_identity: plain values that, with the data and the loop settings, identify the run (the family's
             config and shapes); a stored state resumes only if they match.
-        epochs: passes over the windows; None takes `training.epochs`.
-        device: "auto", "cpu", "cuda" or "cuda:<index>".
-        on_epoch_end: called as `on_epoch_end(epoch, metrics)` after every epoch (0-based) with `loss` (mean over
-            windows), the means of the training step's metric sums, `learning_rate`, `epoch_seconds` and
-            `samples_per_second`; a resumed run reports its stored epochs first. Called on rank 0 only when several
-            processes train.
         prepare_data: called once with the windows on the training device (after the policy moved there), outside
             autocast; returns them with the family's extras (e.g. token targets), or refuses them with ValueError.
             None trains on the windows as given.
@@ -289,8 +284,9 @@ def train_with_loss(
     Raises:
         NonFiniteLossError: the loss became NaN or infinite (the message names the epoch and step).
     """
-    epochs = training.epochs if epochs is None else epochs
-    device = resolve_device(str(device))
+    training, data, checkpoint_dir, on_epoch_end = run.training, run.data, run.checkpoint_dir, run.on_epoch_end
+    epochs = training.epochs if run.epochs is None else run.epochs
+    device = resolve_device(str(run.device))
     policy = policy.to(device)
     count = data.obs.shape[0]
     if count == 0:

@@ -76,14 +76,9 @@ class TrainingRun:
             observations["tasks"] = {"names": list(tasks.names), "embedding_dim": tasks.embedding_dim}
         return train_with_loss(
             policy,
-            self.data,
+            self,
             recipe,
-            self.training,
-            self.checkpoint_dir,
             identity | {"observations": observations},
-            self.epochs,
-            self.device,
-            self.on_epoch_end,
             prepare_data=prepare_data,
             training_step=training_step,
         )
