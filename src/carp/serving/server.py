@@ -347,6 +347,9 @@ class PolicyServer:
         self.metrics.connections += 1
         session = Session(self.spec)
         self._sessions[connection] = session
+        # websockets' own lines for each connection are at debug level (`ProbeQuietLogger`); a robot's come here.
+        address = ":".join(str(part) for part in connection.remote_address[:2])
+        logger.info("robot connected from %s (%d open)", address, self.metrics.connections)
         try:
             await connection.send(encode(self.metadata()))
             async for frame in connection:
@@ -356,6 +359,7 @@ class PolicyServer:
         finally:
             del self._sessions[connection]
             self.metrics.connections -= 1
+            logger.info("robot from %s disconnected (%d open)", address, self.metrics.connections)
 
     def _parse(self, frame: str | bytes) -> Any:
         if isinstance(frame, str):
