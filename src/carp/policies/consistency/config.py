@@ -13,11 +13,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from carp.config.checks import _require, require_optimizer_settings, require_positive_int
-from carp.policies.diffusion.config import check_unet_shape, horizon_multiple
+from carp.policies.diffusion.config import UNET_FIELDS, UNetSettings
 
 TEACHER = "edm_unet"
 STUDENT = "consistency_policy"
-UNET_FIELDS = ("down_dims", "kernel_size", "num_groups", "step_embedding_dim")
 
 
 def _plain(value: Any) -> Any:
@@ -31,7 +30,7 @@ def _check_ema(section: str, config: Any) -> None:
 
 
 @dataclass(frozen=True)
-class EDMConfig:
+class EDMConfig(UNetSettings):
     """The teacher: DP-C's U-Net trained as an EDM denoiser (`carp.policies.consistency.teacher`).
 
     At the defaults it has the parameters of `diffusion_unet` at its defaults (65.9 M on Can).
@@ -45,12 +44,6 @@ class EDMConfig:
         ema_power: Exponent of the EMA warm-up: the decay after n updates is ``1 - n ** -ema_power``, capped at
             ``ema_max_decay``; a number in (0, 1].
         ema_max_decay: Largest EMA decay; a number in [0, 1).
-        down_dims: Channels of each U-Net level, finest first; each an integer >= 1 divisible by ``num_groups``; the
-            horizon must be divisible by ``2 ** (len(down_dims) - 1)``. ``[64, 128, 256]`` is the CPU-sized variant.
-        kernel_size: Temporal kernel of the residual blocks' convolutions; an odd integer >= 1.
-        num_groups: GroupNorm groups of every convolution block; an integer >= 1.
-        step_embedding_dim: Width of the sinusoidal noise-level embedding and of the MLP that follows it; an even
-            integer >= 4.
         sigma_min: Smallest noise level; the denoiser is the identity there; a number > 0.
         sigma_max: Largest noise level, where sampling starts; a number > sigma_min.
         rho: Curvature of the discretization of the noise levels; a number > 0.
@@ -67,10 +60,6 @@ class EDMConfig:
     use_ema: bool = True
     ema_power: float = 0.75
     ema_max_decay: float = 0.9999
-    down_dims: tuple[int, ...] = (256, 512, 1024)
-    kernel_size: int = 5
-    num_groups: int = 8
-    step_embedding_dim: int = 256
     sigma_min: float = 0.02
     sigma_max: float = 80.0
     rho: float = 7.0
@@ -82,7 +71,7 @@ class EDMConfig:
         section = self.SECTION
         require_optimizer_settings(section, self)
         _check_ema(section, self)
-        check_unet_shape(section, self)
+        self.check_unet(section)
         _require(self.sigma_min > 0, f"{section}.sigma_min", self.sigma_min, "must be > 0")
         _require(
             self.sigma_max > self.sigma_min,
@@ -93,11 +82,6 @@ class EDMConfig:
         for name in ("rho", "sigma_data", "log_sigma_std"):
             value = getattr(self, name)
             _require(value > 0, f"{section}.{name}", value, "must be > 0")
-
-    @property
-    def horizon_multiple(self) -> int:
-        """The horizon must be a multiple of this: each U-Net level but the last halves it."""
-        return horizon_multiple(self.down_dims)
 
 
 @dataclass(frozen=True)
@@ -124,7 +108,7 @@ class EDMSampling:
 
 
 @dataclass(frozen=True)
-class ConsistencyConfig:
+class ConsistencyConfig(UNetSettings):
     """The student: the teacher's U-Net with a second noise-level input, distilled (`carp.policies.consistency`).
 
     Its U-Net fields must equal the teacher's (``edm_unet``), whose weights it starts from; the noise-level range
@@ -164,10 +148,6 @@ class ConsistencyConfig:
     use_ema: bool = True
     ema_power: float = 0.75
     ema_max_decay: float = 0.9999
-    down_dims: tuple[int, ...] = (256, 512, 1024)
-    kernel_size: int = 5
-    num_groups: int = 8
-    step_embedding_dim: int = 256
     num_levels: int = 80
     teacher_steps: int = 1
     target_decay: float = 0.0
@@ -178,7 +158,7 @@ class ConsistencyConfig:
         section = self.SECTION
         require_optimizer_settings(section, self)
         _check_ema(section, self)
-        check_unet_shape(section, self)
+        self.check_unet(section)
         require_positive_int(f"{section}.num_levels", self.num_levels)
         _require(self.num_levels >= 2, f"{section}.num_levels", self.num_levels, "must be >= 2")
         require_positive_int(f"{section}.teacher_steps", self.teacher_steps)
@@ -192,11 +172,6 @@ class ConsistencyConfig:
             self.denoising_weight,
             "must be > 0 when trajectory_weight is 0",
         )
-
-    @property
-    def horizon_multiple(self) -> int:
-        """The horizon must be a multiple of this: each U-Net level but the last halves it."""
-        return horizon_multiple(self.down_dims)
 
     def check_with(self, params: Any) -> None:
         """Refuse a U-Net that differs from the teacher's (the student's stage trains its teacher from ``edm_unet``)."""

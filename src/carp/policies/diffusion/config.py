@@ -9,61 +9,68 @@ section. Defaults are those of the official lowdim
 configs (`train_diffusion_unet_lowdim_workspace.yaml`, `train_diffusion_transformer_lowdim_workspace.yaml`).
 """
 
-from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
 
 from carp.config.checks import _require, require_optimizer_settings, require_positive_int
 
 SAMPLERS = ("ddpm", "ddim")
 
 
-class UNetShape(Protocol):
-    """The fields of a family config that size the DP-C U-Net (`carp.policies.diffusion.unet`).
+@dataclass(frozen=True)
+class UNetSettings:
+    """The size of the DP-C U-Net (`carp.policies.diffusion.unet`), written once for the three families that train it.
 
-    :class:`DiffusionUNetConfig` has them, and so do the Consistency Policy sections, which train the same network.
+    `diffusion_unet`, the Consistency Policy teacher `edm_unet` and its student `consistency_policy` share these
+    fields, their defaults and their checks. ``down_dims: [64, 128, 256]`` is the CPU-sized variant (5.4 M parameters
+    on Can's shapes against 65.9 M at the defaults; the count does not depend on the horizon).
+
+    Attributes:
+        down_dims: Channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
+            divisible by ``num_groups``. The horizon must be divisible by ``2 ** (len(down_dims) - 1)``.
+        kernel_size: Temporal kernel of the residual blocks' convolutions; an odd integer >= 1 (odd keeps the
+            horizon unchanged with symmetric padding).
+        num_groups: GroupNorm groups of every convolution block; an integer >= 1.
+        step_embedding_dim: Width of the sinusoidal diffusion-step (noise-level) embedding and of the MLP that
+            follows it; an even integer >= 4.
     """
 
-    down_dims: tuple[int, ...]
-    kernel_size: int
-    num_groups: int
-    step_embedding_dim: int
+    down_dims: tuple[int, ...] = (256, 512, 1024)
+    kernel_size: int = 5
+    num_groups: int = 8
+    step_embedding_dim: int = 256
+
+    def check_unet(self, section: str) -> None:
+        """Validate the U-Net fields, naming them under `section`; a `down_dims` list from YAML becomes a tuple."""
+        object.__setattr__(self, "down_dims", tuple(self.down_dims))
+        _require(len(self.down_dims) >= 1, f"{section}.down_dims", self.down_dims, "must name at least one level")
+        for channels in self.down_dims:
+            require_positive_int(f"{section}.down_dims", channels)
+        require_positive_int(f"{section}.num_groups", self.num_groups)
+        _require(
+            all(channels % self.num_groups == 0 for channels in self.down_dims),
+            f"{section}.num_groups",
+            self.num_groups,
+            f"must divide every entry of down_dims={list(self.down_dims)}",
+        )
+        require_positive_int(f"{section}.kernel_size", self.kernel_size)
+        _require(self.kernel_size % 2 == 1, f"{section}.kernel_size", self.kernel_size, "must be odd")
+        require_positive_int(f"{section}.step_embedding_dim", self.step_embedding_dim)
+        _require(
+            self.step_embedding_dim >= 4 and self.step_embedding_dim % 2 == 0,
+            f"{section}.step_embedding_dim",
+            self.step_embedding_dim,
+            "must be an even integer >= 4",
+        )
 
     @property
     def horizon_multiple(self) -> int:
-        """The horizon must be a multiple of this."""
-        ...
+        """The horizon must be a multiple of this: each U-Net level but the coarsest halves it."""
+        return 2 ** (len(self.down_dims) - 1)
 
 
-def horizon_multiple(down_dims: tuple[int, ...]) -> int:
-    """`2 ** (levels - 1)`: each U-Net level but the coarsest halves the horizon."""
-    return 2 ** (len(down_dims) - 1)
-
-
-def check_unet_shape(section: str, config: Any) -> None:
-    """Validate a config's U-Net fields (:class:`UNetShape`), naming them under `section`.
-
-    Turns a `down_dims` list from YAML into the tuple a frozen config keeps.
-    """
-    object.__setattr__(config, "down_dims", tuple(config.down_dims))
-    _require(len(config.down_dims) >= 1, f"{section}.down_dims", config.down_dims, "must name at least one level")
-    for channels in config.down_dims:
-        require_positive_int(f"{section}.down_dims", channels)
-    require_positive_int(f"{section}.num_groups", config.num_groups)
-    _require(
-        all(channels % config.num_groups == 0 for channels in config.down_dims),
-        f"{section}.num_groups",
-        config.num_groups,
-        f"must divide every entry of down_dims={list(config.down_dims)}",
-    )
-    require_positive_int(f"{section}.kernel_size", config.kernel_size)
-    _require(config.kernel_size % 2 == 1, f"{section}.kernel_size", config.kernel_size, "must be odd")
-    require_positive_int(f"{section}.step_embedding_dim", config.step_embedding_dim)
-    _require(
-        config.step_embedding_dim >= 4 and config.step_embedding_dim % 2 == 0,
-        f"{section}.step_embedding_dim",
-        config.step_embedding_dim,
-        "must be an even integer >= 4",
-    )
+UNET_FIELDS = tuple(entry.name for entry in fields(UNetSettings))
+"""The names of the U-Net's fields, which a distilled student must share with its teacher."""
 
 
 @dataclass(frozen=True)
@@ -170,44 +177,22 @@ class DiffusionTransformerSampling(SamplingConfig):
 
 
 @dataclass(frozen=True)
-class DiffusionUNetConfig(DenoisingConfig):
+class DiffusionUNetConfig(DenoisingConfig, UNetSettings):
     """DP-C: the 1-D temporal convolutional U-Net with FiLM conditioning (`carp.policies.diffusion.unet`).
 
-    At the defaults and Can's shapes (Do = 23, To = 2, A = 10) it has 65.9 M parameters (65,883,658); `down_dims`
-    (64, 128, 256) gives a CPU-sized variant of 5.4 M. The count does not depend on the horizon.
-
-    The schedule, learning rate and EMA fields are :class:`DenoisingConfig`'s.
+    The schedule, learning rate and EMA fields are :class:`DenoisingConfig`'s, the U-Net's :class:`UNetSettings`'.
 
     Attributes:
         weight_decay: AdamW weight decay of the weight matrices; a number >= 0 (DP's default: 1e-6).
         warmup_steps: Optimizer steps of linear learning-rate warm-up before the cosine decay; an integer >= 0
             (DP's default: 500).
-        down_dims: Channels of each U-Net level, finest first; one level per entry, each entry an integer >= 1
-            divisible by ``num_groups``. The horizon must be divisible by ``2 ** (len(down_dims) - 1)``.
-        kernel_size: Temporal kernel of the residual blocks' convolutions; an odd integer >= 1 (odd keeps the
-            horizon unchanged with symmetric padding).
-        num_groups: GroupNorm groups of every convolution block; an integer >= 1.
-        step_embedding_dim: Width of the sinusoidal diffusion-step embedding and of the MLP that follows it; an
-            even integer >= 4.
     """
 
     SECTION: ClassVar[str] = "diffusion_unet"
 
-    down_dims: tuple[int, ...] = (256, 512, 1024)
-    kernel_size: int = 5
-    num_groups: int = 8
-    step_embedding_dim: int = 256
-
     def __post_init__(self) -> None:
-        # Lists arrive from YAML; the frozen config keeps a hashable tuple.
-        object.__setattr__(self, "down_dims", tuple(self.down_dims))
         super().__post_init__()
-        check_unet_shape(self.SECTION, self)
-
-    @property
-    def horizon_multiple(self) -> int:
-        """The horizon must be a multiple of this: each level but the last halves it."""
-        return horizon_multiple(self.down_dims)
+        self.check_unet(self.SECTION)
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from carp.policies.base import check_dimensions, check_observation_shape
-from carp.policies.diffusion.config import UNetShape
+from carp.policies.diffusion.config import UNetSettings
 from carp.policies.diffusion.embedding import step_encoder
 
 
@@ -122,7 +122,7 @@ class ConditionalUNet1D(nn.Module):
     """
 
     def __init__(
-        self, config: UNetShape, action_dim: int, obs_dim: int, obs_steps: int, num_step_inputs: int = 1
+        self, config: UNetSettings, action_dim: int, obs_dim: int, obs_steps: int, num_step_inputs: int = 1
     ) -> None:
         super().__init__()
         check_dimensions(action_dim=action_dim, obs_dim=obs_dim, obs_steps=obs_steps, num_step_inputs=num_step_inputs)
