@@ -19,7 +19,7 @@ openpi's ``Api-Key <token>``; the scheme in any case, as HTTP has it); others ge
 exchanged, and a request with several ``Authorization`` headers gets 400. With a certificate and key
 (`ServerSettings.tls_certificate`) the port speaks TLS (``wss://``, ``https://``).
 
-Decoding and validating a frame run on a thread of their own (`decoding_threads`), off the event loop, and the
+Decoding and validating a frame run on threads of their own (`decoding_threads`), off the event loop, and the
 decoder refuses a frame with more values or deeper nesting than `carp.serving.wire` allows before building any of
 it: a hostile or malformed frame costs at most about a millisecond of decoding, and its connection then waits
 `refusal_pause_s` before its next frame is read, so that a flood of such frames delays nobody else's replies.
