@@ -188,6 +188,9 @@ class PolicyClient:
     def infer(self, obs: dict[str, Any]) -> dict[str, Any]:
         """Send one step's observation; return the server's reply.
 
+        On an open connection the call returns or raises within `timeout` seconds. Without one (the first call
+        after a lost connection) it first reconnects, as `connect` does, within `reconnect_budget_s`.
+
         Args:
             obs: ``obs`` (Do,) float32, or one (width,) float32 array per low-dim key under its name (the
                 metadata's ``observation_keys``, when the server lists them), and for an image policy ``images``
@@ -197,9 +200,6 @@ class PolicyClient:
         Returns:
             ``actions`` (H, A) float32 (execute rows ``executed_offset`` to ``executed_offset + action_steps``),
             ``step``, ``timestamp``, ``model_version`` and ``timing_ms``.
-
-        On an open connection the call returns or raises within `timeout` seconds. Without one (the first call
-        after a lost connection) it first reconnects, as `connect` does, within `reconnect_budget_s`.
 
         Raises:
             ServerError: the server rejected the request (the connection stays usable).
