@@ -15,6 +15,7 @@ import pytest
 from carp_client import PolicyClient
 
 from tests.serving.conftest import CLIENT_DIR, observations, start_server
+from tests.serving.openpi_style_client import OpenpiStyleClient
 
 PROJECT_DIR = Path(__file__).resolve().parents[2]
 WEBSOCKET_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
@@ -117,8 +118,12 @@ def test_the_client_reconnects_to_a_server_restarted_on_the_same_port(checkpoint
     assert reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
 
 
+TOKEN = "s3cret-token"
+
+
 def serve_in_a_process(checkpoint, port: int) -> subprocess.Popen:
-    environment = os.environ | {"PYTHONPATH": str(PROJECT_DIR / "src")}
+    """`carp serve` of `checkpoint` on `port`, its token in the environment (where a deployment keeps it)."""
+    environment = os.environ | {"PYTHONPATH": str(PROJECT_DIR / "src"), "CARP_SERVE_TOKEN": TOKEN}
     command = [sys.executable, "-m", "carp.cli", "serve", "--model", str(checkpoint), "--port", str(port)]
     return subprocess.Popen(
         [*command, "--reload-interval", "0"], cwd=PROJECT_DIR, env=environment, stderr=subprocess.DEVNULL
@@ -133,17 +138,24 @@ def test_with_its_defaults_the_client_waits_for_a_server_killed_and_restarted(ch
     process = serve_in_a_process(checkpoint, port)
     try:
         # The defaults wait for the first start too: the process imports torch, loads and exports the policy.
-        with PolicyClient(f"ws://127.0.0.1:{port}") as client:
+        with PolicyClient(f"ws://127.0.0.1:{port}", token=TOKEN) as client:
             obs = observations(1, seed=0)[0]
             assert client.infer({"obs": obs})["actions"].shape == (8, 2)
             process.send_signal(signal.SIGKILL)
             process.wait(30)
             process = serve_in_a_process(checkpoint, port)
             reply = client.infer({"obs": obs})
+        # A client written as openpi's is, with its Api-Key scheme and numpy scalars, against `carp serve` itself.
+        openpi = OpenpiStyleClient(f"ws://127.0.0.1:{port}", api_key=TOKEN)
+        try:
+            openpi_reply = openpi.infer({"obs": obs, "step": np.int64(0), "prompt": "lift the cube"})
+        finally:
+            openpi.close()
     finally:
         process.kill()
         process.wait(30)
     assert reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
+    assert openpi_reply["step"] == 0 and openpi_reply["actions"].shape == (8, 2)
 
 
 def test_the_client_package_imports_neither_torch_nor_carp():

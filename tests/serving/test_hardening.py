@@ -22,6 +22,7 @@ from carp.serving.access import is_loopback
 from carp.serving.model import ServedModel
 from carp.serving.server import PolicyServer, ServerSettings, ServerThread
 from tests.serving.conftest import SPEC, observations, served_model, start_server
+from tests.serving.openpi_style_client import OpenpiStyleClient
 
 GOOD = np.zeros(3, np.float32)
 INFERENCE_SECONDS = 0.02
@@ -238,47 +239,6 @@ def test_a_tls_key_that_does_not_match_its_certificate_is_refused_in_one_line(tm
         tls_context(certificate, other_key)
     with pytest.raises(ValueError, match="tls: .*missing.pem: no such file"):
         tls_context(str(tmp_path / "missing.pem"))
-
-
-class OpenpiStyleClient:
-    """A client written the way openpi's websocket policy client is: websockets' sync client, ``Api-Key``
-    authorization, msgpack with numpy arrays as ``__ndarray__`` maps and numpy scalars as ``__npgeneric__`` maps
-    (binary keys, shapes as tuples), a text frame raised as an error."""
-
-    def __init__(self, url: str, api_key: str) -> None:
-        headers = {"Authorization": f"Api-Key {api_key}"}
-        # Entered by hand: the connection outlives this call (websockets >= 17.1 asks for that or a `with` block).
-        self._connection = connect(url, compression=None, max_size=None, additional_headers=headers).__enter__()
-        self.metadata = self._unpack(self._connection.recv(timeout=10))
-
-    @staticmethod
-    def _pack_default(value):
-        if isinstance(value, np.ndarray):
-            return {b"__ndarray__": True, b"data": value.tobytes(), b"dtype": value.dtype.str, b"shape": value.shape}
-        if isinstance(value, np.generic):
-            return {b"__npgeneric__": True, b"data": value.item(), b"dtype": value.dtype.str}
-        return value
-
-    @staticmethod
-    def _unpack_hook(value):
-        if b"__ndarray__" in value:
-            return np.ndarray(buffer=value[b"data"], dtype=np.dtype(value[b"dtype"]), shape=value[b"shape"])
-        if b"__npgeneric__" in value:
-            return np.dtype(value[b"dtype"]).type(value[b"data"])
-        return value
-
-    def _unpack(self, frame: bytes):
-        return msgpack.unpackb(frame, object_hook=self._unpack_hook)
-
-    def infer(self, observation: dict) -> dict:
-        self._connection.send(msgpack.packb(observation, default=self._pack_default))
-        reply = self._connection.recv(timeout=10)
-        if isinstance(reply, str):
-            raise RuntimeError(f"error in inference server:\n{reply}")
-        return self._unpack(reply)
-
-    def close(self) -> None:
-        self._connection.close()
 
 
 def test_an_openpi_style_client_with_its_api_key_and_numpy_scalars_gets_the_served_chunks(guarded, reference_policy):
