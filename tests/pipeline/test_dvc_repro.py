@@ -6,12 +6,33 @@ test runs."""
 import json
 import re
 import sys
+from pathlib import Path
 
 import h5py
 import pytest
 import yaml
 
 from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.tools.test_import_graph import tool as import_graph
+
+
+def _expanded_stages(workspace) -> list[str]:
+    """Every stage instance of the workspace's pipeline (`collect@lift`, `train_policy@lift-carp-0`, ...)."""
+    listed = run([sys.executable, "-m", "dvc", "stage", "list", "--name-only"], workspace)
+    assert listed.returncode == 0, listed.stderr[-3000:]
+    return listed.stdout.split()
+
+
+def _stale_after(workspace, changed: str) -> set[str]:
+    """The stages `dvc status` reports after a comment is appended to `changed` (the file is restored after)."""
+    path = workspace / changed
+    source = path.read_text()
+    path.write_text(source + "\n# a change\n")
+    try:
+        status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
+    finally:
+        path.write_text(source)
+    return set(json.loads(status.stdout))
 
 
 @pytest.mark.slow
@@ -83,6 +104,30 @@ def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
     params_file.write_text(yaml.safe_dump(params, sort_keys=False))
     status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
     assert set(json.loads(status.stdout)) - {"check_inputs"} == {"train_policy@lift-vq_bet-0"}, status.stdout
+
+    params_file.write_text(original)
+
+    # A change to code makes exactly the stages that can run it stale (dvc.yaml's deps are derived from the imports,
+    # tools/import_graph.py): the report's statistics reach the report alone, the training loop's settings every
+    # stage that loads the params, CARP's trainer the stages that train or load CARP's policies.
+    graph = import_graph.ImportGraph.build(workspace)
+    scripts = import_graph.stage_scripts(workspace / "dvc.yaml")
+    stages = [stage for stage in _expanded_stages(workspace) if stage != "check_inputs"]
+
+    def reaching(changed: str) -> set[str]:
+        return {stage for stage in stages if Path(changed) in graph.reached(scripts[stage.split("@")[0]][0])}
+
+    assert reaching("src/carp/reporting/statistics.py") == {"report"}
+    assert {"collect@lift", "ingest@lift", "train_policy@lift-carp-0"} <= reaching("src/carp/config/training.py")
+    assert "train_policy@lift-carp-0" in reaching("src/carp/policies/carp/trainer.py")
+    for changed in (
+        "src/carp/reporting/statistics.py",
+        "src/carp/config/training.py",
+        "src/carp/policies/carp/trainer.py",
+    ):
+        assert _stale_after(workspace, changed) - {"check_inputs"} == reaching(changed), changed
+    status = run([sys.executable, "-m", "dvc", "status", "--json"], workspace)
+    assert json.loads(status.stdout) == {"check_inputs": ["always changed"]}, status.stdout
 
     # Inputs set back to values a stage has run with are restored from DVC's run cache, not run again: a CARP
     # training of other params, then the original params, restore the first policy and its evaluation.
