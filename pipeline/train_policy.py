@@ -32,7 +32,7 @@ from carp.policies.registry import get_family
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError
-from carp.training.policy_inputs import load_multitask_policy_inputs, load_task_policy_inputs
+from carp.training.policy_inputs import ReferencedTokenizer, load_multitask_policy_inputs, load_task_policy_inputs
 from carp.training.runtime import precision_name, resolve_precision
 from carp.training.task_policy import PolicyTrainingRequest, TaskPolicyOutputs, train_and_write, train_with_teacher
 
@@ -74,16 +74,16 @@ def main() -> None:
         )
     try:
         # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
+        tokenizer = ReferencedTokenizer(
+            TOKENIZER_DIR, TOKENIZER_REF, params.action_space, params.scales, params.codebook_size
+        )
         if args.multitask:
-            inputs = load_multitask_policy_inputs(
-                {task: PROCESSED_DIR / task for task in params.tasks}, TOKENIZER_DIR, TOKENIZER_REF, params.data,
-                params.action_space, params.scales, params.codebook_size,
-            )  # fmt: skip
+            task_dirs = {task: PROCESSED_DIR / task for task in params.tasks}
+            inputs = load_multitask_policy_inputs(task_dirs, tokenizer, params.data)
         else:
             inputs = load_task_policy_inputs(
-                PROCESSED_DIR / args.task, TOKENIZER_DIR, TOKENIZER_REF, params.data, params.action_space,
-                params.scales, params.codebook_size, params.policy_image_encoder,
-            )  # fmt: skip
+                PROCESSED_DIR / args.task, tokenizer, params.data, params.policy_image_encoder
+            )
     except (CheckpointError, TokenizerMismatchError, FileNotFoundError, ValueError) as error:
         fail(str(error))
     device = select_device(params)

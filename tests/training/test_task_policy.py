@@ -21,7 +21,12 @@ from carp.policies.registry import load_policy
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.tracking.registry import TokenizerReference
 from carp.training.checkpoint import CheckpointError
-from carp.training.policy_inputs import MultiTaskPolicyInputs, TaskPolicyInputs, load_task_policy_inputs
+from carp.training.policy_inputs import (
+    MultiTaskPolicyInputs,
+    ReferencedTokenizer,
+    TaskPolicyInputs,
+    load_task_policy_inputs,
+)
 from carp.training.task_policy import PolicyTrainingRequest, TaskPolicyOutputs, train_and_write
 from tests.conftest import write_synthetic_file
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, TINY_ARCHITECTURE, tiny_artifact, tiny_tokenizer
@@ -126,6 +131,11 @@ def test_a_multi_task_policy_trains_on_the_same_path_with_errors_per_task(tmp_pa
     assert again == pytest.approx({key: metrics[f"can/{key}"] for key in again}, rel=1e-5)
 
 
+def _tokenizer(reference: Path, codebook_size: int) -> ReferencedTokenizer:
+    """The tokenizer beside `reference`, checked against the test's action space, scales (1, 2) and `codebook_size`."""
+    return ReferencedTokenizer(reference.parent / "tokenizer", reference, "test-abs2", (1, 2), codebook_size)
+
+
 def _tokenizer_files(directory: Path, recorded_sha256: str | None = None) -> Path:
     artifact = tiny_artifact(tiny_tokenizer())
     (directory / "tokenizer").mkdir(parents=True)
@@ -139,16 +149,16 @@ def test_inputs_refuse_an_unreferenced_or_mismatched_tokenizer_before_reading_th
     missing_task = tmp_path / "processed" / "lift"
     reference = _tokenizer_files(tmp_path / "other", recorded_sha256="0" * 64)
     with pytest.raises(TokenizerMismatchError, match="not the sha256 000000000000"):
-        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+        load_task_policy_inputs(missing_task, _tokenizer(reference, 8), DATA)
     reference = _tokenizer_files(tmp_path / "same")
     (reference.parent / "tokenizer" / "tokenizer.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
-        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+        load_task_policy_inputs(missing_task, _tokenizer(reference, 8), DATA)
     reference = _tokenizer_files(tmp_path / "fits")
     with pytest.raises(TokenizerMismatchError, match="codebook_size is 8 but the params ask for 16"):
-        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 16)
+        load_task_policy_inputs(missing_task, _tokenizer(reference, 16), DATA)
     with pytest.raises(FileNotFoundError, match="replay buffer not found"):
-        load_task_policy_inputs(missing_task, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+        load_task_policy_inputs(missing_task, _tokenizer(reference, 8), DATA)
 
 
 # 36-pixel crops leave the trunk maps of two positions or more before every stride (bfloat16 convolution
@@ -175,9 +185,7 @@ def image_task(tmp_path_factory) -> tuple[Path, Path]:
 @pytest.mark.slow
 def test_an_image_policy_trains_on_the_buffers_camera_windows(image_task, tmp_path):
     task_dir, reference = image_task
-    inputs = load_task_policy_inputs(
-        task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, IMAGE_ENCODER
-    )
+    inputs = load_task_policy_inputs(task_dir, _tokenizer(reference, 8), IMAGE_DATA, IMAGE_ENCODER)
     # The image windows are the low-dim windows, in the same order, for both splits.
     windows = inputs.windows
     assert len(inputs.train_images) == len(windows.train_obs) and len(inputs.valid_images) == len(windows.valid_obs)
@@ -211,9 +219,7 @@ def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):
     task_dir, reference = image_task
     other = ImageEncoderConfig(cameras=("agentview",), image_size=40, crop_size=36, base_channels=16)
     with pytest.raises(ValueError, match=r"stores images \['agentview_image', 'robot0_eye_in_hand_image'\] at 40 px"):
-        load_task_policy_inputs(
-            task_dir, reference.parent / "tokenizer", reference, IMAGE_DATA, "test-abs2", (1, 2), 8, other
-        )
+        load_task_policy_inputs(task_dir, _tokenizer(reference, 8), IMAGE_DATA, other)
 
 
 def test_inputs_refuse_a_buffer_ingested_before_it_recorded_its_observation_widths(tmp_path):
@@ -224,5 +230,5 @@ def test_inputs_refuse_a_buffer_ingested_before_it_recorded_its_observation_widt
     store = zarr.open_group(str(task_dir / BUFFER_DIRNAME), mode="r+")
     del store.attrs["obs_widths"]  # what an ingestion before the serving protocol left
     with pytest.raises(ValueError, match=r"replay.zarr: attrs lack obs_widths .*run the ingest stage again") as error:
-        load_task_policy_inputs(task_dir, reference.parent / "tokenizer", reference, DATA, "test-abs2", (1, 2), 8)
+        load_task_policy_inputs(task_dir, _tokenizer(reference, 8), DATA)
     assert str(error.value).startswith(str(task_dir / BUFFER_DIRNAME)) and "\n" not in str(error.value)

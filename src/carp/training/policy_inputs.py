@@ -211,14 +211,44 @@ class MultiTaskPolicyInputs:
         return errors
 
 
+@dataclass(frozen=True)
+class ReferencedTokenizer:
+    """The tokenizer a policy trains with: its files, and the params it must fit.
+
+    Attributes:
+        directory: the referenced tokenizer, whatever its source (a registered one is fetched there first).
+        reference_path: the tokenizer reference file; the artifact's sha256 must equal the one it records.
+        action_space: the params' action space, which the tokenizer must have been trained in.
+        scales: the params' scale schedule, which the tokenizer must use.
+        codebook_size: the params' `V`, which the tokenizer must use.
+    """
+
+    directory: Path
+    reference_path: Path
+    action_space: str
+    scales: tuple[int, ...]
+    codebook_size: int
+
+    def load(self) -> tuple[TokenizerReference, TokenizerArtifact]:
+        """The reference and the artifact, checked against each other and the params.
+
+        Raises:
+            FileNotFoundError: a file is missing.
+            CheckpointError: the tokenizer is corrupt or not the referenced one.
+            TokenizerMismatchError: the tokenizer does not fit the params.
+        """
+        reference = TokenizerReference.load(self.reference_path)
+        artifact = load_tokenizer_artifact(
+            self.directory, expected_sha256=reference.sha256, recorded_in=self.reference_path
+        )
+        check_compatible(artifact, self.action_space, self.scales, self.codebook_size)
+        return reference, artifact
+
+
 def load_task_policy_inputs(
     task_dir: Path,
-    tokenizer_dir: Path,
-    reference_path: Path,
+    tokenizer: ReferencedTokenizer,
     data: DataConfig,
-    action_space: str,
-    scales: tuple[int, ...],
-    codebook_size: int,
     image_encoder: ImageEncoderConfig | None = None,
     task: str | None = None,
 ) -> TaskPolicyInputs:
@@ -228,27 +258,19 @@ def load_task_policy_inputs(
 
     Args:
         task_dir: the task's processed data (`data/processed/<task>`).
-        tokenizer_dir: the referenced tokenizer, whatever its source (a registered one is fetched there first).
-        reference_path: the tokenizer reference file; the artifact's sha256 must equal the one it records.
+        tokenizer: the referenced tokenizer and the params it must fit.
         data: windowing (`H`, `To`, `Ta`).
-        action_space: the params' action space, which the tokenizer must have been trained in.
-        scales: the params' scale schedule, which the tokenizer must use.
-        codebook_size: the params' `V`, which the tokenizer must use.
         image_encoder: the camera encoder's settings of an image policy (its cameras and image size must be the
             ones the buffer stores); None for state observations.
         task: the task's name, recorded in the policy's metadata; None takes the name of `task_dir`.
 
     Raises:
-        FileNotFoundError: a file is missing.
-        CheckpointError: the tokenizer is corrupt or not the referenced one.
-        TokenizerMismatchError: the tokenizer does not fit the params.
+        FileNotFoundError, CheckpointError, TokenizerMismatchError: as `ReferencedTokenizer.load`.
         ValueError: the buffer does not record its observation keys and widths (ingested before they were
             recorded: the message names the buffer and the missing attribute), holds no images, or other cameras or
             another image size than `image_encoder`.
     """
-    reference = TokenizerReference.load(reference_path)
-    artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
-    check_compatible(artifact, action_space, scales, codebook_size)
+    reference, artifact = tokenizer.load()
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
     try:
         # Checked before any training: the trained checkpoint records this protocol, and an old buffer that cannot
@@ -276,24 +298,14 @@ def load_task_policy_inputs(
 
 
 def load_multitask_policy_inputs(
-    task_dirs: dict[str, Path],
-    tokenizer_dir: Path,
-    reference_path: Path,
-    data: DataConfig,
-    action_space: str,
-    scales: tuple[int, ...],
-    codebook_size: int,
+    task_dirs: dict[str, Path], tokenizer: ReferencedTokenizer, data: DataConfig
 ) -> MultiTaskPolicyInputs:
     """Read the referenced tokenizer and every task's windows, as :func:`load_task_policy_inputs` does for one.
 
     Args:
         task_dirs: task -> its processed data, in task-id order (at least two tasks).
-        tokenizer_dir: see :func:`load_task_policy_inputs`.
-        reference_path: see :func:`load_task_policy_inputs`.
+        tokenizer: see :func:`load_task_policy_inputs`.
         data: see :func:`load_task_policy_inputs`.
-        action_space: see :func:`load_task_policy_inputs`.
-        scales: see :func:`load_task_policy_inputs`.
-        codebook_size: see :func:`load_task_policy_inputs`.
 
     Raises:
         ValueError: fewer than two tasks, or tasks whose observations or actions differ (naming task and key).
@@ -301,8 +313,6 @@ def load_multitask_policy_inputs(
     """
     if len(task_dirs) < 2:
         raise ValueError(f"a multi-task policy needs at least two tasks, got {list(task_dirs)}")
-    reference = TokenizerReference.load(reference_path)
-    artifact = load_tokenizer_artifact(tokenizer_dir, expected_sha256=reference.sha256, recorded_in=reference_path)
-    check_compatible(artifact, action_space, scales, codebook_size)
+    reference, artifact = tokenizer.load()
     windows = load_multitask_windows(task_dirs, data.action_horizon, data.obs_steps, data.action_steps)
     return MultiTaskPolicyInputs(reference, artifact, windows)
