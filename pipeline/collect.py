@@ -4,18 +4,17 @@ import json
 
 from stage_support import PROJECT_DIR, STAGING_DIR, fail, load, mlflow_stage, parse_args, setup_logging
 
-from carp.config import TASK_NAMES
 from carp.data.demo_sources import import_demos
 from carp.data.robomimic_io import DatasetError
-from carp.tasks import get_task
 
 
 def main() -> None:
     setup_logging()
     args = parse_args(__doc__, per_task=True)
     params = load(args.params)
-    if args.task not in TASK_NAMES:
-        fail(f"--task {args.task!r}: must be one of {TASK_NAMES}")
+    if args.task not in params.tasks:
+        fail(f"{args.params}: tasks={list(params.tasks)}: --task {args.task} is not listed")
+    task = params.task(args.task)
     output = PROJECT_DIR / "data" / "raw" / f"{args.task}.hdf5"
     user_file = params.data.raw_files.get(args.task)
     if user_file:
@@ -24,8 +23,7 @@ def main() -> None:
             # The same checks as ingest (low-dim obs keys, action width, filter mask), so a file ingest would refuse
             # is refused here, before anything is written at the output. An image run reads the proprioception
             # only: a camera file need not hold the object's pose. A LeRobotDataset that records no env_args takes
-            # the task's own.
-            task = get_task(args.task)
+            # the task's own (a task without a simulator: the description of the dataset's actions and observations).
             demos = import_demos(
                 source,
                 output,

@@ -20,7 +20,6 @@ from carp.data.ingest import ingest_demonstrations
 from carp.data.rendering import RenderingError
 from carp.data.robomimic_io import DatasetError
 from carp.data.staging import remove_stale_entries
-from carp.tasks import get_task
 
 
 def main() -> None:
@@ -40,7 +39,7 @@ def main() -> None:
             output,
             obs_keys=params.obs_keys_for(args.task),
             controller=params.data.controller,
-            env_name=get_task(args.task).env_name,
+            env_name=params.task(args.task).env_name,
             filter_key=params.data.filter_key,
             valid_fraction=params.data.valid_fraction,
             staging_dir=STAGING_DIR,

@@ -46,7 +46,7 @@ def test_defaults_follow_the_design():
         ({"scales": [1, 2, 17]}, "scales=[1, 2, 17]: every schedule must be positive, strictly increasing and end at"),
         ({"scales": [1, 3, 2, 4]}, "scales=[1, 3, 2, 4]: every schedule must be positive, strictly increasing"),
         ({"codebook_size": 1}, "codebook_size=1: must be >= 2"),
-        ({"tasks": ["peg_in_hole"]}, "tasks=('peg_in_hole',): every task must be one of"),
+        ({"tasks": ["peg_in_hole"]}, "tasks=['peg_in_hole']: 'peg_in_hole' is not a registered task"),
         ({"tasks": []}, "tasks=(): must list at least one task"),
         ({"data": {"action_horizon": 10}}, "data.action_horizon=10: must be divisible by"),
         ({"data": {"controller": "joint"}}, "data.controller='joint': must be one of"),
@@ -391,3 +391,56 @@ def test_registered_families_are_a_subset_of_the_trained_ones_with_a_hyphenated_
         {"policies": ["carp", "next_token"], "register": ["next_token"], "tracking": {"policy_alias": "pick_2-a"}}
     )
     assert params.register == ("next_token",) and params.tracking.policy_alias == "pick_2-a"
+
+
+LEROBOT_V3 = str(REPO / "tests" / "fixtures" / "lerobot" / "v3.0")
+
+
+def test_a_task_carp_does_not_know_is_a_task_without_a_simulator_described_by_its_lerobot_dataset():
+    params = params_from_dict({"tasks": ["my_robot"], "data": {"raw_files": {"my_robot": LEROBOT_V3}}})
+    assert params.task("my_robot").evaluation == "offline" and params.task("lift").evaluation == "rollouts"
+    assert params.action_space == "pusht-abs2" and params.action_format.dimension_names == ("x", "y")
+    # The dataset's low-dim observation features, whatever data.obs_keys says.
+    assert params.obs_keys_for("my_robot") == ("state", "environment_state")
+
+
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        ({"tasks": ["lfit"]}, "tasks=['lfit']: 'lfit' is not a registered task ["),
+        (
+            {"tasks": ["my_robot"], "data": {"raw_files": {"my_robot": str(REPO / "params.yaml")}}},
+            "data.raw_files.my_robot='",
+        ),
+        ({"data": {"raw_files": {"lfit": "own/lift.hdf5"}}}, "data.raw_files.lfit='own/lift.hdf5': 'lfit' is not a"),
+        (
+            {"tasks": ["lift", "my_robot"], "data": {"raw_files": {"my_robot": LEROBOT_V3}}},
+            "tasks must share one action space",
+        ),
+        (
+            {"tasks": ["my_robot"], "data": {"observations": "image", "raw_files": {"my_robot": LEROBOT_V3}}},
+            "my_robot has no camera observations",
+        ),
+    ],
+)
+def test_a_typo_or_a_task_without_a_usable_dataset_is_refused_naming_the_key(raw, message):
+    with pytest.raises(ConfigError) as error:
+        params_from_dict(raw)
+    assert message in str(error.value)
+
+
+def test_a_typod_task_stops_the_pipeline_with_one_error_line_naming_the_file(tmp_path):
+    params_file = tmp_path / "params.yaml"
+    params_file.write_text("tasks: [lfit]\n")
+    completed = subprocess.run(
+        [sys.executable, "pipeline/check_inputs.py", "--params", str(params_file)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert completed.returncode == 1
+    assert completed.stderr.splitlines() == [
+        f"error: {params_file}: tasks=['lfit']: 'lfit' is not a registered task ['lift', 'can', 'square', 'stack', "
+        "'nut_assembly', 'stack_three', 'threading', 'pusht'], and data.raw_files.lfit names no LeRobotDataset folder "
+        "for a task without a simulator"
+    ]

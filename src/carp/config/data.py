@@ -38,9 +38,11 @@ class DataConfig:
             ``mask/valid`` (that mask wins when present; one that lists every demo is refused); a number in [0, 1).
         raw_files: Task -> path of your own robomimic-schema HDF5 file or LeRobotDataset folder (v3.0 or v2.x, the
             folder holding ``meta/info.json``; ``carp.data.demo_sources``), relative to the project root, validated
-            and used instead of scripted collection; tasks among the registered ones (``carp.tasks``). A file's
-            ``env_args`` must name the task's env (a LeRobotDataset carp did not export takes the task's own), and
-            its actions must have the task's width (7 for the arms, 2 for Push-T).
+            and used instead of scripted collection; each task registered (``carp.tasks``) or listed in ``tasks``.
+            For a registered task, a file's ``env_args`` must name the task's env (a LeRobotDataset carp did not
+            export takes the task's own), and its actions must have the task's width (7 for the arms, 2 for
+            Push-T). A name in ``tasks`` that is not registered needs a LeRobotDataset folder here: it becomes a
+            task without a simulator, trained on the dataset and evaluated offline (``carp.tasks.offline``).
         num_demos_per_task: Task -> scripted demos for that task, overriding ``num_demos``; each an integer >= 1, tasks
             among the registered ones (``carp.tasks``). DVC tracks the whole mapping: changing one entry reruns every
             ``collect`` stage, but collection is deterministic, so only that task's data and what depends on it change.
@@ -105,8 +107,6 @@ class DataConfig:
             f"must be between 1 and action_horizon - obs_steps + 1 = {self.action_horizon - self.obs_steps + 1}",
         )
         _require(0.0 <= self.valid_fraction < 1.0, "data.valid_fraction", self.valid_fraction, "must be in [0, 1)")
-        for task in self.raw_files:
-            _require(task in TASK_NAMES, f"data.raw_files.{task}", task, f"task must be one of {TASK_NAMES}")
         _require(
             self.observations in OBSERVATION_KINDS,
             "data.observations",

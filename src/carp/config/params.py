@@ -11,8 +11,8 @@ from carp.config.image_encoder import ImageEncoderConfig
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.training import TrainingConfig
 from carp.policies.sections import family_sections, teacher_of
-from carp.tasks import TASK_NAMES, get_task
-from carp.tasks.base import ActionFormat
+from carp.tasks import TASK_NAMES, resolve_task
+from carp.tasks.base import ActionFormat, Task
 
 FAMILY_SECTIONS = "family_sections"
 """Marks the two `Params` fields whose YAML sections are named after the registered policy families."""
@@ -31,10 +31,14 @@ class Params:
             latent resampled to its own length (``[1, 2, 3, 4, 5]``, as the paper's Fig. 10 does for K = 5 and 6).
         codebook_size: ``V``, codes per action dimension, which is also the policy's vocabulary per token; an integer
             >= 2 and at least ``inference.carp.top_k``.
-        tasks: Tasks the pipeline runs, among the registered ones (``carp.tasks``: the robosuite arms lift, can,
-            square, stack, nut_assembly, stack_three and threading, and pusht), each at most once, all in one action
-            space (one tokenizer serves them: the arms and Push-T do not mix); the per-task stages (``collect``,
-            ``ingest``, ``train_policy``, ``evaluate``) fan out over this list.
+        tasks: Tasks the pipeline runs, each at most once, all in one action space (one tokenizer serves them: the
+            arms and Push-T do not mix); the per-task stages (``collect``, ``ingest``, ``train_policy``,
+            ``evaluate``) fan out over this list. A registered task (``carp.tasks``: the robosuite arms lift, can,
+            square, stack, nut_assembly, stack_three and threading, and pusht) is evaluated in its simulator. Any
+            other name (lower-case letters, digits and ``_``) is a task without a simulator: its
+            ``data.raw_files.<name>`` must name a LeRobotDataset folder, whose ``meta/info.json`` gives the actions
+            and observations (``carp.tasks.offline``), and policies are evaluated offline, by their action error on
+            the held-out episodes.
         policies: Policy families trained and evaluated on every task, each at most once, among the registered ones
             (``carp.policies.registry``); ``train_policy`` and ``evaluate`` fan out over tasks x policies. Each family
             has its own section named after it (its model and optimizer) and an ``inference.<family>`` section.
@@ -97,8 +101,21 @@ class Params:
     def __post_init__(self) -> None:
         _require(len(self.tasks) >= 1, "tasks", self.tasks, "must list at least one task")
         for task in self.tasks:
-            _require(task in TASK_NAMES, "tasks", self.tasks, f"every task must be one of {TASK_NAMES}")
+            _require(
+                task in TASK_NAMES or task in self.data.raw_files,
+                "tasks",
+                list(self.tasks),
+                f"'{task}' is not a registered task {list(TASK_NAMES)}, and data.raw_files.{task} names no "
+                "LeRobotDataset folder for a task without a simulator",
+            )
         _require(len(set(self.tasks)) == len(self.tasks), "tasks", self.tasks, "must not repeat a task")
+        for task, path in self.data.raw_files.items():
+            _require(
+                task in TASK_NAMES or task in self.tasks,
+                f"data.raw_files.{task}",
+                path,
+                f"'{task}' is not a registered task {list(TASK_NAMES)} nor listed in tasks={list(self.tasks)}",
+            )
         known = family_sections()
         _require(
             len(self.policies) >= 1 or len(self.multitask) >= 1,
@@ -230,11 +247,16 @@ class Params:
         spaces = {}
         for task in self.tasks:
             try:
-                spaces[task] = get_task(task).action_format(self.data.controller).space
+                task_spec = self.task(task)
+            except ValueError as error:
+                path = self.data.raw_files.get(task)
+                raise ConfigError(f"data.raw_files.{task}={path!r}: {error}") from None
+            try:
+                spaces[task] = task_spec.action_format(self.data.controller).space
             except ValueError as error:
                 raise ConfigError(f"data.controller={self.data.controller!r}: {error}") from None
             _require(
-                self.data.observations != "image" or get_task(task).supports_cameras,
+                self.data.observations != "image" or task_spec.supports_cameras,
                 "data.observations",
                 self.data.observations,
                 f"{task} has no camera observations; use state",
@@ -246,19 +268,30 @@ class Params:
             f"tasks must share one action space (one tokenizer serves them all), got {spaces}",
         )
 
+    def task(self, name: str) -> Task:
+        """The task `name` of this run: a registered one, or one without a simulator from its ``data.raw_files``.
+
+        A relative ``data.raw_files`` path is read from the current directory, the project root where every stage
+        runs (`carp.tasks.resolve_task`).
+
+        Raises:
+            ValueError: a name that is neither (the validation turns it into a `ConfigError` naming the key).
+        """
+        return resolve_task(name, self.data.raw_files.get(name))
+
     @property
     def action_format(self) -> ActionFormat:
         """How the tasks' stored actions map to the policy's (the same for every task in ``tasks``)."""
-        return get_task(self.tasks[0]).action_format(self.data.controller)
+        return self.task(self.tasks[0]).action_format(self.data.controller)
 
     def obs_keys_for(self, task: str) -> tuple[str, ...]:
         """Low-dim obs keys of `task` in the replay buffer: ``data.low_dim_keys``, or the task's fixed observation."""
-        task_spec = get_task(task)
+        task_spec = self.task(task)
         return self.data.low_dim_keys if task_spec.configurable_obs_keys else task_spec.default_obs_keys
 
     def max_steps_for(self, task: str) -> int:
         """Step limit of one evaluation episode of `task`: its ``eval.max_steps`` entry, else the task's default."""
-        return self.eval.max_steps.get(task, get_task(task).default_max_steps)
+        return self.eval.max_steps.get(task, self.task(task).default_max_steps)
 
     def training_for_seed(self, seed: int) -> TrainingConfig:
         """The training settings of the run with training seed `seed` (one entry of `seeds`)."""

@@ -2,10 +2,15 @@
 
 A new task is a module with a `Task` object (`carp.tasks.base`) and one line here. Task modules import their simulator
 only inside the functions that need it, so reading this registry (the params' validation does) stays cheap.
+
+A name the registry does not know is a task without a simulator when its demos are a LeRobotDataset folder
+(`resolve_task`): the module `OFFLINE_TASKS` names builds it from the dataset's ``meta/info.json``, and rebuilds it
+from the env_args the collect stage stores (`task_for_env_args`).
 """
 
 import importlib
 from collections.abc import Mapping
+from pathlib import Path
 
 from carp.tasks.base import Task
 
@@ -23,6 +28,10 @@ TASK_MODULES: dict[str, str] = {
 
 TASK_NAMES: tuple[str, ...] = tuple(TASK_MODULES)
 
+OFFLINE_TASKS = "carp.tasks.offline"
+"""The module of tasks without a simulator: ``ENV_NAME``, ``task_from_source(name, folder)`` and
+``task_from_env_args(env_args)``."""
+
 
 def get_task(name: str) -> Task:
     """The task registered as ``name``.
@@ -35,6 +44,33 @@ def get_task(name: str) -> Task:
     return importlib.import_module(TASK_MODULES[name]).TASKS[name]
 
 
+def resolve_task(name: str, demo_source: str | Path | None = None) -> Task:
+    """The task ``name`` of a run whose demos for it come from ``demo_source`` (its ``data.raw_files`` entry).
+
+    A registered name is that task, whatever the demos; any other name is a task without a simulator, described by
+    the LeRobotDataset folder ``demo_source`` (`carp.tasks.offline`).
+
+    Raises:
+        ValueError: an unknown name without demos, or whose demos are no LeRobotDataset folder (a typo'd task name);
+            the message lists the registered names.
+    """
+    if name in TASK_MODULES:
+        return get_task(name)
+    offline = importlib.import_module(OFFLINE_TASKS)
+    if demo_source is None:
+        raise ValueError(
+            f"unknown task '{name}': expected one of {list(TASK_NAMES)}, or a task without a simulator whose "
+            f"data.raw_files.{name} names a LeRobotDataset folder"
+        )
+    try:
+        return offline.task_from_source(name, Path(demo_source))
+    except ValueError as error:
+        raise ValueError(
+            f"'{name}' is not a registered task {list(TASK_NAMES)}, and as a task without a simulator it needs a "
+            f"LeRobotDataset folder: {error}"
+        ) from None
+
+
 def task_for_env_args(env_args: Mapping) -> Task:
     """The task whose demo files carry these env_args (matched by ``env_name``).
 
@@ -42,6 +78,9 @@ def task_for_env_args(env_args: Mapping) -> Task:
         ValueError: env_args of no registered task, naming its ``env_name``.
     """
     env_name = env_args.get("env_name")
+    offline = importlib.import_module(OFFLINE_TASKS)
+    if env_name == offline.ENV_NAME:
+        return offline.task_from_env_args(env_args)
     for name in TASK_NAMES:
         task = get_task(name)
         if task.env_name == env_name:

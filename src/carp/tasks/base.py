@@ -12,6 +12,11 @@ from typing import Protocol
 
 import numpy as np
 
+ROLLOUTS = "rollouts"
+"""A task's `Task.evaluation` when it has a simulator: the evaluate stage rolls policies out in it."""
+OFFLINE = "offline"
+"""A task's `Task.evaluation` without one: the evaluate stage scores action errors on held-out demos."""
+
 
 def _unchanged(actions: np.ndarray) -> np.ndarray:
     return actions
@@ -109,6 +114,8 @@ class Task(Protocol):
             maximum reward), or None.
         paper_demos: the demonstrations the paper's figures for this task were trained on, which carp's scripted
             demos stand in for.
+        evaluation: how the evaluate stage scores a policy on it: `ROLLOUTS` (episodes in its simulator) or `OFFLINE`
+            (action errors on held-out demos, for a task without a simulator, `carp.tasks.offline`).
     """
 
     name: str
@@ -121,6 +128,7 @@ class Task(Protocol):
     supports_cameras: bool
     score_measure: str | None
     paper_demos: str
+    evaluation: str
 
     def action_format(self, controller: str) -> ActionFormat:
         """The action format under ``controller`` (``data.controller``); ValueError naming it when unsupported."""

@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from carp.tasks import pusht
-from carp.tasks.base import ActionFormat
+from carp.tasks.base import ROLLOUTS, ActionFormat
 
 PUSHT_ACTIONS = ActionFormat(
     space=f"pusht-abs{pusht.ACTION_DIM}",
@@ -89,6 +89,7 @@ class PushTTask:
     supports_cameras = False
     score_measure = SCORE_MEASURE
     paper_demos = "Diffusion Policy's human demonstrations"
+    evaluation = ROLLOUTS
 
     def action_format(self, controller: str) -> ActionFormat:
         """`PUSHT_ACTIONS`; Push-T's only controller is ``absolute`` (the agent's target position)."""

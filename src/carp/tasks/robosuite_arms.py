@@ -17,7 +17,7 @@ from carp.data.rotation import (
     absolute_to_rot6d_actions,
     rot6d_to_absolute_actions,
 )
-from carp.tasks.base import ActionFormat, EpisodeMeasure, Expert, NoMeasure
+from carp.tasks.base import ROLLOUTS, ActionFormat, EpisodeMeasure, Expert, NoMeasure
 
 ABSOLUTE_ACTIONS = ActionFormat(
     space=f"panda-abs{ROT6D_ACTION_DIM}",
@@ -110,6 +110,7 @@ class RobosuiteArmTask:
     supports_cameras: bool = True
     score_measure: str | None = None
     paper_demos: str = "robomimic's proficient-human demonstrations"
+    evaluation: str = ROLLOUTS
 
     def action_format(self, controller: str) -> ActionFormat:
         """`ABSOLUTE_ACTIONS` or `DELTA_ACTIONS`."""
