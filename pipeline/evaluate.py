@@ -13,14 +13,19 @@ appended to it as it finishes, and the stage stops with an error once a stop fil
 With --multitask (the evaluate_multitask stage) it evaluates the family's multi-task policy,
 models/policy/multitask/<policy>/seed<seed>/, on --task, with that task's statistics and task id, and writes
 reports/eval/<task>/<policy>-multitask/seed<seed>*.
+
+A task without a simulator (`carp.tasks.offline`) has no episodes to roll out: its policies are scored by their
+action errors on the held-out episodes instead (`offline_evaluation.py`), into the same files.
 """
 
+import argparse
 import os
 import tempfile
 from pathlib import Path
 
 import pandas as pd
 from evaluation_support import episode_runner
+from offline_evaluation import evaluate_offline
 from stage_support import (
     EVAL_VIDEO_DIR,
     PROCESSED_DIR,
@@ -33,6 +38,7 @@ from stage_support import (
     stage_policy_paths,
 )
 
+from carp.config import Params
 from carp.data.dataset import load_task_windows
 from carp.evaluation.progress import PROGRESS_VARIABLE, ProgressFile, ValidatedCandidate, ValidationStopped
 from carp.evaluation.runner import buffer_latency, episodes_table, write_episode_videos
@@ -45,12 +51,19 @@ from carp.evaluation.selection import (
 )
 from carp.outputs import write_json
 from carp.policies.registry import load_policy
+from carp.tasks.base import OFFLINE, ROLLOUTS
 from carp.training.checkpoint import CheckpointError
 
 
 def main() -> None:
     setup_logging()
     args, params = policy_stage_args(__doc__)
+    evaluations = {ROLLOUTS: evaluate_in_simulation, OFFLINE: evaluate_offline}
+    evaluations[params.task(args.task).evaluation](args, params)
+
+
+def evaluate_in_simulation(args: argparse.Namespace, params: Params) -> None:
+    """Roll the run's candidates out on the validation seeds, then the chosen one on the test seeds."""
     data, config = params.data, params.eval
     if config.video:
         # Headless offscreen rendering through EGL (Debian: libegl1, libegl-mesa0, libgl1-mesa-dri; `make render-deps`).
