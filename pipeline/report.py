@@ -27,6 +27,7 @@ from carp.outputs import MULTITASK_SUFFIX
 from carp.reporting.report import ReportInputs, write_report
 from carp.reporting.runs import add_referenced_runs, pooled_metrics, read_run_results, split_multitask
 from carp.tasks import get_task
+from carp.tasks.base import OFFLINE
 
 SWEEP_TRIALS = REPORTS_DIR / "sweep" / "trials.csv"
 
@@ -37,14 +38,24 @@ def main() -> None:
     params = load(args.params)
     tokenizer_history = TOKENIZER_REPORT_DIR / "history.csv"
     own_labels = (*params.policies, *map(multitask_label, params.multitask))
+    # A task without a simulator has offline summaries, no rollout episodes (`carp.reporting.offline`).
+    offline_tasks = [task for task in params.tasks if params.task(task).evaluation == OFFLINE]
+    rollout_tasks = [task for task in params.tasks if task not in offline_tasks]
+    offline = {
+        task: {
+            label: {seed: json.loads(evaluation_report(task, label, seed).read_text()) for seed in params.seeds}
+            for label in own_labels
+        }
+        for task in offline_tasks
+    }
     runs = {
         task: {
             label: {seed: read_run_results(evaluation_report(task, label, seed)) for seed in params.seeds}
             for label in own_labels
         }
-        for task in params.tasks
+        for task in rollout_tasks
     }
-    for task in params.tasks:
+    for task in rollout_tasks:
         for label in own_labels:
             for seed in params.seeds:
                 if runs[task][label][seed].metrics.get("test_episodes") == 0:
@@ -54,7 +65,7 @@ def main() -> None:
                     )
     try:
         references = {name: PROJECT_DIR / name for name in params.comparison.references}
-        runs, reference_notes = add_referenced_runs(runs, references, params.tasks)
+        runs, reference_notes = add_referenced_runs(runs, references, rollout_tasks)
     except (OSError, ValueError) as error:
         fail(f"{args.params}: comparison.references: {error}")
     single_task, multitask = split_multitask(runs, MULTITASK_SUFFIX)
@@ -71,6 +82,7 @@ def main() -> None:
             for task, families in multitask.items()
         },
         multitask_runs=multitask,
+        offline=offline,
         max_steps={task: params.max_steps_for(task) for task in params.tasks},
         demo_notes={task: scripted_demo_note(task) for task in params.tasks if task not in params.data.raw_files},
         reference_notes=reference_notes,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from carp.reporting.seed_inference import seed_level_estimate, seeds_to_decide, step_down_adjust
+from carp.reporting.seed_inference import seed_level_estimate, seed_mean_interval, seeds_to_decide, step_down_adjust
 
 
 def test_nested_design_is_the_paired_t_over_seed_means():
@@ -83,3 +83,17 @@ def test_step_down_counts_a_pair_once_and_is_holm_with_one_hypothesis_per_group(
     assert step_down_adjust([], []) == []
     with pytest.raises(ValueError, match="groups"):
         step_down_adjust([0.1], [0, 1])
+
+
+def test_a_continuous_per_seed_figure_gets_the_t_interval_over_its_seeds():
+    # Seeds 1, 2, 3: mean 2, sd 1, t(0.975; 2) = 4.3027, half-width 4.3027 / sqrt(3) = 2.4841.
+    interval = seed_mean_interval([1.0, 2.0, 3.0])
+    assert (interval.estimate, interval.low, interval.high) == pytest.approx((2.0, -0.48414, 4.48414), abs=1e-5)
+    expected = stats.ttest_1samp([0.3, 0.5, 0.4, 0.9], 0.0).confidence_interval(0.9)
+    interval = seed_mean_interval([0.3, 0.5, 0.4, 0.9], level=0.9)
+    assert (interval.low, interval.high) == pytest.approx((expected.low, expected.high))
+    # An error is never below 0: the interval is clipped to the figure's range.
+    assert seed_mean_interval([1.0, 2.0, 3.0], value_range=(0.0, math.inf)).low == 0.0
+    for values in ([1.0], [1.0, float("nan")]):
+        with pytest.raises(ValueError, match="two finite values or more"):
+            seed_mean_interval(values)

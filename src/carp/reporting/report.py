@@ -24,6 +24,7 @@ from carp.reporting import (
 )
 from carp.reporting.document import Section, write_sections  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
+from carp.reporting.offline import OfflineRuns, offline_section  # noqa: E402
 from carp.reporting.report_tables import (  # noqa: E402
     comparison_table,
     inference_budget_lines,
@@ -65,6 +66,8 @@ class ReportInputs:
         multitask_runs: task -> policy family -> training seed -> the multi-task policy's results on the task, like
             `runs`; with it the report compares each multi-task policy with the family's single-task policy on the
             same episodes (difference over training seeds, verdict) and gives its task measures.
+        offline: task -> policy label -> training seed -> the offline evaluation summary of a task without a
+            simulator (`carp.reporting.offline`); such a task is in none of the rollout mappings above.
         max_steps: task -> episode step limit (the curves' horizon).
         demo_notes: task -> where its demos came from, when that limits the comparison with the paper (scripted
             demos where the paper trained on human ones); shown under the task's policies.
@@ -89,6 +92,7 @@ class ReportInputs:
     runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
     multitask: Mapping[str, Mapping[str, Mapping]] = field(default_factory=dict)
     multitask_runs: Mapping[str, Mapping[str, "Runs"]] = field(default_factory=dict)
+    offline: Mapping[str, OfflineRuns] = field(default_factory=dict)
     max_steps: Mapping[str, int] = field(default_factory=dict)
     demo_notes: Mapping[str, str] = field(default_factory=dict)
     reference_notes: Mapping[str, str] = field(default_factory=dict)
@@ -119,33 +123,14 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         for task, policies in inputs.evaluation.items()
         if policies
     ]
+    sections += [offline_section(task, runs) for task, runs in inputs.offline.items() if runs]
     decided = decide_verdicts(inputs)
     if inputs.multitask:
         sections.append(multitask_section(inputs, decided))
     if inputs.runs:
         sections += comparison_sections(inputs, decided, figures_dir)
-    sections += [
-        Section(
-            "Success rate",
-            paragraphs=[
-                "Episodes with fixed seeds disjoint from the collection seeds; success is the env's own check."
-            ],
-            tables=[success_table(inputs.evaluation)],
-            figures=[plot_success_against_latency(inputs.evaluation, figures_dir / "success_vs_latency.png")],
-        ),
-        Section(
-            "Inference latency per chunk (ms)",
-            paragraphs=[
-                "Prediction is everything up to the family's decoding step (CARP: the coarse-to-fine token "
-                "prediction; a diffusion policy: the denoising loop); decoding turns the prediction into actions. "
-                "Rollouts run one environment per worker with the backend named in each row (CARP: the exported "
-                "ONNX graphs on ONNX Runtime unless `eval.backend` is torch; the baselines: PyTorch in inference "
-                "mode); the batched rows are the PyTorch policies.",
-                *inference_budget_lines(inputs.evaluation),
-            ],
-            tables=[latency_table(inputs.evaluation)],
-        ),
-    ]
+    if any(inputs.evaluation.values()):  # a run whose tasks all lack a simulator has no rollouts to tabulate
+        sections += rollout_summary_sections(inputs.evaluation, figures_dir)
     if inputs.camera_frames:
         sections.append(
             Section(
@@ -235,6 +220,32 @@ def build_sections(inputs: ReportInputs, figures_dir: Path) -> list[Section]:
         )
     )
     return sections
+
+
+def rollout_summary_sections(evaluation: Mapping[str, Mapping[str, Mapping]], figures_dir: Path) -> list[Section]:
+    """Success rates and inference latency of every task's rollouts (task -> family -> pooled metrics)."""
+    return [
+        Section(
+            "Success rate",
+            paragraphs=[
+                "Episodes with fixed seeds disjoint from the collection seeds; success is the env's own check."
+            ],
+            tables=[success_table(evaluation)],
+            figures=[plot_success_against_latency(evaluation, figures_dir / "success_vs_latency.png")],
+        ),
+        Section(
+            "Inference latency per chunk (ms)",
+            paragraphs=[
+                "Prediction is everything up to the family's decoding step (CARP: the coarse-to-fine token "
+                "prediction; a diffusion policy: the denoising loop); decoding turns the prediction into actions. "
+                "Rollouts run one environment per worker with the backend named in each row (CARP: the exported "
+                "ONNX graphs on ONNX Runtime unless `eval.backend` is torch; the baselines: PyTorch in inference "
+                "mode); the batched rows are the PyTorch policies.",
+                *inference_budget_lines(evaluation),
+            ],
+            tables=[latency_table(evaluation)],
+        ),
+    ]
 
 
 def multitask_section(inputs: ReportInputs, decided: "ReportVerdicts") -> Section:

@@ -142,6 +142,34 @@ def seed_level_estimate(
     )
 
 
+def seed_mean_interval(
+    per_seed: Sequence[float], level: float = 0.95, value_range: tuple[float, float] = (-math.inf, math.inf)
+) -> Interval:
+    """The mean over training seeds of a continuous per-seed figure, with a Student-t interval over the seeds.
+
+    The continuous counterpart of `seed_level_estimate` for a figure each seed gives once, measured on data every seed
+    shares (a policy's action error on the task's held-out episodes): the estimate is the mean of the seeds' values,
+    its standard error their sample standard deviation over ``sqrt(n)``, the quantile Student's t on ``n - 1``
+    degrees of freedom. The shared data are fixed, so the interval is about the family's figure on them.
+
+    Args:
+        per_seed: one value per training seed, at least two.
+        level: two-sided confidence level in (0, 1).
+        value_range: the range the figure can take (an error: from 0); the interval is clipped to it.
+
+    Raises:
+        ValueError: fewer than two seeds, a value that is not finite, or a level outside (0, 1).
+    """
+    _check_open_unit("level", level)
+    values = np.asarray(per_seed, dtype=np.float64)
+    if values.ndim != 1 or len(values) < 2 or not np.isfinite(values).all():
+        raise ValueError(f"a t interval over seeds needs two finite values or more, got {values.tolist()}")
+    mean = float(values.mean())
+    half = float(stats.t.ppf(0.5 + level / 2.0, len(values) - 1)) * float(values.std(ddof=1)) / math.sqrt(len(values))
+    low, high = value_range
+    return Interval(mean, float(max(low, mean - half)), float(min(high, mean + half)))
+
+
 def seeds_to_decide(
     estimate: SeedLevelEstimate, margin: float, alpha: float, power: float = 0.8, most: int = 100
 ) -> int | None:
