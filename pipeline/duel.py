@@ -42,6 +42,7 @@ from carp.evaluation.runner import episodes_table
 from carp.evaluation.selection import confirmed_checkpoint, find_candidates
 from carp.evaluation.sequential import run_duel
 from carp.outputs import MULTITASK_SUFFIX, write_json
+from carp.tasks.base import ROLLOUTS
 
 DUEL_DIR = REPORTS_DIR / "duel"
 
@@ -77,6 +78,11 @@ def main() -> None:
     seed = params.seeds[0] if args.seed is None else args.seed
     if args.task not in params.tasks:
         fail(f"{args.params}: tasks={list(params.tasks)}: --task {args.task} is not listed")
+    if params.task(args.task).evaluation != ROLLOUTS:
+        fail(
+            f"{args.params}: tasks={list(params.tasks)}: {args.task} has no simulator, and a duel rolls policies out "
+            "(the report compares its families offline)"
+        )
     if seed not in params.seeds:
         fail(f"{args.params}: seeds={list(params.seeds)}: --seed {seed} is not listed")
     if args.first == args.second:

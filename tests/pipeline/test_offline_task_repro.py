@@ -1,7 +1,8 @@
 """A task without a simulator through `dvc repro`: a LeRobotDataset named under a task name carp does not know trains
 every listed family and is evaluated offline (action errors on the held-out episode), and the report says that no
 rollout was possible. The v3.0 fixture runs every stage; the v2.1 fixture (the same frames, LeRobot 0.3.3's writer)
-then reruns only the input stages, as its replay buffer is the same, so training and evaluation stand for both."""
+then reruns only the input stages, as its replay buffer is the same, so training and evaluation stand for both. A
+duel, which rolls policies out, refuses such a task."""
 
 import json
 import sys
@@ -10,9 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from tests.pipeline.workspace import make_workspace, run, stages_run
-
-pytestmark = pytest.mark.slow
+from tests.pipeline.workspace import REPO, make_workspace, run, stages_run
 
 OFFLINE = {
     "tasks": ["my_robot"],
@@ -35,6 +34,7 @@ def ingest_outputs(workspace):
     return {out["path"]: out["md5"] for out in lock["stages"]["ingest@my_robot"]["outs"]}
 
 
+@pytest.mark.slow
 def test_a_lerobot_dataset_without_a_simulator_trains_and_is_evaluated_offline(tmp_path):
     workspace = make_workspace(tmp_path / "carp", OFFLINE)
     ran = repro(workspace)
@@ -71,3 +71,16 @@ def test_a_lerobot_dataset_without_a_simulator_trains_and_is_evaluated_offline(t
     assert repro(workspace) == {"check_inputs", "collect@my_robot", "ingest@my_robot"}
     assert ingest_outputs(workspace) == from_v3
     assert repro(workspace) == {"check_inputs"}
+
+
+def test_a_duel_on_a_task_without_a_simulator_is_refused_in_one_line(tmp_path):
+    params_file = tmp_path / "params.yaml"
+    dataset = REPO / "tests/fixtures/lerobot/v3.0"
+    params_file.write_text(yaml.safe_dump({"tasks": ["my_robot"], "data": {"raw_files": {"my_robot": str(dataset)}}}))
+    duel = [sys.executable, "pipeline/duel.py", "--params", str(params_file), "--task", "my_robot"]
+    refused = run([*duel, "--first", "carp", "--second", "carp"], REPO, timeout=120)
+    assert refused.returncode == 1
+    assert refused.stderr.splitlines() == [
+        f"error: {params_file}: tasks=['my_robot']: my_robot has no simulator, and a duel rolls policies out (the "
+        "report compares its families offline)"
+    ]
