@@ -20,6 +20,7 @@ from stage_support import EVAL_REPORT_DIR, PROJECT_DIR, REPORTS_DIR, TOKENIZER_R
 
 from carp.studies import setting_study
 from carp.studies.data_efficiency import StudyLayout, add_referenced_studies, run_study, write_study_report
+from carp.tasks.base import ROLLOUTS
 
 STUDIES = ("data_efficiency", "scales", "codebook")
 
@@ -41,6 +42,9 @@ def main() -> None:
     args = parser.parse_args()
     params_file = PROJECT_DIR / "params.yaml"
     params = load(params_file)
+    offline = [task for task in params.tasks if params.task(task).evaluation != ROLLOUTS]
+    if offline:
+        fail(f"{params_file}: tasks={list(params.tasks)}: {offline} have no simulator; a study scores rollouts")
     layout = StudyLayout(params.tasks, params.policies, params.seeds)
     output_dir = REPORTS_DIR / "studies" / args.study
     references = {name: PROJECT_DIR / name for name in params.study.references}

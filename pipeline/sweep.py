@@ -52,6 +52,7 @@ from carp.sweep.dvc_runner import DvcExperimentRunner
 from carp.sweep.space import TrialSettings
 from carp.sweep.study import ExperimentFailedError, SweepStateError, run_sweep
 from carp.sweep.tracking import SweepTracker
+from carp.tasks.base import ROLLOUTS
 from carp.tracking.runs import resolve_tracking_uri
 
 logger = logging.getLogger(__name__)
@@ -121,6 +122,9 @@ def main() -> None:
         fail("run the sweep in the project workspace, not inside a DVC temporary workspace")
     if not params.policies:
         fail(f"{args.params}: policies=[]: the sweep trains and evaluates single-task policies; list a family")
+    offline = [task for task in params.tasks if params.task(task).evaluation != ROLLOUTS]
+    if offline:
+        fail(f"{args.params}: tasks={list(params.tasks)}: {offline} have no simulator; the sweep scores rollouts")
     reused = sorted(set(params.sweep.confirm_seeds) & set(params.seeds))
     if reused:
         # The winner's trial networks were selected for their validation score: the confirmation trains new ones.
