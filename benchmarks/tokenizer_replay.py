@@ -2,7 +2,8 @@
 
 Every executed chunk of a demo is tokenized and decoded before the env runs it; the first row replays the recorded
 actions unchanged (the simulation's own reproducibility). Run it in a pipeline directory after `dvc repro
-train_tokenizer`; compare tokenizers trained elsewhere by passing their artifact directories. The task's statistics
+train_tokenizer`; compare tokenizers trained elsewhere, or saved tokenizers of any kind (`carp.tokenizer.kinds`), by
+passing their directories. The task's statistics
 come from its ingested data and To, Ta, H from params.yaml, as a policy's do.
 
     .venv/bin/python benchmarks/tokenizer_replay.py --task square [--tokenizers models/tokenizer other/models/tokenizer]
@@ -17,6 +18,7 @@ from carp.config import load_params
 from carp.data.ingest import NORMALIZATION_FILENAME
 from carp.data.normalizer import load_normalizers
 from carp.evaluation.replay import replay_demonstrations
+from carp.tokenizer.kinds.registry import load_tokenizer
 
 
 def main() -> None:
@@ -36,7 +38,7 @@ def main() -> None:
         results = replay_demonstrations(
             raw_path,
             normalizer,
-            tokenizer,
+            None if tokenizer is None else load_tokenizer(tokenizer),
             data.obs_steps,
             data.action_steps,
             data.action_horizon,

@@ -21,6 +21,7 @@ from stage_support import (
     tracking_uri,
 )
 
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND
 from carp.data.dataset import load_task_windows
 from carp.outputs import write_history, write_json
 from carp.tokenizer.artifact import (
@@ -43,6 +44,11 @@ def main() -> None:
     torch.set_num_threads(1)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer
+    if config.kind != DEFAULT_TOKENIZER_KIND:
+        fail(
+            f"tokenizer.kind={config.kind}: only {DEFAULT_TOKENIZER_KIND} is trained by the pipeline; {config.kind} is "
+            "not yet trained by the pipeline (measure it with benchmarks/tokenizer_kinds.py)"
+        )
     tasks = list(params.tokenizer_tasks)
     windows = {
         task: load_task_windows(PROCESSED_DIR / task, data.action_horizon, data.obs_steps, data.action_steps)

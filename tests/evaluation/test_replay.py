@@ -9,6 +9,8 @@ from carp.data.robomimic_io import DatasetError
 from carp.evaluation.replay import TokenizedReplaySource, replay_demonstrations
 from carp.tasks.robosuite_arms import DELTA_ACTIONS
 from carp.tokenizer.artifact import save_tokenizer_artifact
+from carp.tokenizer.kinds.binning import BinningTokenizer
+from carp.tokenizer.kinds.registry import load_tokenizer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
@@ -38,7 +40,7 @@ def test_each_chunk_goes_through_the_tokenizer_round_trip(tmp_path):
     actions = np.random.default_rng(0).uniform(-2.0, 3.0, size=(30, 7))
     normalizer = MinMaxNormalizer.fit(actions)
     save_tokenizer_artifact(tmp_path, tokenizer, {"lift": normalizer}, "panda-delta7")
-    source = TokenizedReplaySource({1: actions}, normalizer, tmp_path, DELTA_ACTIONS, TO, TA, H)
+    source = TokenizedReplaySource({1: actions}, normalizer, load_tokenizer(tmp_path), DELTA_ACTIONS, TO, TA, H)
     source.reset(env=None, seed=1)
     source.act(None, None)
     recorded = actions[7:23]  # the decision at step 8
@@ -47,6 +49,20 @@ def test_each_chunk_goes_through_the_tokenizer_round_trip(tmp_path):
         expected = normalizer.unnormalize(tokenizer.decode_ids(tokenizer.encode_to_ids(normalized))[0].double().numpy())
     np.testing.assert_allclose(source.chunk(), expected, rtol=0, atol=1e-9)
     assert np.abs(source.chunk() - recorded).max() > 1e-3  # an untrained tokenizer does change the actions
+
+
+def test_any_kind_replays_through_its_round_trip():
+    actions = np.random.default_rng(1).uniform(-2.0, 3.0, size=(30, 7))
+    normalizer = MinMaxNormalizer.fit(actions)
+    tokenizer = BinningTokenizer(action_dim=7, action_horizon=H, bins=4)
+    source = TokenizedReplaySource({1: actions}, normalizer, tokenizer, DELTA_ACTIONS, TO, TA, H)
+    source.reset(env=None, seed=1)
+    chunk = source.chunk()
+    # Four bins over [-1, 1]: every replayed value is one of the four bin centres, within half a bin of the record.
+    centres = normalizer.unnormalize(np.tile(np.array([-0.75, -0.25, 0.25, 0.75])[:, None], (1, 7)))
+    assert all(np.isin(np.round(chunk[:, d], 9), np.round(centres[:, d], 9)).all() for d in range(7))
+    recorded = actions[np.clip(np.arange(H) - (TO - 1), 0, None)]
+    assert (np.abs(chunk - recorded) <= normalizer.half_range() * 0.25 + 1e-9).all()
 
 
 @pytest.mark.slow

@@ -1,16 +1,31 @@
-"""The `tokenizer` section: how the multi-scale action tokenizer is trained or where a registered one comes from."""
+"""The `tokenizer` section: the kind, how the multi-scale kind is trained or where a registered one comes from."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from carp.config.checks import REGISTRY_URI_PREFIX, _positive_training_fields, _require, require_registry_alias
+from carp.config.tokenizer_kinds import (
+    DEFAULT_TOKENIZER_KIND,
+    TOKENIZER_KINDS,
+    BinningConfig,
+    BSplineConfig,
+    FastConfig,
+    FsqConfig,
+)
 from carp.tasks import TASK_NAMES
 
 
 @dataclass(frozen=True)
 class TokenizerConfig:
-    """The per-dimension multi-scale VQ-VAE (docs/architecture.md, "Action tokenizer") and its training.
+    """The tokenizer kind; CARP's multi-scale VQ-VAE (docs/architecture.md, "Action tokenizer") and its training.
+
+    The other kinds' settings are subsections.
 
     Attributes:
+        kind: The tokenizer kind, one of ``carp_msvq`` (CARP's per-dimension multi-scale VQ-VAE, which the other
+            fields of this section and ``scales`` and ``codebook_size`` configure), ``binning``, ``fast``,
+            ``bspline`` and ``fsq`` (each configured by its own subsection below; docs/developing.md, "Tokenizer
+            kinds"). The pipeline trains ``carp_msvq`` only; the other kinds are measured by
+            ``benchmarks/tokenizer_kinds.py``.
         source: Where the tokenizer comes from: ``pipeline`` trains it here and registers it in the MLflow Model
             Registry; a registry URI ``models:/<name>@<alias>`` fetches that registered version instead, whose action
             space, ``scales`` and ``codebook_size`` must match these params.
@@ -45,7 +60,13 @@ class TokenizerConfig:
             that dimension are rescaled and moved inside [-1, 1]; a number in [0, 1] (0 turns augmentation off).
         augment_max_scale: Largest amplitude factor of that augmentation (``1 / augment_max_scale`` is the smallest,
             1 only moves); a number >= 1.
+        binning: Settings of the ``binning`` kind.
+        fast: Settings of the ``fast`` kind.
+        bspline: Settings of the ``bspline`` kind.
+        fsq: Settings of the ``fsq`` kind.
     """
+
+    kind: str = DEFAULT_TOKENIZER_KIND
 
     source: str = "pipeline"
     tasks: tuple[str, ...] = ()
@@ -64,8 +85,15 @@ class TokenizerConfig:
     restart_fraction: float = 0.25
     augment_probability: float = 0.5
     augment_max_scale: float = 2.0
+    binning: BinningConfig = field(default_factory=BinningConfig)
+    fast: FastConfig = field(default_factory=FastConfig)
+    bspline: BSplineConfig = field(default_factory=BSplineConfig)
+    fsq: FsqConfig = field(default_factory=FsqConfig)
 
     def __post_init__(self) -> None:
+        _require(
+            self.kind in TOKENIZER_KINDS, "tokenizer.kind", self.kind, f"must be one of {', '.join(TOKENIZER_KINDS)}"
+        )
         _require(
             self.source == "pipeline" or (self.source.startswith(REGISTRY_URI_PREFIX) and "@" in self.source),
             "tokenizer.source",

@@ -21,7 +21,7 @@ from carp.evaluation.rollout import ChunkTiming, EpisodeResult, evaluate_episode
 from carp.evaluation.sources import executed_actions
 from carp.tasks import task_for_env_args
 from carp.tasks.base import ActionFormat
-from carp.tokenizer.artifact import load_tokenizer_artifact
+from carp.tokenizer.kinds.base import ActionTokenizer
 
 
 class TokenizedReplaySource:
@@ -30,7 +30,8 @@ class TokenizedReplaySource:
     Args:
         demo_actions: collection seed -> (T, A) recorded actions in the policy's action format (10-D for absolute).
         action_normalizer: the task's action statistics.
-        tokenizer_directory: a tokenizer artifact, or None to replay the recorded actions unchanged.
+        tokenizer: a tokenizer of any kind (`carp.tokenizer.kinds`, picklable: each worker gets a copy), or None to
+            replay the recorded actions unchanged.
         action_format: the task's action format under the file's controller.
         obs_steps: ``To``.
         action_steps: ``Ta``.
@@ -41,7 +42,7 @@ class TokenizedReplaySource:
         self,
         demo_actions: dict[int, np.ndarray],
         action_normalizer: MinMaxNormalizer,
-        tokenizer_directory: Path | None,
+        tokenizer: ActionTokenizer | None,
         action_format: ActionFormat,
         obs_steps: int,
         action_steps: int,
@@ -49,7 +50,7 @@ class TokenizedReplaySource:
     ) -> None:
         self.demo_actions = demo_actions
         self.action_normalizer = action_normalizer
-        self.tokenizer = None if tokenizer_directory is None else load_tokenizer_artifact(tokenizer_directory).tokenizer
+        self.tokenizer = tokenizer
         self.action_format = action_format
         self.obs_steps, self.action_steps, self.horizon = obs_steps, action_steps, horizon
         self._actions = np.empty((0, 0))
@@ -67,8 +68,7 @@ class TokenizedReplaySource:
         if self.tokenizer is None:
             return chunk
         normalized = torch.as_tensor(self.action_normalizer.normalize(chunk[None]), dtype=torch.float32)
-        with torch.inference_mode():
-            decoded = self.tokenizer.decode_ids(self.tokenizer.encode_to_ids(normalized))  # (1, H, A)
+        decoded = self.tokenizer.decode(self.tokenizer.encode(normalized)).actions  # (1, H, A)
         return self.action_normalizer.unnormalize(decoded[0].double().numpy())
 
     def act(self, observation_history: np.ndarray, env) -> tuple[np.ndarray, ChunkTiming | None]:
@@ -81,7 +81,7 @@ class TokenizedReplaySource:
 def replay_demonstrations(
     raw_path: Path,
     action_normalizer: MinMaxNormalizer,
-    tokenizer_directory: Path | None,
+    tokenizer: ActionTokenizer | None,
     obs_steps: int,
     action_steps: int,
     horizon: int,
@@ -93,7 +93,7 @@ def replay_demonstrations(
     Args:
         raw_path: robomimic-schema file whose demos carry their collection ``seed`` attribute (`carp.data.collect`).
         action_normalizer: the task's action statistics (``data/processed/<task>/normalization.json``).
-        tokenizer_directory: tokenizer artifact to round-trip every chunk through; None replays unchanged.
+        tokenizer: tokenizer of any kind to round-trip every chunk through; None replays unchanged.
         obs_steps: ``To`` of the policy.
         action_steps: ``Ta``, rows executed per chunk.
         horizon: ``H``, rows per chunk.
@@ -117,7 +117,7 @@ def replay_demonstrations(
         TokenizedReplaySource,
         demo_actions,
         action_normalizer,
-        tokenizer_directory,
+        tokenizer,
         action_format,
         obs_steps,
         action_steps,

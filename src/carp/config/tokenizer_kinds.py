@@ -1,0 +1,143 @@
+"""The params sections of the action tokenizer kinds other than CARP's, and the names of every kind.
+
+This is the light half of the kind table: the names here match `carp.tokenizer.kinds.registry.KIND_MODULES`, which
+imports the implementations, so validating a params file never imports torch or a tokenizer. ``carp_msvq`` (the
+default) has no section of its own: its settings are ``scales``, ``codebook_size`` and the rest of ``tokenizer``.
+"""
+
+import math
+from dataclasses import dataclass
+
+from carp.config.checks import _require, require_positive_int
+
+DEFAULT_TOKENIZER_KIND = "carp_msvq"
+TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq")
+"""Every registered kind, the default first."""
+
+
+def _require_percentiles(section: str, lower: float, upper: float) -> None:
+    _require(0.0 <= lower < 50.0, f"{section}.lower_percentile", lower, "must be in [0, 50)")
+    _require(50.0 < upper <= 100.0, f"{section}.upper_percentile", upper, "must be in (50, 100]")
+
+
+@dataclass(frozen=True)
+class BinningConfig:
+    """Uniform binning of every step and dimension (RT-2, OpenVLA; `carp.tokenizer.kinds.binning`).
+
+    Attributes:
+        bins: ``N``, bins per action dimension, which is also the vocabulary; an integer >= 2.
+        lower_percentile: Percentile of a dimension's training actions where its bins start; a number in [0, 50).
+        upper_percentile: Percentile where its bins end; a number in (50, 100]. Values outside the range fall into
+            the end bins.
+    """
+
+    bins: int = 256
+    lower_percentile: float = 1.0
+    upper_percentile: float = 99.0
+
+    def __post_init__(self) -> None:
+        _require(
+            isinstance(self.bins, int) and self.bins >= 2,
+            "tokenizer.binning.bins",
+            self.bins,
+            "must be an integer >= 2",
+        )
+        _require_percentiles("tokenizer.binning", self.lower_percentile, self.upper_percentile)
+
+
+@dataclass(frozen=True)
+class FastConfig:
+    """DCT over time, scaled and rounded, then byte-pair encoded (FAST; `carp.tokenizer.kinds.fast`).
+
+    Attributes:
+        scale: Multiplies the orthonormal DCT coefficients of a normalized chunk before rounding; a number > 0.
+            Larger keeps more precision and gives longer token sequences.
+        vocabulary_size: Tokens of the byte-pair encoding trained on the training windows; an integer >= 2, and at
+            least the number of distinct rounded coefficients (checked when it is fitted).
+    """
+
+    scale: float = 10.0
+    vocabulary_size: int = 1024
+
+    def __post_init__(self) -> None:
+        _require(self.scale > 0, "tokenizer.fast.scale", self.scale, "must be > 0")
+        _require(
+            isinstance(self.vocabulary_size, int) and self.vocabulary_size >= 2,
+            "tokenizer.fast.vocabulary_size",
+            self.vocabulary_size,
+            "must be an integer >= 2",
+        )
+
+
+@dataclass(frozen=True)
+class BSplineConfig:
+    """Quantized control points of a clamped uniform B-spline per dimension (BEAST; `carp.tokenizer.kinds.bspline`).
+
+    Attributes:
+        control_points: ``K``, control points per action dimension (tokens per dimension); an integer >= degree + 1
+            and at most ``data.action_horizon`` (checked when the tokenizer is built).
+        degree: Degree of the spline; an integer >= 1.
+        bins: Bins per control point, which is also the vocabulary; an integer >= 2. They span each dimension's
+            control-point range on the training windows.
+    """
+
+    control_points: int = 8
+    degree: int = 3
+    bins: int = 256
+
+    def __post_init__(self) -> None:
+        require_positive_int("tokenizer.bspline.degree", self.degree)
+        _require(
+            isinstance(self.control_points, int) and self.control_points >= self.degree + 1,
+            "tokenizer.bspline.control_points",
+            self.control_points,
+            f"must be an integer >= degree + 1 = {self.degree + 1}",
+        )
+        _require(
+            isinstance(self.bins, int) and self.bins >= 2,
+            "tokenizer.bspline.bins",
+            self.bins,
+            "must be an integer >= 2",
+        )
+
+
+@dataclass(frozen=True)
+class FsqConfig:
+    """Finite scalar quantization of a downsampled latent over all dimensions (QueST; `carp.tokenizer.kinds.fsq`).
+
+    Attributes:
+        levels: Values each latent channel is rounded to, one entry per channel; integers >= 2. The vocabulary is
+            their product (240 for [8, 6, 5]).
+        downsampling: ``H`` over tokens per chunk; a power of two that divides ``data.action_horizon`` (checked when
+            the tokenizer is built).
+        hidden_channels: Width of the encoder's and decoder's convolutions; an integer >= 1.
+        steps: Adam steps of training; an integer >= 1.
+        batch_size: Windows per step; an integer >= 1.
+        learning_rate: Adam's learning rate; a number > 0.
+        seed: Seeds the initialization and the batches; any integer.
+    """
+
+    levels: tuple[int, ...] = (8, 6, 5)
+    downsampling: int = 4
+    hidden_channels: int = 32
+    steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _require(
+            len(self.levels) >= 1 and all(isinstance(level, int) and level >= 2 for level in self.levels),
+            "tokenizer.fsq.levels",
+            list(self.levels),
+            "must be a non-empty list of integers >= 2",
+        )
+        _require(
+            isinstance(self.downsampling, int) and self.downsampling >= 1 and math.log2(self.downsampling).is_integer(),
+            "tokenizer.fsq.downsampling",
+            self.downsampling,
+            "must be a power of two",
+        )
+        for name in ("hidden_channels", "steps", "batch_size"):
+            require_positive_int(f"tokenizer.fsq.{name}", getattr(self, name))
+        _require(self.learning_rate > 0, "tokenizer.fsq.learning_rate", self.learning_rate, "must be > 0")

@@ -1,0 +1,1 @@
+"""Action tokenizer kinds behind one interface (`carp.tokenizer.kinds.base`) and one registry (`.registry`)."""
