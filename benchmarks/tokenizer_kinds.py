@@ -38,6 +38,7 @@ KNOBS = {
     "bspline": ("control_points", [4, 6, 8, 12, 16]),
     "fsq": ("levels", [(5, 5, 5), (8, 6, 5), (8, 8, 8, 6, 5)]),
     "carp_msvq": ("codebook_size", [64, 512]),
+    "joint_msvq": ("codebook_size", [64, 512]),
 }
 """Kind -> (its rate knob, the settings swept)."""
 

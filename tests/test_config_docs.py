@@ -23,6 +23,7 @@ def test_every_field_of_every_config_section_is_documented():
         "tokenizer.fast.",
         "tokenizer.bspline.",
         "tokenizer.fsq.",
+        "tokenizer.joint_msvq.",
         "training.",
         "eval.",
         "tracking.",

@@ -10,6 +10,7 @@ from carp.config.tokenizer_kinds import (
     BSplineConfig,
     FastConfig,
     FsqConfig,
+    JointMsvqConfig,
 )
 from carp.tasks import TASK_NAMES
 
@@ -23,9 +24,9 @@ class TokenizerConfig:
     Attributes:
         kind: The tokenizer kind, one of ``carp_msvq`` (CARP's per-dimension multi-scale VQ-VAE, which the other
             fields of this section and ``scales`` and ``codebook_size`` configure), ``binning``, ``fast``,
-            ``bspline`` and ``fsq`` (each configured by its own subsection below; docs/developing.md, "Tokenizer
-            kinds"). The pipeline trains ``carp_msvq`` only; the other kinds are measured by
-            ``benchmarks/tokenizer_kinds.py``.
+            ``bspline``, ``fsq`` and ``joint_msvq`` (each configured by its own subsection below;
+            docs/developing.md, "Tokenizer kinds"). The pipeline trains ``carp_msvq`` only; the other kinds are
+            measured by ``benchmarks/tokenizer_kinds.py``.
         source: Where the tokenizer comes from: ``pipeline`` trains it here and registers it in the MLflow Model
             Registry; a registry URI ``models:/<name>@<alias>`` fetches that registered version instead, whose action
             space, ``scales`` and ``codebook_size`` must match these params.
@@ -64,6 +65,7 @@ class TokenizerConfig:
         fast: Settings of the ``fast`` kind.
         bspline: Settings of the ``bspline`` kind.
         fsq: Settings of the ``fsq`` kind.
+        joint_msvq: Settings of the ``joint_msvq`` kind.
     """
 
     kind: str = DEFAULT_TOKENIZER_KIND
@@ -89,6 +91,7 @@ class TokenizerConfig:
     fast: FastConfig = field(default_factory=FastConfig)
     bspline: BSplineConfig = field(default_factory=BSplineConfig)
     fsq: FsqConfig = field(default_factory=FsqConfig)
+    joint_msvq: JointMsvqConfig = field(default_factory=JointMsvqConfig)
 
     def __post_init__(self) -> None:
         _require(

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from carp.config.checks import _require, require_positive_int
 
 DEFAULT_TOKENIZER_KIND = "carp_msvq"
-TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq")
+TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq", "joint_msvq")
 """Every registered kind, the default first."""
 
 
@@ -141,3 +141,65 @@ class FsqConfig:
         for name in ("hidden_channels", "steps", "batch_size"):
             require_positive_int(f"tokenizer.fsq.{name}", getattr(self, name))
         _require(self.learning_rate > 0, "tokenizer.fsq.learning_rate", self.learning_rate, "must be > 0")
+
+
+@dataclass(frozen=True)
+class JointMsvqConfig:
+    """One multi-scale residual VQ-VAE over all action dimensions jointly (`carp.tokenizer.kinds.joint_msvq`).
+
+    Attributes:
+        scales: Tokens per chunk at each scale, coarse to fine; strictly increasing positive integers, the last at
+            most ``data.action_horizon``.
+        codebook_size: Codes of the single codebook, which is also the vocabulary; an integer >= 2.
+        latent_channels: Channels of a latent position and of a code; an integer >= 1.
+        downsampling: The encoder's temporal downsampling; a power of two >= 2 that divides ``data.action_horizon``
+            (checked when the tokenizer is built).
+        hidden_channels: Width of the encoder's and decoder's convolutions; an integer >= 1.
+        commitment_weight: Weight of the commitment loss relative to the reconstruction loss; a number >= 0.
+        steps: Adam steps of training; an integer >= 1.
+        batch_size: Windows per step; an integer >= 1.
+        learning_rate: Adam's learning rate; a number > 0.
+        seed: Seeds the initialization, the batches and the code restarts; any integer.
+    """
+
+    scales: tuple[int, ...] = (1, 2, 3, 4)
+    codebook_size: int = 512
+    latent_channels: int = 8
+    downsampling: int = 4
+    hidden_channels: int = 32
+    commitment_weight: float = 0.25
+    steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _require(
+            len(self.scales) >= 1
+            and all(isinstance(scale, int) and scale >= 1 for scale in self.scales)
+            and all(later > earlier for earlier, later in zip(self.scales, self.scales[1:], strict=False)),
+            "tokenizer.joint_msvq.scales",
+            list(self.scales),
+            "must be strictly increasing positive integers",
+        )
+        _require(
+            isinstance(self.codebook_size, int) and self.codebook_size >= 2,
+            "tokenizer.joint_msvq.codebook_size",
+            self.codebook_size,
+            "must be an integer >= 2",
+        )
+        _require(
+            isinstance(self.downsampling, int) and self.downsampling >= 2 and math.log2(self.downsampling).is_integer(),
+            "tokenizer.joint_msvq.downsampling",
+            self.downsampling,
+            "must be a power of two >= 2",
+        )
+        for name in ("latent_channels", "hidden_channels", "steps", "batch_size"):
+            require_positive_int(f"tokenizer.joint_msvq.{name}", getattr(self, name))
+        _require(
+            self.commitment_weight >= 0,
+            "tokenizer.joint_msvq.commitment_weight",
+            self.commitment_weight,
+            "must be >= 0",
+        )
+        _require(self.learning_rate > 0, "tokenizer.joint_msvq.learning_rate", self.learning_rate, "must be > 0")

@@ -8,6 +8,7 @@ from carp.tokenizer.kinds.bspline import BSplineTokenizer
 from carp.tokenizer.kinds.carp_msvq import CarpMsvqTokenizer
 from carp.tokenizer.kinds.fast import FastTokenizer
 from carp.tokenizer.kinds.fsq import FsqTokenizer
+from carp.tokenizer.kinds.joint_msvq import JointMsvqTokenizer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
@@ -45,12 +46,22 @@ def build(kind: str):
         "fast": lambda: FastTokenizer(A, H, scale=10.0, vocabulary_size=128),
         "bspline": lambda: BSplineTokenizer(A, H, control_points=6, bins=64),
         "fsq": lambda: FsqTokenizer(A, H, levels=(5, 4), downsampling=4, hidden_channels=8, steps=30, batch_size=32),
+        "joint_msvq": lambda: JointMsvqTokenizer(
+            A, H, scales=(1, 2, 4), codebook_size=16, latent_channels=4, hidden_channels=8, steps=20, batch_size=32
+        ),
     }[kind]()
 
 
 def fitted(kind: str, windows: torch.Tensor):
     """A tokenizer of ``kind`` fitted on ``windows`` (``carp_msvq`` stays untrained: its training is a stage's)."""
-    tokenizer = build(kind)
-    if kind != "carp_msvq":
-        tokenizer.fit(windows)
+    # Module-scoped fixtures call this before the suite's autouse one-thread fixture runs; several threads on a
+    # shared machine make these tiny fits many times slower.
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        tokenizer = build(kind)
+        if kind != "carp_msvq":
+            tokenizer.fit(windows)
+    finally:
+        torch.set_num_threads(previous)
     return tokenizer

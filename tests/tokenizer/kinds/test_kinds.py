@@ -9,6 +9,7 @@ from carp.tokenizer.kinds.binning import BinningTokenizer
 from carp.tokenizer.kinds.bspline import BSplineTokenizer
 from carp.tokenizer.kinds.fast import FastTokenizer
 from carp.tokenizer.kinds.fsq import FiniteScalarQuantizer, FsqTokenizer
+from carp.tokenizer.kinds.joint_msvq import JointMsvqTokenizer
 from tests.tokenizer.kinds.conftest import A, H, smooth_chunks
 
 
@@ -115,3 +116,17 @@ def test_fsq_training_lowers_the_reconstruction_error(training_chunks, held_out_
         for name, model in (("untrained", untrained), ("trained", trained))
     }
     assert error["trained"] < 0.5 * error["untrained"]
+
+
+def test_the_joint_multi_scale_vq_has_one_token_per_scale_position_and_learns(training_chunks, held_out_chunks):
+    settings = {"scales": (1, 2, 4), "codebook_size": 32, "latent_channels": 4, "hidden_channels": 16}
+    untrained = JointMsvqTokenizer(A, H, steps=1, **settings)
+    trained = JointMsvqTokenizer(A, H, steps=150, batch_size=64, learning_rate=3e-3, **settings)
+    trained.fit(training_chunks)
+    tokens = trained.encode(held_out_chunks)
+    assert tokens.ids.shape == (len(held_out_chunks), 1 + 2 + 4)
+    error = {
+        name: float((model.decode(model.encode(held_out_chunks)).actions - held_out_chunks).pow(2).mean())
+        for name, model in (("untrained", untrained), ("trained", trained))
+    }
+    assert error["trained"] < 0.75 * error["untrained"]  # a joint codebook learns slowly; this much takes 150 steps

@@ -4,7 +4,14 @@ import pytest
 
 from carp.config.checks import ConfigError
 from carp.config.tokenizer import TokenizerConfig
-from carp.config.tokenizer_kinds import TOKENIZER_KINDS, BinningConfig, BSplineConfig, FastConfig, FsqConfig
+from carp.config.tokenizer_kinds import (
+    TOKENIZER_KINDS,
+    BinningConfig,
+    BSplineConfig,
+    FastConfig,
+    FsqConfig,
+    JointMsvqConfig,
+)
 from carp.tokenizer.kinds.registry import build_tokenizer, kind_class, kind_names, load_tokenizer
 from tests.tokenizer.kinds.conftest import A, H
 
@@ -21,7 +28,7 @@ def test_every_kind_is_a_class_named_after_it():
 
 def test_an_unknown_kind_is_refused_naming_the_known_ones():
     with pytest.raises(
-        KeyError, match=r"unknown tokenizer kind 'vq' \(known: carp_msvq, binning, fast, bspline, fsq\)"
+        KeyError, match=r"unknown tokenizer kind 'vq' \(known: carp_msvq, binning, fast, bspline, fsq, joint_msvq\)"
     ):
         kind_class("vq")
 
@@ -30,7 +37,7 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
     with pytest.raises(ConfigError) as raised:
         TokenizerConfig(kind="vq")
     message = str(raised.value)
-    assert message == "tokenizer.kind='vq': must be one of carp_msvq, binning, fast, bspline, fsq"
+    assert message == "tokenizer.kind='vq': must be one of carp_msvq, binning, fast, bspline, fsq, joint_msvq"
     assert "\n" not in message
 
 
@@ -46,6 +53,8 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
         (lambda: BSplineConfig(control_points=3), r"tokenizer.bspline.control_points=3: must be an integer >= degree"),
         (lambda: FsqConfig(levels=(8, 1)), r"tokenizer.fsq.levels=\[8, 1\]: must be a non-empty list of integers >= 2"),
         (lambda: FsqConfig(downsampling=3), r"tokenizer.fsq.downsampling=3: must be a power of two"),
+        (lambda: JointMsvqConfig(scales=(2, 1)), r"tokenizer.joint_msvq.scales=\[2, 1\]: must be strictly increasing"),
+        (lambda: JointMsvqConfig(downsampling=1), r"tokenizer.joint_msvq.downsampling=1: must be a power of two >= 2"),
     ],
 )
 def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message):
@@ -53,7 +62,7 @@ def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message
         section()
 
 
-@pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq"])
+@pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq", "joint_msvq"])
 def test_each_kind_builds_from_its_default_section(kind):
     tokenizer = build_tokenizer(kind, getattr(TokenizerConfig(), kind), A, H)
     assert (tokenizer.kind, tokenizer.action_dim, tokenizer.action_horizon) == (kind, A, H)

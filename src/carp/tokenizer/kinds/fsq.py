@@ -29,6 +29,7 @@ from carp.tokenizer.kinds.base import (
     write_kind_file,
 )
 from carp.tokenizer.kinds.bins import repaired_ids
+from carp.tokenizer.kinds.joint_network import fit_by_adam, temporal_convolutions
 from carp.training.checkpoint import read_checkpoint
 
 KIND = "fsq"
@@ -71,17 +72,6 @@ class FiniteScalarQuantizer(nn.Module):
         return (digits - self.middle).float() / self.middle
 
 
-def _convolutions(
-    in_channels: int, hidden_channels: int, out_channels: int, halvings: int, transposed: bool
-) -> nn.Sequential:
-    resample = nn.ConvTranspose1d if transposed else nn.Conv1d
-    layers: list[nn.Module] = [nn.Conv1d(in_channels, hidden_channels, 3, padding=1), nn.GELU()]
-    for _ in range(halvings):
-        layers += [resample(hidden_channels, hidden_channels, 4, stride=2, padding=1), nn.GELU()]
-    layers.append(nn.Conv1d(hidden_channels, out_channels, 3, padding=1))
-    return nn.Sequential(*layers)
-
-
 class FsqAutoencoder(nn.Module):
     """Encoder, FSQ and decoder over all A dimensions jointly.
 
@@ -95,9 +85,9 @@ class FsqAutoencoder(nn.Module):
     def __init__(self, action_dim: int, levels: tuple[int, ...], downsampling: int, hidden_channels: int) -> None:
         super().__init__()
         halvings = int(math.log2(downsampling))
-        self.encoder = _convolutions(action_dim, hidden_channels, len(levels), halvings, transposed=False)
+        self.encoder = temporal_convolutions(action_dim, hidden_channels, len(levels), halvings, transposed=False)
         self.quantizer = FiniteScalarQuantizer(levels)
-        self.decoder = _convolutions(len(levels), hidden_channels, action_dim, halvings, transposed=True)
+        self.decoder = temporal_convolutions(len(levels), hidden_channels, action_dim, halvings, transposed=True)
 
     def encode(self, chunks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Quantized latent (B, L, d) and token ids (B, L) of chunks (B, H, A)."""
@@ -182,18 +172,21 @@ class FsqTokenizer:
     def fit(self, windows: torch.Tensor) -> None:
         """Train the autoencoder on windows (N, H, A) to minimize the reconstruction MSE."""
         check_chunks(windows, self.action_horizon, self.action_dim)
-        windows = windows.float()
-        generator = torch.Generator().manual_seed(self.settings["seed"])
-        optimizer = torch.optim.Adam(self.module.parameters(), lr=self.settings["learning_rate"])
-        self.module.train()
-        for _ in range(self.settings["steps"]):
-            batch = windows[torch.randint(len(windows), (self.settings["batch_size"],), generator=generator)]
-            quantized, _ = self.module.encode(batch)
-            loss = F.mse_loss(self.module.decode(quantized), batch)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-        self.module.eval()
+        module = self.module
+
+        def loss_of_batch(batch: torch.Tensor) -> torch.Tensor:
+            return F.mse_loss(module.decode(module.encode(batch)[0]), batch)
+
+        settings = self.settings
+        fit_by_adam(
+            module,
+            windows.float(),
+            loss_of_batch,
+            settings["steps"],
+            settings["batch_size"],
+            settings["learning_rate"],
+            settings["seed"],
+        )
 
     def encode(self, chunks: torch.Tensor) -> TokenBatch:
         """(B, L) token ids of chunks (B, H, A)."""

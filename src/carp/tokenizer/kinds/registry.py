@@ -18,6 +18,7 @@ KIND_MODULES = {
     "fast": "carp.tokenizer.kinds.fast:FastTokenizer",
     "bspline": "carp.tokenizer.kinds.bspline:BSplineTokenizer",
     "fsq": "carp.tokenizer.kinds.fsq:FsqTokenizer",
+    "joint_msvq": "carp.tokenizer.kinds.joint_msvq:JointMsvqTokenizer",
 }
 """Kind name -> `module:attribute` of its tokenizer class."""
 
