@@ -4,6 +4,7 @@ Speeds are not asserted here (they depend on the machine; docs/benchmarks.md sta
 is that the scripts still run against the current library, print every row, and refuse bad arguments with one line.
 """
 
+import math
 import os
 import re
 import subprocess
@@ -317,3 +318,29 @@ def test_serving_soak_refuses_a_settling_time_longer_than_the_run_in_one_line():
     completed = run_benchmark("serving_soak.py", "--tiny", "--minutes", "0.5", "--settle-s", "60")
     assert completed.returncode == 1
     assert completed.stderr.strip().splitlines() == ["error: --settle-s must be shorter than the run (--minutes)"]
+
+
+def test_tokenizer_kinds_prints_a_row_per_setting_with_bits_equal_to_tokens_times_log2_v(synthetic_file, tmp_path):
+    from carp.data.ingest import ingest_demonstrations
+    from tests.conftest import OBS_KEYS
+
+    ingest_demonstrations(synthetic_file, tmp_path / "data" / "processed" / "lift", OBS_KEYS, valid_fraction=0.25)
+    completed = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "benchmarks" / "tokenizer_kinds.py"), "--task", "lift"]
+        + ["--kinds", "binning", "bspline", "--params", str(REPO_ROOT / "params.yaml")],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert completed.returncode == 0, completed.stderr[-2000:]
+    rows = [line.split("|")[1:-1] for line in completed.stdout.splitlines() if line.startswith("| binning |")]
+    rows += [line.split("|")[1:-1] for line in completed.stdout.splitlines() if line.startswith("| bspline |")]
+    assert [row[1].strip() for row in rows] == [f"bins={n}" for n in (16, 32, 64, 128, 256)] + [
+        f"control_points={k}" for k in (4, 6, 8, 12, 16)
+    ]
+    for row in rows:
+        vocabulary, tokens, bits = int(row[2]), float(row[3].split(",")[0]), float(row[4])
+        assert bits == pytest.approx(tokens * math.log2(vocabulary), abs=0.5)
+    errors = [float(row[6]) for row in rows[:5]]
+    assert errors == sorted(errors, reverse=True)  # more bins, less error
