@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
+from carp.evaluation.runner import deploy
 from carp.policies.context import PolicyContext
 from carp.policies.registry import build_policy, family_names, get_family, load_policy
 from carp.tokenizer.artifact import TokenizerArtifact
@@ -98,7 +99,7 @@ def configurations(tiny: bool, directory: Path) -> list[tuple[str, str, object]]
             for backend in ("onnxruntime", "torch"):
                 policy = load_policy(checkpoint)
                 policy.configure_inference(**settings)
-                deployment = policy.deployment(checkpoint, backend, Path(directory) / f"{name}-{len(rows)}")
+                deployment = deploy(policy, checkpoint, backend, Path(directory) / f"{name}-{len(rows)}")
                 if backend == "torch" or deployment.backend != "torch":
                     deployed = deployment.load()
                     deployed.configure_inference(**settings)
