@@ -31,6 +31,15 @@ def test_params_choose_the_inference_settings_but_not_the_recorded_spec(checkpoi
     assert spec == SPEC and model.inference == {"top_k": 3} and model.policy.top_k == 3
 
 
+def test_a_recorded_control_rate_serves_a_task_the_registry_does_not_know(tmp_path):
+    # A task without a simulator is known only from its dataset: its checkpoint records the rate it is paced at.
+    offline = save_tiny_checkpoint(
+        tmp_path / "offline.pt", task="my_robot", serving=PROTOCOL | {"control_frequency_hz": 10}
+    )
+    _, spec = load_served_model(offline)
+    assert spec.control_period_s == pytest.approx(0.1) and spec.obs_keys == SPEC.obs_keys
+
+
 def test_a_checkpoint_without_the_protocol_needs_the_params_it_was_trained_with(tmp_path):
     old = save_tiny_checkpoint(tmp_path / "old.pt", serving=None)
     with pytest.raises(ServingStartError, match="does not record its serving protocol.*pass --params"):

@@ -213,6 +213,7 @@ def test_an_image_policy_trains_on_the_buffers_camera_windows(image_task, tmp_pa
         [3, 4, 2],
     )
     assert (protocol["cameras"], protocol["image_size"]) == (list(IMAGE_ENCODER.cameras), 40)
+    assert protocol["control_frequency_hz"] == 20  # Lift's, from the buffer's env_args
 
 
 def test_an_image_policy_refuses_a_buffer_of_other_cameras(image_task):

@@ -27,7 +27,9 @@ class ProtocolError(ValueError):
     """A checkpoint's recorded protocol is missing, of another format or inconsistent with its policy."""
 
 
-def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None) -> dict[str, Any]:
+def training_protocol(
+    data, buffer_attrs: Mapping[str, Any], image_encoder=None, control_frequency_hz: int | None = None
+) -> dict[str, Any]:
     """The protocol of a policy trained with `data` on the replay buffer whose attributes are `buffer_attrs`.
 
     Args:
@@ -36,6 +38,9 @@ def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None)
             the low-dim keys concatenated into the policy's `Do` features and each key's width.
         image_encoder: the camera encoder of an image policy (`carp.config.ImageEncoderConfig`: its cameras and
             image size are the images the policy sees); None for a state policy.
+        control_frequency_hz: control steps per second of the task the buffer holds, recorded so that a server
+            needs no task registry to pace a robot (a task without a simulator is known only from its dataset);
+            None leaves it to the server's task registry.
 
     Raises:
         ProtocolError: the attributes lack the keys or widths (a buffer ingested before they were recorded); the
@@ -57,6 +62,7 @@ def training_protocol(data, buffer_attrs: Mapping[str, Any], image_encoder=None)
         "action_steps": data.action_steps,
         "cameras": [] if image_encoder is None else list(image_encoder.cameras),
         "image_size": None if image_encoder is None else image_encoder.image_size,
+        **({} if control_frequency_hz is None else {"control_frequency_hz": int(control_frequency_hz)}),
     }
 
 

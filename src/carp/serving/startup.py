@@ -142,7 +142,8 @@ def recorded_spec(policy: Policy, task: str) -> ServingSpec | None:
         # One protocol serves every task of a multi-task policy; the served task's key widths are its own.
         protocol = {**protocol, "obs_widths": list(padding.widths)}
     obs_dim, action_dim = _policy_dims(policy)
-    return spec_from_protocol(protocol, obs_dim, action_dim, 1.0 / get_task(task).control_frequency_hz)
+    frequency = protocol.get("control_frequency_hz") or get_task(task).control_frequency_hz
+    return spec_from_protocol(protocol, obs_dim, action_dim, 1.0 / frequency)
 
 
 def default_inference(family: str, task: str) -> dict:

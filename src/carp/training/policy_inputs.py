@@ -28,6 +28,7 @@ from carp.policies.base import Policy
 from carp.policies.context import PolicyContext
 from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
 from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
+from carp.tasks import task_for_env_args
 from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import PolicyTrainingData
@@ -108,7 +109,9 @@ class TaskPolicyInputs:
                 "tokenizer": asdict(self.reference),
                 "mlflow_run_id": tracking_run_id,
                 # What a robot sends and executes, so that `carp serve` needs only the checkpoint.
-                SERVING_METADATA_KEY: training_protocol(data, windows.buffer.attrs, self.image_encoder),
+                SERVING_METADATA_KEY: training_protocol(
+                    data, windows.buffer.attrs, self.image_encoder, _control_frequency(windows.buffer.attrs)
+                ),
             },
             image_encoder=self.image_encoder,
         )
@@ -189,7 +192,9 @@ class MultiTaskPolicyInputs:
                 "mlflow_run_id": tracking_run_id,
                 # The tasks' observation keys agree (checked when their windows were loaded), so one protocol serves
                 # every task; `carp serve --task` picks the task, whose own key widths the policy's tasks record.
-                SERVING_METADATA_KEY: training_protocol(data, first.buffer.attrs),
+                SERVING_METADATA_KEY: training_protocol(
+                    data, first.buffer.attrs, control_frequency_hz=_control_frequency(first.buffer.attrs)
+                ),
             },
         )
         return train_data, context
@@ -209,6 +214,12 @@ class MultiTaskPolicyInputs:
             errors |= {f"{task}/{name}": value for name, value in task_errors.items()}
         policy.select_task(self.tasks[0])
         return errors
+
+
+def _control_frequency(buffer_attrs) -> int | None:
+    """Control steps per second of the task whose demos the buffer holds (its ``env_args``); None without them."""
+    env_args = buffer_attrs.get("env_args")
+    return None if env_args is None else task_for_env_args(env_args).control_frequency_hz
 
 
 @dataclass(frozen=True)
