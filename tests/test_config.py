@@ -190,6 +190,8 @@ def test_defaults_follow_the_design():
         ({"comparison": {"alpha": 0.5}}, "comparison.alpha=0.5: must lie in (0, 0.5)"),
         ({"comparison": {"references": ["a", "a"]}}, "comparison.references=['a', 'a']: must name each once"),
         ({"comparison": {"references": [""]}}, "comparison.references=['']: must be non-empty paths"),
+        ({"serving": {"max_batch": 0}}, "serving.max_batch=0: must be an integer >= 1"),
+        ({"serving": {"prediction_threads": -1}}, "serving.prediction_threads=-1: must be an integer >= 0"),
         ({"data": [1, 2]}, "data: expected a mapping"),
         ({"data": {"observations": "depth"}}, "data.observations='depth': must be one of ('state', 'image')"),
         ({"data": {"cameras": []}}, "data.cameras=[]: must name at least one camera"),

@@ -30,6 +30,7 @@ def test_every_field_of_every_config_section_is_documented():
         "sweep.",
         "comparison.",
         "study.",
+        "serving.",
         "image_encoder.",
         "carp.",
         "inference.carp.",

@@ -17,6 +17,10 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from carp.config.serving import ServingConfig
 
 TOKEN_VARIABLE = "CARP_SERVE_TOKEN"
 TRACKING_VARIABLE = "MLFLOW_TRACKING_URI"
@@ -25,7 +29,7 @@ DEFAULT_RELOAD_INTERVAL_S = 30.0
 
 
 def _parser() -> argparse.ArgumentParser:
-    from carp.serving.server import DEFAULT_HOST, DEFAULT_MAX_BATCH_SIZE, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
+    from carp.serving.server import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
 
     parser = argparse.ArgumentParser(prog="carp", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -69,21 +73,23 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument(
         "--max-batch",
         type=int,
-        default=DEFAULT_MAX_BATCH_SIZE,
-        help="most requests of a greedy PyTorch policy in one prediction call (default 1: off; a batched chunk may "
-        "differ from the one predicted alone where a token choice is a near tie)",
+        default=None,
+        help="most requests of a greedy PyTorch policy in one prediction call (default: serving.max_batch of --params, "
+        "else 1: off; a batched chunk may differ from the one predicted alone where a token choice is a near tie)",
     )
     serve.add_argument(
         "--batch-window-ms",
         type=float,
-        default=0.0,
-        help="milliseconds a request waits for others to share its PyTorch call (0: none; 0 to 1000)",
+        default=None,
+        help="milliseconds a request waits for others to share its PyTorch call (default: serving.batch_window_ms "
+        "of --params, else 0: none; 0 to 1000)",
     )
     serve.add_argument(
         "--prediction-threads",
         type=int,
-        default=0,
-        help="ONNX Runtime calls run at once, one request each (default 0: one per CPU core)",
+        default=None,
+        help="ONNX Runtime calls run at once, one request each (default: serving.prediction_threads of --params, "
+        "else 0: one per CPU core)",
     )
     serve.add_argument(
         "--backend",
@@ -170,24 +176,41 @@ def main(argv: list[str] | None = None) -> None:
         from carp.serving.startup import serve_checkpoint
 
         interval = args.reload_interval if args.reload_interval > 0 else None
+        params = load_params(args.params) if args.params is not None else None
+        prediction = _prediction_settings(args, None if params is None else params.serving)
         settings = ServerSettings(
             args.host,
             args.port,
             _token(args),
             args.max_request_bytes,
-            args.max_batch,
+            prediction.max_batch,
             reload_interval_s=interval,
-            batch_window_s=args.batch_window_ms / 1e3,
-            prediction_threads=args.prediction_threads,
+            batch_window_s=prediction.batch_window_ms / 1e3,
+            prediction_threads=prediction.prediction_threads,
             tls_certificate=args.tls_cert,
             tls_key=args.tls_key,
             allow_no_token=args.allow_no_token,
         )
-        params = load_params(args.params) if args.params is not None else None
         serve_checkpoint(args.model, params, settings, tracking_uri, args.backend, args.task)
     except (ServingStartError, ConfigError, OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         sys.exit(1)
+
+
+def _prediction_settings(args: argparse.Namespace, section: "ServingConfig | None") -> "ServingConfig":
+    """The prediction settings, checked as the params section is (a `ConfigError` names the key).
+
+    Each flag given on the command line wins, else the params' `serving` section, else its defaults.
+    """
+    from carp.config.serving import ServingConfig
+
+    base = section if section is not None else ServingConfig()
+    flags = {
+        "max_batch": args.max_batch,
+        "batch_window_ms": args.batch_window_ms,
+        "prediction_threads": args.prediction_threads,
+    }
+    return ServingConfig(**{name: getattr(base, name) if value is None else value for name, value in flags.items()})
 
 
 def _export_lerobot(source: Path, output: Path) -> None:

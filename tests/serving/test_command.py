@@ -70,13 +70,26 @@ def test_the_token_comes_from_a_file_or_the_environment_and_the_flag_warns(
     assert any("visible to every local user in the process list" in record.getMessage() for record in caplog.records)
 
 
+def test_prediction_settings_come_from_a_flag_else_the_params_serving_section(tmp_path, served_settings):
+    from carp import cli
+
+    model = str(save_tiny_checkpoint(tmp_path / "policy.pt"))
+    params = tmp_path / "params.yaml"
+    params.write_text("serving: {max_batch: 4, batch_window_ms: 20, prediction_threads: 3}\n")
+    cli.main(["serve", "--model", model, "--backend", "torch"])
+    cli.main(["serve", "--model", model, "--backend", "torch", "--params", str(params)])
+    cli.main(["serve", "--model", model, "--backend", "torch", "--params", str(params), "--max-batch", "2"])
+    chosen = [(s.max_batch_size, s.batch_window_s, s.prediction_threads) for s in served_settings]
+    assert chosen == [(1, 0.0, 0), (4, 0.02, 3), (2, 0.02, 3)]
+
+
 @pytest.mark.parametrize(
     "arguments, message",
     [
         (["--host", "0.0.0.0"], "error: host '0.0.0.0' is reachable from other machines: set a token"),
         (["--tls-cert", "missing.pem"], "error: tls: missing.pem: no such file"),
         (["--token-file", "missing-token"], "error: missing-token: no such token file"),
-        (["--batch-window-ms", "5000"], "error: batch_window_s must be between 0 and 1 second, got 5.0"),
+        (["--batch-window-ms", "5000"], "error: serving.batch_window_ms=5000.0: must be between 0 and 1000"),
     ],
 )
 def test_unsafe_or_broken_serving_settings_print_one_error_line(tmp_path, served_settings, capsys, arguments, message):

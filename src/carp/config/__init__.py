@@ -38,6 +38,7 @@ from carp.config.image_encoder import (
 )
 from carp.config.loading import flatten_params, load_params, params_from_dict, params_to_dict
 from carp.config.params import FAMILY_SECTIONS, Params
+from carp.config.serving import ServingConfig
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.training import TrainingConfig
 from carp.policies.sections import family_sections
@@ -47,6 +48,7 @@ __all__ = [
     "CHANNELS_PER_GROUP",
     "CONTROLLERS",
     "ComparisonConfig",
+    "ServingConfig",
     "ConfigError",
     "DataConfig",
     "EVAL_BACKENDS",

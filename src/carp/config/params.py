@@ -8,6 +8,7 @@ from carp.config.data import DataConfig
 from carp.config.evaluation import EvalConfig
 from carp.config.experiments import ComparisonConfig, StudyConfig, SweepConfig, TrackingConfig
 from carp.config.image_encoder import ImageEncoderConfig
+from carp.config.serving import ServingConfig
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.training import TrainingConfig
 from carp.policies.sections import family_sections, teacher_of
@@ -69,6 +70,7 @@ class Params:
         sweep: The Optuna sweep.
         comparison: The report's comparison of families: equivalence margin and significance level.
         study: The paper's studies run as DVC experiments (``make study``).
+        serving: How ``carp serve --params`` predicts for several robots.
         image_encoder: The camera encoder every family puts in front of its network with ``data.observations:
             image``; its cameras and image size are ``data.cameras`` and ``data.image_size``, which the section
             must not restate otherwise.
@@ -94,6 +96,7 @@ class Params:
     sweep: SweepConfig = field(default_factory=SweepConfig)
     comparison: ComparisonConfig = field(default_factory=ComparisonConfig)
     study: StudyConfig = field(default_factory=StudyConfig)
+    serving: ServingConfig = field(default_factory=ServingConfig)
     image_encoder: ImageEncoderConfig = field(default_factory=ImageEncoderConfig)
     families: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
     inference: dict[str, Any] = field(default_factory=dict, metadata={FAMILY_SECTIONS: True})
