@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from carp.config import ConfigError, TokenizerConfig
+from carp.config.tokenizer_kinds import FastConfig, FsqConfig
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import reconstruction_metrics
 from carp.tokenizer.spec import TokenizerSpec
@@ -11,6 +12,7 @@ from carp.tokenizer.synthetic import min_max_bounds, sliding_windows, synthetic_
 from carp.training.checkpoint import read_training_state
 from carp.training.tokenizer_trainer import (
     CHECKPOINT_NAME,
+    _run_metadata,
     augment_windows,
     train_tokenizer,
 )
@@ -255,3 +257,12 @@ def test_default_settings_meet_the_quality_bar_on_synthetic_demos(tmp_path):
     metrics = reconstruction_metrics(tokenizer, normalize(valid_raw), (high - low) / 2)
     assert metrics["rmse_percent_range/mean"] <= 2.0
     assert metrics["usage/all_scales/mean"] > 0.2
+
+
+def test_the_other_kinds_settings_leave_a_resumable_state_resumable():
+    windows = torch.zeros(4, 8, 2)
+    default = _run_metadata(TINY_SPEC, TokenizerConfig(), windows)
+    other = TokenizerConfig(fast=FastConfig(scale=3.0), fsq=FsqConfig(steps=7))
+    assert _run_metadata(TINY_SPEC, other, windows) == default
+    assert "kind" not in default["settings"] and "fast" not in default["settings"]
+    assert _run_metadata(TINY_SPEC, TokenizerConfig(epochs=3), windows) != default
