@@ -23,7 +23,7 @@ from carp.tokenizer.kinds.base import (
 )
 from carp.tokenizer.kinds.bins import repaired_ids
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
-from carp.training.checkpoint import read_checkpoint
+from carp.training.checkpoint import atomic_torch_save, read_checkpoint
 
 KIND = "carp_msvq"
 WEIGHTS_FILENAME = "weights.pt"
@@ -79,7 +79,7 @@ class CarpMsvqTokenizer:
     def save(self, directory: Path) -> None:
         """Write ``kind.json`` and ``weights.pt``, the module's `MultiScaleActionTokenizer.to_checkpoint`."""
         write_kind_file(directory, KIND, {"spec": self.module.spec.to_dict()})
-        torch.save(self.module.to_checkpoint(), Path(directory) / WEIGHTS_FILENAME)
+        atomic_torch_save(self.module.to_checkpoint(), Path(directory) / WEIGHTS_FILENAME)
 
     @classmethod
     def load(cls, directory: Path) -> "CarpMsvqTokenizer":

@@ -25,15 +25,11 @@ from carp.tokenizer.kinds.base import (
     TokenBatch,
     TokensPerChunk,
     check_chunks,
-    expect_kind,
-    write_kind_file,
 )
 from carp.tokenizer.kinds.bins import repaired_ids
-from carp.tokenizer.kinds.joint_network import fit_by_adam, temporal_convolutions
-from carp.training.checkpoint import read_checkpoint
+from carp.tokenizer.kinds.joint_network import fit_by_adam, load_network, save_network, temporal_convolutions
 
 KIND = "fsq"
-WEIGHTS_FILENAME = "weights.pt"
 
 
 class FiniteScalarQuantizer(nn.Module):
@@ -202,16 +198,10 @@ class FsqTokenizer:
 
     def save(self, directory: Path) -> None:
         """Write ``kind.json`` and the weights ``weights.pt``."""
-        write_kind_file(
-            directory, KIND, {"action_dim": self.action_dim, "action_horizon": self.action_horizon, **self.settings}
-        )
-        torch.save(self.module.state_dict(), Path(directory) / WEIGHTS_FILENAME)
+        settings = {"action_dim": self.action_dim, "action_horizon": self.action_horizon, **self.settings}
+        save_network(directory, KIND, settings, self.module)
 
     @classmethod
     def load(cls, directory: Path) -> "FsqTokenizer":
         """Read a folder written by :meth:`save`, loading the weights strictly."""
-        settings = expect_kind(directory, KIND)
-        settings["levels"] = tuple(settings["levels"])
-        tokenizer = cls(**settings)
-        tokenizer.module.load_state_dict(read_checkpoint(Path(directory) / WEIGHTS_FILENAME, weights_only=True))
-        return tokenizer
+        return load_network(directory, KIND, lambda settings: cls(**settings), ("levels",))

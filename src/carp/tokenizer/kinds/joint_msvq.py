@@ -25,18 +25,14 @@ from carp.tokenizer.kinds.base import (
     TokenBatch,
     TokensPerChunk,
     check_chunks,
-    expect_kind,
-    write_kind_file,
 )
 from carp.tokenizer.kinds.bins import repaired_ids
-from carp.tokenizer.kinds.joint_network import fit_by_adam, temporal_convolutions
+from carp.tokenizer.kinds.joint_network import fit_by_adam, load_network, save_network, temporal_convolutions
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.quantizer import MultiScaleQuantizer
 from carp.tokenizer.spec import TokenizerSpec
-from carp.training.checkpoint import read_checkpoint
 
 KIND = "joint_msvq"
-WEIGHTS_FILENAME = "weights.pt"
 RESTART_INTERVALS = 10
 """Code restarts happen every ``steps / RESTART_INTERVALS`` steps, within the first quarter of training."""
 
@@ -227,16 +223,10 @@ class JointMsvqTokenizer:
 
     def save(self, directory: Path) -> None:
         """Write ``kind.json`` and the weights ``weights.pt``."""
-        write_kind_file(
-            directory, KIND, {"action_dim": self.action_dim, "action_horizon": self.action_horizon, **self.settings}
-        )
-        torch.save(self.module.state_dict(), Path(directory) / WEIGHTS_FILENAME)
+        settings = {"action_dim": self.action_dim, "action_horizon": self.action_horizon, **self.settings}
+        save_network(directory, KIND, settings, self.module)
 
     @classmethod
     def load(cls, directory: Path) -> "JointMsvqTokenizer":
         """Read a folder written by :meth:`save`, loading the weights strictly."""
-        settings = expect_kind(directory, KIND)
-        settings["scales"] = tuple(settings["scales"])
-        tokenizer = cls(**settings)
-        tokenizer.module.load_state_dict(read_checkpoint(Path(directory) / WEIGHTS_FILENAME, weights_only=True))
-        return tokenizer
+        return load_network(directory, KIND, lambda settings: cls(**settings), ("scales",))

@@ -6,9 +6,14 @@ transposed convolutions), and fit it the same way: Adam on the reconstruction lo
 """
 
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
+
+from carp.tokenizer.kinds.base import expect_kind, write_kind_file
+from carp.training.checkpoint import atomic_torch_save, read_checkpoint
 
 
 def temporal_convolutions(
@@ -50,3 +55,26 @@ def fit_by_adam(
         if after_step is not None:
             after_step(step)
     module.eval()
+
+
+WEIGHTS_FILENAME = "weights.pt"
+"""The network's weights beside ``kind.json`` in a trained kind's folder."""
+
+
+def save_network(directory: Path, kind: str, settings: dict, module: nn.Module) -> None:
+    """Write a trained kind's ``kind.json`` (its `settings`) and its network's weights, each atomically."""
+    write_kind_file(directory, kind, settings)
+    atomic_torch_save(module.state_dict(), Path(directory) / WEIGHTS_FILENAME)
+
+
+def load_network(directory: Path, kind: str, build: Callable[[dict], Any], tuple_fields: tuple[str, ...]) -> Any:
+    """The tokenizer `build` makes from the folder's settings (`tuple_fields` back to tuples), weights loaded strictly.
+
+    `build(settings)` returns a tokenizer whose `module` holds the network.
+    """
+    settings = expect_kind(directory, kind)
+    for name in tuple_fields:
+        settings[name] = tuple(settings[name])
+    tokenizer = build(settings)
+    tokenizer.module.load_state_dict(read_checkpoint(Path(directory) / WEIGHTS_FILENAME, weights_only=True))
+    return tokenizer
