@@ -59,7 +59,7 @@ class CarpMsvqTokenizer:
 
     def fit(self, windows: torch.Tensor) -> None:
         """Refuse: the multi-scale VQ-VAE trains in `carp.training.tokenizer_trainer` (``train_tokenizer``)."""
-        raise NotImplementedError(
+        raise RuntimeError(
             "carp_msvq trains with carp.training.tokenizer_trainer.train_tokenizer; wrap the trained module"
         )
 
