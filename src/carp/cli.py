@@ -29,7 +29,7 @@ DEFAULT_RELOAD_INTERVAL_S = 30.0
 
 
 def _parser() -> argparse.ArgumentParser:
-    from carp.serving.server import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
+    from carp.serving.settings import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT
 
     parser = argparse.ArgumentParser(prog="carp", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> None:
             reference = register_policy_checkpoint(tracking_uri, args.model, args.alias)
             print(f"{reference.uri} = version {reference.version} (sha256 {reference.sha256[:12]})")
             return
-        from carp.serving.server import ServerSettings
+        from carp.serving.settings import ServerSettings
         from carp.serving.startup import serve_checkpoint
 
         interval = args.reload_interval if args.reload_interval > 0 else None

@@ -11,7 +11,7 @@ from carp_client import PolicyClient, ServerError
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from carp.serving.server import DEFAULT_HOST, ServerSettings
+from carp.serving.settings import DEFAULT_HOST, ServerSettings
 from carp.serving.wire import decode, encode
 from tests.serving.conftest import (
     MAX_REQUEST_BYTES,
