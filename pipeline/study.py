@@ -8,18 +8,32 @@ The report adds the families of the study folders in `study.references` (the sam
 
 scales, codebook: one experiment per point of `study.scale_schedules` (`dvc exp run -n scales-K<k> -S scales=[...]`)
 or `study.codebook_sizes` (`-n codebook-V<v> -S codebook_size=<v>`), each point's evaluations and tokenizer metrics
-copied into reports/studies/<study>/<point>/, each point compared with the workspace's own setting. Finished points
+copied into reports/studies/<study>/<point>/ with the point's tokenizer, the first `study.replay_demos` demos of each
+task replayed open loop through that tokenizer, each point compared with the workspace's own setting. Finished points
 are not run again; `--report-only` writes the report from the points that exist (this folder's and the references').
 """
 
 import argparse
+import os
 import subprocess
 import sys
 
-from stage_support import EVAL_REPORT_DIR, PROJECT_DIR, REPORTS_DIR, TOKENIZER_REPORT_DIR, fail, load, setup_logging
+from stage_support import (
+    EVAL_REPORT_DIR,
+    PROCESSED_DIR,
+    PROJECT_DIR,
+    RAW_DIR,
+    REPORTS_DIR,
+    TOKENIZER_DIR,
+    TOKENIZER_REPORT_DIR,
+    fail,
+    load,
+    setup_logging,
+)
 
 from carp.studies import setting_study
 from carp.studies.data_efficiency import StudyLayout, add_referenced_studies, run_study, write_study_report
+from carp.studies.point_replay import ReplaySetup, replay_point
 from carp.tasks.base import ROLLOUTS
 
 STUDIES = ("data_efficiency", "scales", "codebook")
@@ -85,10 +99,27 @@ def run_setting_study(name, params, params_file, layout, output_dir, references,
             fail(f"{params_file}: codebook_size={params.codebook_size}: must be one of study.codebook_sizes")
     if not args.report_only:
         marker = {"tasks": list(layout.tasks), "policies": list(layout.policies), "seeds": list(layout.seeds)}
+        data = params.data
+        replay = ReplaySetup(
+            RAW_DIR,
+            PROCESSED_DIR,
+            data.obs_steps,
+            data.action_steps,
+            data.action_horizon,
+            params.study.replay_demos,
+            params.eval.workers or os.cpu_count() or 1,
+        )
         original = params_file.read_text()
         try:
             setting_study.run_points(
-                study, marker, EVAL_REPORT_DIR, TOKENIZER_REPORT_DIR / "metrics.json", output_dir, run_experiment
+                study,
+                marker,
+                EVAL_REPORT_DIR,
+                TOKENIZER_REPORT_DIR / "metrics.json",
+                output_dir,
+                run_experiment,
+                TOKENIZER_DIR,
+                lambda point_dir: replay_point(point_dir, layout.tasks, replay),
             )
         except FileNotFoundError as error:
             fail(str(error))

@@ -123,3 +123,31 @@ def test_a_study_split_over_folders_is_reported_as_one_and_one_seed_decides_noth
 def test_a_reference_outside_the_points_is_refused():
     with pytest.raises(ValueError, match="reference"):
         codebook_study((64, 256), 512)
+
+
+def test_each_point_keeps_its_tokenizer_and_its_replay_shows_in_the_report(tmp_path):
+    study = scales_study(SCHEDULES[2:4], (1, 2, 3, 4))
+    output, tokenizer = tmp_path / "study", tmp_path / "models/tokenizer"
+    fake = FakeExperiments(tmp_path / "eval", tmp_path / "tokenizer/metrics.json")
+    replayed = []
+
+    def experiment(name, overrides):  # each experiment leaves its own tokenizer in the workspace
+        fake(name, overrides)
+        tokenizer.mkdir(parents=True, exist_ok=True)
+        (tokenizer / "tokenizer.json").write_text(json.dumps({"scales": overrides[0]}))
+
+    def replay(point_dir):  # stands in for `point_replay.replay_point`: one demo fewer per missing scale
+        replayed.append(point_dir.name)
+        kept = json.loads((point_dir / "tokenizer" / "tokenizer.json").read_text())["scales"]
+        k = len(json.loads(kept.split("=", 1)[1]))
+        (point_dir / "replay.json").write_text(json.dumps({"square": {"successes": 46 + k, "demos": 50}}))
+
+    run_points(study, MARKER, tmp_path / "eval", tmp_path / "tokenizer/metrics.json", output, experiment, tokenizer,
+               replay)  # fmt: skip
+    assert json.loads((output / "K3/tokenizer/tokenizer.json").read_text()) == {"scales": "scales=[1,2,3]"}
+    # A finished study run again measures each point's replay again only through `replay` (which skips stored ones).
+    assert run_points(study, MARKER, tmp_path / "eval", tmp_path / "tokenizer/metrics.json", output, experiment,
+                      tokenizer, replay) == []  # fmt: skip
+    assert replayed == ["K3", "K4", "K3", "K4"]
+    table = study_sections(study, load_study(study, [output], ["square"]), 0.05, 0.05, tmp_path / "figures")[0]
+    assert table.tables[0]["demos replayed through the tokenizer"].tolist() == ["49/50", "50/50"]

@@ -27,6 +27,9 @@ class StudyConfig:
             whichever points a folder holds. A training seed of a family on a task may come from one place only.
             Paths relative to the project root, each at most once. Empty (the default): the study's own experiments
             only.
+        replay_demos: Demos of each task replayed open loop through each point's tokenizer by the scales and codebook
+            studies (the first this many of the task's demo file), so the report shows what each point's rate costs
+            in task success before any policy is trained; an integer >= 0, 0 replays none.
     """
 
     data_efficiency_sizes: tuple[int, ...] = (30, 60, 100, 200)
@@ -40,8 +43,10 @@ class StudyConfig:
     )
     codebook_sizes: tuple[int, ...] = (64, 256, 512, 1024)
     references: tuple[str, ...] = ()
+    replay_demos: int = 50
 
     def __post_init__(self) -> None:
+        _require(self.replay_demos >= 0, "study.replay_demos", self.replay_demos, "must be >= 0 (0 replays none)")
         sizes = list(self.data_efficiency_sizes)
         _require(
             len(sizes) >= 2 and sizes[0] >= 1 and all(a < b for a, b in zip(sizes, sizes[1:])),

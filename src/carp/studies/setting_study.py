@@ -2,10 +2,12 @@
 
 A point of the study is one DVC experiment of the whole pipeline with the setting changed (``-S scales=[1,2,3]`` or
 ``-S codebook_size=256``) and everything else as the workspace's params say. After each experiment its evaluation
-files and its tokenizer's metrics are copied into ``<output>/<point>/``; a point whose copy is complete is not run
+files, its tokenizer's metrics and the tokenizer itself are copied into ``<output>/<point>/``, and the demos are
+replayed open loop through that tokenizer (`carp.studies.point_replay`); a point whose copy is complete is not run
 again, so an interrupted study resumes, and folders of the same study run in other clones (``study.references``)
 join the report at every point. The report shows, per task, each family's success against the setting with its band
-over training seeds, the tokenizer's error, code usage and perplexity and the latency per chunk, and each point's
+over training seeds, the tokenizer's error, code usage and perplexity, its replay success and the latency per chunk,
+and each point's
 verdict against the reference point (the workspace's own setting), all points under one correction. The scales study
 also checks the paper's reading of Fig. 10: fewer than 4 scales tokenize too coarsely, and 5 or 6 add nothing.
 """
@@ -15,6 +17,7 @@ import os
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +35,7 @@ from carp.reporting.document import Section, write_sections
 from carp.reporting.figures import finish_figure  # noqa: E402
 from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, referenced_runs
 from carp.studies.data_efficiency import COMPLETE_MARKER, Evaluations  # noqa: E402
+from carp.studies.point_replay import TOKENIZER_FOLDER, read_replay, replay_cell
 
 TOKENIZER_METRICS = "tokenizer_metrics.json"
 EVAL_FOLDER = "eval"
@@ -86,9 +90,17 @@ def codebook_study(sizes: Sequence[int], reference: int) -> SettingStudy:
 
 
 def harvest_point(
-    eval_dir: Path, tokenizer_metrics: Path, point_dir: Path, layout_marker: Mapping[str, Any], value: Any
+    eval_dir: Path,
+    tokenizer_metrics: Path,
+    point_dir: Path,
+    layout_marker: Mapping[str, Any],
+    value: Any,
+    tokenizer_dir: Path | None = None,
 ) -> None:
-    """Copy one point's evaluations (every summary with its episodes) and tokenizer metrics, then mark it complete.
+    """Copy one point's evaluations (every summary with its episodes), tokenizer metrics and tokenizer, then mark it.
+
+    `tokenizer_dir` (the workspace's ``models/tokenizer``) is copied to ``<point>/tokenizer`` when it exists, so that
+    the point's replay can be measured, or measured again, from the point folder alone.
 
     The copy is made beside `point_dir` and renamed into place, so a point is either complete or absent.
 
@@ -110,6 +122,8 @@ def harvest_point(
     if not Path(tokenizer_metrics).exists():
         raise FileNotFoundError(f"{tokenizer_metrics}: the experiment of {value!r} left no tokenizer metrics")
     shutil.copyfile(tokenizer_metrics, staging / TOKENIZER_METRICS)
+    if tokenizer_dir is not None and Path(tokenizer_dir).is_dir():  # absent when the pipeline reused a tokenizer
+        shutil.copytree(tokenizer_dir, staging / TOKENIZER_FOLDER)
     marker = {"value": _plain(value), **layout_marker}
     (staging / COMPLETE_MARKER).write_text(json.dumps(marker, indent=2) + "\n")
     shutil.rmtree(point_dir, ignore_errors=True)
@@ -127,17 +141,19 @@ def is_complete(point_dir: Path, layout_marker: Mapping[str, Any], value: Any) -
 
 @dataclass(frozen=True)
 class StudyPoint:
-    """One point's evaluations (task -> family -> seed -> results) and its tokenizer's metrics."""
+    """One point's evaluations (task -> family -> seed -> results), its tokenizer's metrics and its replay figures."""
 
     evaluations: Evaluations
     tokenizer_metrics: Mapping[str, float]
+    replay: Mapping[str, Mapping[str, int]] = dataclass_field(default_factory=dict)
 
 
 def load_point(point_dir: Path, tasks: Sequence[str]) -> StudyPoint:
-    """A point folder's evaluations of `tasks` (whichever families and seeds it holds) and its tokenizer metrics."""
+    """A point folder's evaluations of `tasks` (whichever families and seeds it holds), tokenizer metrics and replay."""
     point_dir = Path(point_dir)
     evaluations = referenced_runs(point_dir / EVAL_FOLDER, tasks)
-    return StudyPoint(evaluations, json.loads((point_dir / TOKENIZER_METRICS).read_text()))
+    metrics = json.loads((point_dir / TOKENIZER_METRICS).read_text())
+    return StudyPoint(evaluations, metrics, read_replay(point_dir))
 
 
 def run_points(
@@ -147,6 +163,8 @@ def run_points(
     tokenizer_metrics: Path,
     output_dir: Path,
     run_experiment: Callable[[str, list[str]], None],
+    tokenizer_dir: Path | None = None,
+    replay: Callable[[Path], object] | None = None,
 ) -> list[Any]:
     """Run every point not yet complete as an experiment and copy what it produced; return the points run now.
 
@@ -157,15 +175,19 @@ def run_points(
         tokenizer_metrics: the workspace's ``reports/tokenizer/metrics.json``.
         output_dir: the study's folder; one sub-folder per point.
         run_experiment: runs the pipeline as a named experiment with `-S` overrides and raises when it fails.
+        tokenizer_dir: the workspace's tokenizer folder, copied into each point (see `harvest_point`).
+        replay: called with each complete point's folder, this run's and earlier ones' (it measures what is missing:
+            `carp.studies.point_replay.replay_point`).
     """
     ran = []
     for value in study.values:
         point_dir = Path(output_dir) / study.folder(value)
-        if is_complete(point_dir, layout_marker, value):
-            continue
-        run_experiment(f"{study.name}-{study.folder(value)}", study.overrides(value))
-        harvest_point(eval_dir, tokenizer_metrics, point_dir, layout_marker, value)
-        ran.append(value)
+        if not is_complete(point_dir, layout_marker, value):
+            run_experiment(f"{study.name}-{study.folder(value)}", study.overrides(value))
+            harvest_point(eval_dir, tokenizer_metrics, point_dir, layout_marker, value, tokenizer_dir)
+            ran.append(value)
+        if replay is not None:
+            replay(point_dir)
     return ran
 
 
@@ -204,6 +226,7 @@ def study_sections(
     values = [value for value in study.values if value in points]
     evaluations = {value: merged_evaluations(points[value]) for value in values}
     tokenizer = {value: points[value][0].tokenizer_metrics for value in values}
+    replays = {value: next((part.replay for part in points[value] if part.replay), {}) for value in values}
     tasks = sorted({task for by_task in evaluations.values() for task in by_task})
     pairs, where = [], []
     if study.reference in evaluations:
@@ -240,6 +263,7 @@ def study_sections(
                         "tokenizer error (% of range)": _metric(tokenizer[value], "rmse_percent_range/mean", "{:.2f}"),
                         "code usage": _metric(tokenizer[value], "usage/all_scales/mean", "{:.0%}"),
                         "perplexity": _metric(tokenizer[value], "perplexity/mean", "{:.0f}"),
+                        "demos replayed through the tokenizer": replay_cell(replays[value], task),
                         "latency per chunk (ms)": "-" if latency is None else f"{latency:.1f}",
                         f"against {study.label(study.reference)}": (
                             "reference" if value == study.reference else (comparison.verdict if comparison else "-")
@@ -252,7 +276,8 @@ def study_sections(
             f"compared with the same family at {study.label(study.reference)} on the episodes they share, the "
             f"training seed as the unit (at least {min_seeds} seeds a side), all pairs of the study under one "
             "correction. The tokenizer's figures are on its held-out windows; code usage is the share of the V codes "
-            "used over all scales.",
+            "used over all scales; the replay column counts demos that still succeed when every executed chunk "
+            "goes through the point's tokenizer open loop (nothing corrects an error once made).",
         ]
         paragraphs += [
             f"{comparison.verdict}: {comparison.explanation}"
