@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from carp.config import load_params
+from carp.config.tokenizer_kinds import kind_section
 from carp.data.dataset import load_task_windows
 from carp.evaluation.replay import replay_demonstrations
 from carp.tasks import get_task
@@ -74,7 +75,7 @@ def kind_tokenizers(kind: str, arguments, params, train: torch.Tensor, valid: to
         return
     knob, values = KNOBS[kind]
     for value in values:
-        section = dataclasses.replace(getattr(params.tokenizer, kind), **{knob: value})
+        section = dataclasses.replace(getattr(params, kind_section(kind)), **{knob: value})
         try:
             tokenizer = build_tokenizer(kind, section, action_dim, params.data.action_horizon)
             tokenizer.fit(train)

@@ -12,6 +12,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_a_kind_the_pipeline_does_not_train_is_refused_in_one_line(tmp_path):
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["tokenizer"]["kind"] = "fast"
+    params["policies"] = ["next_token"]
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params, sort_keys=False))
     result = subprocess.run(

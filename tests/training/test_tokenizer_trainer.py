@@ -4,7 +4,6 @@ import pytest
 import torch
 
 from carp.config import ConfigError, TokenizerConfig
-from carp.config.tokenizer_kinds import FastConfig, FsqConfig
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import reconstruction_metrics
 from carp.tokenizer.spec import TokenizerSpec
@@ -259,10 +258,20 @@ def test_default_settings_meet_the_quality_bar_on_synthetic_demos(tmp_path):
     assert metrics["usage/all_scales/mean"] > 0.2
 
 
-def test_the_other_kinds_settings_leave_a_resumable_state_resumable():
+def test_the_kind_leaves_a_resumable_state_resumable():
     windows = torch.zeros(4, 8, 2)
     default = _run_metadata(TINY_SPEC, TokenizerConfig(), windows)
-    other = TokenizerConfig(fast=FastConfig(scale=3.0), fsq=FsqConfig(steps=7))
-    assert _run_metadata(TINY_SPEC, other, windows) == default
-    assert "kind" not in default["settings"] and "fast" not in default["settings"]
+    assert _run_metadata(TINY_SPEC, TokenizerConfig(kind="fast"), windows) == default
+    # Exactly the training settings: nothing about other kinds reaches the resume check.
+    assert set(default["settings"]) == {
+        "epochs",
+        "batch_size",
+        "learning_rate",
+        "weight_decay",
+        "seed",
+        "warmup_fraction",
+        "restart_fraction",
+        "augment_probability",
+        "augment_max_scale",
+    }
     assert _run_metadata(TINY_SPEC, TokenizerConfig(epochs=3), windows) != default

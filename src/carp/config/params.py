@@ -10,6 +10,15 @@ from carp.config.experiments import ComparisonConfig, StudyConfig, SweepConfig, 
 from carp.config.image_encoder import ImageEncoderConfig
 from carp.config.serving import ServingConfig
 from carp.config.tokenizer import TokenizerConfig
+from carp.config.tokenizer_kinds import (
+    BinningConfig,
+    BSplineConfig,
+    CarpMsvqConfig,
+    FastConfig,
+    FsqConfig,
+    JointMsvqConfig,
+    kind_section,
+)
 from carp.config.training import TrainingConfig
 from carp.policies.sections import family_sections, teacher_of
 from carp.tasks import TASK_NAMES, resolve_task
@@ -63,7 +72,14 @@ class Params:
         device: Where training runs: ``auto`` (CUDA when available, else the CPU), ``cpu`` or ``cuda``. Evaluation
             rollouts run on the CPU.
         data: Demonstrations, ingestion and the time convention.
-        tokenizer: The action tokenizer and its training.
+        tokenizer: The action tokenizer: its kind, where it comes from, and CARP's kind's training.
+        tokenizer_carp_msvq: ``carp_msvq``'s own section, empty (its settings are ``tokenizer``, ``scales`` and
+            ``codebook_size``).
+        tokenizer_binning: Settings of the ``binning`` kind.
+        tokenizer_fast: Settings of the ``fast`` kind.
+        tokenizer_bspline: Settings of the ``bspline`` kind.
+        tokenizer_fsq: Settings of the ``fsq`` kind.
+        tokenizer_joint_msvq: Settings of the ``joint_msvq`` kind.
         training: The training loop shared by every policy family.
         eval: Simulated evaluation.
         tracking: MLflow tracking.
@@ -90,6 +106,12 @@ class Params:
     device: str = "auto"
     data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
+    tokenizer_carp_msvq: CarpMsvqConfig = field(default_factory=CarpMsvqConfig)
+    tokenizer_binning: BinningConfig = field(default_factory=BinningConfig)
+    tokenizer_fast: FastConfig = field(default_factory=FastConfig)
+    tokenizer_bspline: BSplineConfig = field(default_factory=BSplineConfig)
+    tokenizer_fsq: FsqConfig = field(default_factory=FsqConfig)
+    tokenizer_joint_msvq: JointMsvqConfig = field(default_factory=JointMsvqConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -134,6 +156,7 @@ class Params:
         _require(len(set(self.seeds)) == len(self.seeds), "seeds", list(self.seeds), "must not repeat a seed")
         self._check_multitask(known)
         self._check_register(known)
+        self._check_tokenizer_kind(known)
         # Families without a section in the file take their defaults, so every registered family has a config.
         object.__setattr__(self, "families", {name: self.families.get(name) or known[name][0]() for name in known})
         object.__setattr__(self, "inference", {name: self.inference.get(name) or known[name][1]() for name in known})
@@ -231,6 +254,19 @@ class Params:
             families,
             f"multi-task policies train on state observations, data.observations={self.data.observations!r}",
         )
+
+    def _check_tokenizer_kind(self, known: dict[str, Any]) -> None:
+        # A family's config class may name the tokenizer kinds it can predict (`TOKENIZER_KINDS`); CARP's next-scale
+        # family needs the per-dimension multi-scale layout that only carp_msvq has.
+        for name in dict.fromkeys((*self.policies, *self.multitask)):
+            accepted = getattr(known[name][0], "TOKENIZER_KINDS", None)
+            _require(
+                accepted is None or self.tokenizer.kind in accepted,
+                "tokenizer.kind",
+                self.tokenizer.kind,
+                f"the {name} family predicts {' or '.join(accepted or ())} tokens only; choose another kind or "
+                f"another family (next_token takes any kind)",
+            )
 
     def _check_register(self, known: dict[str, Any]) -> None:
         """Registered families are distinct families the pipeline trains (``policies``)."""
@@ -345,6 +381,11 @@ class Params:
             f"must be divisible by 2**len(tokenizer.channel_mult) = {downsampling}",
         )
         return self.data.action_horizon // downsampling
+
+    @property
+    def tokenizer_kind_config(self) -> Any:
+        """The selected kind's section, ``tokenizer_<tokenizer.kind>`` (empty for ``carp_msvq``)."""
+        return getattr(self, kind_section(self.tokenizer.kind))
 
     @property
     def tokenizer_tasks(self) -> tuple[str, ...]:

@@ -1,17 +1,9 @@
 """The `tokenizer` section: the kind, how the multi-scale kind is trained or where a registered one comes from."""
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from carp.config.checks import REGISTRY_URI_PREFIX, _positive_training_fields, _require, require_registry_alias
-from carp.config.tokenizer_kinds import (
-    DEFAULT_TOKENIZER_KIND,
-    TOKENIZER_KINDS,
-    BinningConfig,
-    BSplineConfig,
-    FastConfig,
-    FsqConfig,
-    JointMsvqConfig,
-)
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND, TOKENIZER_KINDS
 from carp.tasks import TASK_NAMES
 
 
@@ -19,17 +11,18 @@ from carp.tasks import TASK_NAMES
 class TokenizerConfig:
     """The tokenizer kind; CARP's multi-scale VQ-VAE (docs/architecture.md, "Action tokenizer") and its training.
 
-    The other kinds' settings are subsections.
+    The other kinds' settings are their own top-level sections ``tokenizer_<kind>``.
 
     Attributes:
         kind: The tokenizer kind, one of ``carp_msvq`` (CARP's per-dimension multi-scale VQ-VAE, which the other
             fields of this section and ``scales`` and ``codebook_size`` configure), ``binning``, ``fast``,
-            ``bspline``, ``fsq`` and ``joint_msvq`` (each configured by its own subsection below;
-            docs/developing.md, "Tokenizer kinds"). The pipeline trains ``carp_msvq`` only; the other kinds are
-            measured by ``benchmarks/tokenizer_kinds.py``.
+            ``bspline``, ``fsq`` and ``joint_msvq`` (each configured by its own top-level section
+            ``tokenizer_<kind>``; docs/developing.md, "Tokenizer kinds"). The ``train_tokenizer`` stage trains and
+            registers the selected kind and tracks only its section. The ``carp`` family needs ``carp_msvq``; the
+            ``next_token`` family takes any kind.
         source: Where the tokenizer comes from: ``pipeline`` trains it here and registers it in the MLflow Model
-            Registry; a registry URI ``models:/<name>@<alias>`` fetches that registered version instead, whose action
-            space, ``scales`` and ``codebook_size`` must match these params.
+            Registry; a registry URI ``models:/<name>@<alias>`` fetches that registered version instead, whose kind
+            and action space (and, for ``carp_msvq``, ``scales`` and ``codebook_size``) must match these params.
         tasks: Tasks whose demo windows train the tokenizer, each normalized with its own min-max statistics; empty
             means the pipeline's ``tasks``. Every entry must also be in ``tasks`` (its demos are ingested there).
         latent_channels: ``C``, latent channels per action dimension, which is also the width of a code; an integer
@@ -61,11 +54,6 @@ class TokenizerConfig:
             that dimension are rescaled and moved inside [-1, 1]; a number in [0, 1] (0 turns augmentation off).
         augment_max_scale: Largest amplitude factor of that augmentation (``1 / augment_max_scale`` is the smallest,
             1 only moves); a number >= 1.
-        binning: Settings of the ``binning`` kind.
-        fast: Settings of the ``fast`` kind.
-        bspline: Settings of the ``bspline`` kind.
-        fsq: Settings of the ``fsq`` kind.
-        joint_msvq: Settings of the ``joint_msvq`` kind.
     """
 
     kind: str = DEFAULT_TOKENIZER_KIND
@@ -87,11 +75,6 @@ class TokenizerConfig:
     restart_fraction: float = 0.25
     augment_probability: float = 0.5
     augment_max_scale: float = 2.0
-    binning: BinningConfig = field(default_factory=BinningConfig)
-    fast: FastConfig = field(default_factory=FastConfig)
-    bspline: BSplineConfig = field(default_factory=BSplineConfig)
-    fsq: FsqConfig = field(default_factory=FsqConfig)
-    joint_msvq: JointMsvqConfig = field(default_factory=JointMsvqConfig)
 
     def __post_init__(self) -> None:
         _require(

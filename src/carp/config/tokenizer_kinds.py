@@ -1,8 +1,10 @@
-"""The params sections of the action tokenizer kinds other than CARP's, and the names of every kind.
+"""The params sections of the action tokenizer kinds, one top-level ``tokenizer_<kind>`` section each, and their names.
 
 This is the light half of the kind table: the names here match `carp.tokenizer.kinds.registry.KIND_MODULES`, which
 imports the implementations, so validating a params file never imports torch or a tokenizer. ``carp_msvq`` (the
-default) has no section of its own: its settings are ``scales``, ``codebook_size`` and the rest of ``tokenizer``.
+default) keeps its settings in ``scales``, ``codebook_size`` and the ``tokenizer`` section; its own section
+``tokenizer_carp_msvq`` is empty and exists so that the ``train_tokenizer`` stage can track
+``tokenizer_${tokenizer.kind}`` whichever kind is selected (DVC refuses a tracked key that is missing from the file).
 """
 
 import math
@@ -15,9 +17,22 @@ TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq", 
 """Every registered kind, the default first."""
 
 
+def kind_section(kind: str) -> str:
+    """The top-level params section of ``kind``: ``tokenizer_<kind>``."""
+    return f"tokenizer_{kind}"
+
+
 def _require_percentiles(section: str, lower: float, upper: float) -> None:
     _require(0.0 <= lower < 50.0, f"{section}.lower_percentile", lower, "must be in [0, 50)")
     _require(50.0 < upper <= 100.0, f"{section}.upper_percentile", upper, "must be in (50, 100]")
+
+
+@dataclass(frozen=True)
+class CarpMsvqConfig:
+    """CARP's kind has no settings here: they are ``scales``, ``codebook_size`` and the ``tokenizer`` section.
+
+    The section is empty so that the ``train_tokenizer`` stage can track ``tokenizer_<kind>`` for every kind.
+    """
 
 
 @dataclass(frozen=True)
@@ -38,11 +53,11 @@ class BinningConfig:
     def __post_init__(self) -> None:
         _require(
             isinstance(self.bins, int) and self.bins >= 2,
-            "tokenizer.binning.bins",
+            "tokenizer_binning.bins",
             self.bins,
             "must be an integer >= 2",
         )
-        _require_percentiles("tokenizer.binning", self.lower_percentile, self.upper_percentile)
+        _require_percentiles("tokenizer_binning", self.lower_percentile, self.upper_percentile)
 
 
 @dataclass(frozen=True)
@@ -60,10 +75,10 @@ class FastConfig:
     vocabulary_size: int = 1024
 
     def __post_init__(self) -> None:
-        _require(self.scale > 0, "tokenizer.fast.scale", self.scale, "must be > 0")
+        _require(self.scale > 0, "tokenizer_fast.scale", self.scale, "must be > 0")
         _require(
             isinstance(self.vocabulary_size, int) and self.vocabulary_size >= 2,
-            "tokenizer.fast.vocabulary_size",
+            "tokenizer_fast.vocabulary_size",
             self.vocabulary_size,
             "must be an integer >= 2",
         )
@@ -86,16 +101,16 @@ class BSplineConfig:
     bins: int = 256
 
     def __post_init__(self) -> None:
-        require_positive_int("tokenizer.bspline.degree", self.degree)
+        require_positive_int("tokenizer_bspline.degree", self.degree)
         _require(
             isinstance(self.control_points, int) and self.control_points >= self.degree + 1,
-            "tokenizer.bspline.control_points",
+            "tokenizer_bspline.control_points",
             self.control_points,
             f"must be an integer >= degree + 1 = {self.degree + 1}",
         )
         _require(
             isinstance(self.bins, int) and self.bins >= 2,
-            "tokenizer.bspline.bins",
+            "tokenizer_bspline.bins",
             self.bins,
             "must be an integer >= 2",
         )
@@ -128,19 +143,19 @@ class FsqConfig:
     def __post_init__(self) -> None:
         _require(
             len(self.levels) >= 1 and all(isinstance(level, int) and level >= 2 for level in self.levels),
-            "tokenizer.fsq.levels",
+            "tokenizer_fsq.levels",
             list(self.levels),
             "must be a non-empty list of integers >= 2",
         )
         _require(
             isinstance(self.downsampling, int) and self.downsampling >= 1 and math.log2(self.downsampling).is_integer(),
-            "tokenizer.fsq.downsampling",
+            "tokenizer_fsq.downsampling",
             self.downsampling,
             "must be a power of two",
         )
         for name in ("hidden_channels", "steps", "batch_size"):
-            require_positive_int(f"tokenizer.fsq.{name}", getattr(self, name))
-        _require(self.learning_rate > 0, "tokenizer.fsq.learning_rate", self.learning_rate, "must be > 0")
+            require_positive_int(f"tokenizer_fsq.{name}", getattr(self, name))
+        _require(self.learning_rate > 0, "tokenizer_fsq.learning_rate", self.learning_rate, "must be > 0")
 
 
 @dataclass(frozen=True)
@@ -178,28 +193,28 @@ class JointMsvqConfig:
             len(self.scales) >= 1
             and all(isinstance(scale, int) and scale >= 1 for scale in self.scales)
             and all(later > earlier for earlier, later in zip(self.scales, self.scales[1:], strict=False)),
-            "tokenizer.joint_msvq.scales",
+            "tokenizer_joint_msvq.scales",
             list(self.scales),
             "must be strictly increasing positive integers",
         )
         _require(
             isinstance(self.codebook_size, int) and self.codebook_size >= 2,
-            "tokenizer.joint_msvq.codebook_size",
+            "tokenizer_joint_msvq.codebook_size",
             self.codebook_size,
             "must be an integer >= 2",
         )
         _require(
             isinstance(self.downsampling, int) and self.downsampling >= 2 and math.log2(self.downsampling).is_integer(),
-            "tokenizer.joint_msvq.downsampling",
+            "tokenizer_joint_msvq.downsampling",
             self.downsampling,
             "must be a power of two >= 2",
         )
         for name in ("latent_channels", "hidden_channels", "steps", "batch_size"):
-            require_positive_int(f"tokenizer.joint_msvq.{name}", getattr(self, name))
+            require_positive_int(f"tokenizer_joint_msvq.{name}", getattr(self, name))
         _require(
             self.commitment_weight >= 0,
-            "tokenizer.joint_msvq.commitment_weight",
+            "tokenizer_joint_msvq.commitment_weight",
             self.commitment_weight,
             "must be >= 0",
         )
-        _require(self.learning_rate > 0, "tokenizer.joint_msvq.learning_rate", self.learning_rate, "must be > 0")
+        _require(self.learning_rate > 0, "tokenizer_joint_msvq.learning_rate", self.learning_rate, "must be > 0")

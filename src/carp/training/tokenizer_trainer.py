@@ -39,7 +39,6 @@ import torch
 from tqdm.auto import tqdm
 
 from carp.config.tokenizer import TokenizerConfig
-from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND, TOKENIZER_KINDS
 from carp.tokenizer.artifact import NonFiniteTokenizerError
 from carp.tokenizer.metrics import count_codes
 from carp.tokenizer.spec import TokenizerSpec
@@ -145,10 +144,9 @@ NON_TRAINING_FIELDS = (
     "channel_mult",
     "commitment_weight",
     "kind",
-    *(kind for kind in TOKENIZER_KINDS if kind != DEFAULT_TOKENIZER_KIND),
 )
-"""Fields of the params section outside a run's training settings: the kind and the other kinds' sections (this
-trainer trains the default kind whatever they hold), where the tokenizer comes from and is registered,
+"""Fields of the params section outside a run's training settings: the kind (this trainer trains the default kind
+whatever it says), where the tokenizer comes from and is registered,
 the checkpoint cadence (neither changes the result), and the architecture, which the spec holds; the tasks count
 through the training windows."""
 

@@ -2,6 +2,7 @@
 
 import pytest
 
+from carp.config import Params
 from carp.config.checks import ConfigError
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.tokenizer_kinds import (
@@ -11,6 +12,7 @@ from carp.config.tokenizer_kinds import (
     FastConfig,
     FsqConfig,
     JointMsvqConfig,
+    kind_section,
 )
 from carp.tokenizer.kinds.registry import build_tokenizer, kind_class, kind_names, load_tokenizer
 from tests.tokenizer.kinds.conftest import A, H
@@ -44,17 +46,17 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
 @pytest.mark.parametrize(
     ("section", "message"),
     [
-        (lambda: BinningConfig(bins=1), r"tokenizer.binning.bins=1: must be an integer >= 2"),
+        (lambda: BinningConfig(bins=1), r"tokenizer_binning.bins=1: must be an integer >= 2"),
         (
             lambda: BinningConfig(lower_percentile=60.0),
-            r"tokenizer.binning.lower_percentile=60.0: must be in \[0, 50\)",
+            r"tokenizer_binning.lower_percentile=60.0: must be in \[0, 50\)",
         ),
-        (lambda: FastConfig(scale=0.0), r"tokenizer.fast.scale=0.0: must be > 0"),
-        (lambda: BSplineConfig(control_points=3), r"tokenizer.bspline.control_points=3: must be an integer >= degree"),
-        (lambda: FsqConfig(levels=(8, 1)), r"tokenizer.fsq.levels=\[8, 1\]: must be a non-empty list of integers >= 2"),
-        (lambda: FsqConfig(downsampling=3), r"tokenizer.fsq.downsampling=3: must be a power of two"),
-        (lambda: JointMsvqConfig(scales=(2, 1)), r"tokenizer.joint_msvq.scales=\[2, 1\]: must be strictly increasing"),
-        (lambda: JointMsvqConfig(downsampling=1), r"tokenizer.joint_msvq.downsampling=1: must be a power of two >= 2"),
+        (lambda: FastConfig(scale=0.0), r"tokenizer_fast.scale=0.0: must be > 0"),
+        (lambda: BSplineConfig(control_points=3), r"tokenizer_bspline.control_points=3: must be an integer >= degree"),
+        (lambda: FsqConfig(levels=(8, 1)), r"tokenizer_fsq.levels=\[8, 1\]: must be a non-empty list of integers >= 2"),
+        (lambda: FsqConfig(downsampling=3), r"tokenizer_fsq.downsampling=3: must be a power of two"),
+        (lambda: JointMsvqConfig(scales=(2, 1)), r"tokenizer_joint_msvq.scales=\[2, 1\]: must be strictly increasing"),
+        (lambda: JointMsvqConfig(downsampling=1), r"tokenizer_joint_msvq.downsampling=1: must be a power of two >= 2"),
     ],
 )
 def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message):
@@ -64,7 +66,7 @@ def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message
 
 @pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq", "joint_msvq"])
 def test_each_kind_builds_from_its_default_section(kind):
-    tokenizer = build_tokenizer(kind, getattr(TokenizerConfig(), kind), A, H)
+    tokenizer = build_tokenizer(kind, getattr(Params(), kind_section(kind)), A, H)
     assert (tokenizer.kind, tokenizer.action_dim, tokenizer.action_horizon) == (kind, A, H)
 
 

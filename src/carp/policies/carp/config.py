@@ -84,6 +84,11 @@ class CarpConfig(TransformerConfig):
 
     attention: str = "auto"
 
+    # The next-scale transformer reads the per-dimension multi-scale layout (a codebook per dimension, scales of
+    # A * s_k tokens) and the tokenizer's latents for teacher forcing; joint_msvq has one codebook over all
+    # dimensions and no per-dimension latents, so only carp_msvq fits.
+    TOKENIZER_KINDS: ClassVar[tuple[str, ...]] = ("carp_msvq",)
+
     def __post_init__(self) -> None:
         super().__post_init__()
         section = self.SECTION
