@@ -406,6 +406,29 @@ def test_a_task_carp_does_not_know_is_a_task_without_a_simulator_described_by_it
     assert params.obs_keys_for("my_robot") == ("state", "environment_state")
 
 
+def test_per_task_settings_accept_a_task_without_a_simulator_that_tasks_lists():
+    overrides = {"my_robot": 3}
+    params = params_from_dict(
+        {
+            "tasks": ["my_robot"],
+            "data": {"raw_files": {"my_robot": LEROBOT_V3}, "num_demos_per_task": overrides},
+            "training": {"epochs_per_task": overrides},
+            "eval": {"max_steps": overrides},
+            "tokenizer": {"tasks": ["my_robot"]},
+            "inference": {"carp": {"top_k_per_task": overrides}},
+        }
+    )
+    assert params.training.epochs_for("my_robot", "carp") == 3 and params.tokenizer_tasks == ("my_robot",)
+    with pytest.raises(ConfigError, match=r"eval.max_steps.robot2='robot2': task must be a registered one \["):
+        params_from_dict(
+            {
+                "tasks": ["my_robot"],
+                "data": {"raw_files": {"my_robot": LEROBOT_V3}},
+                "eval": {"max_steps": {"robot2": 5}},
+            }
+        )
+
+
 @pytest.mark.parametrize(
     ("raw", "message"),
     [

@@ -134,13 +134,13 @@ def params_reference(root: type = Params) -> str:
                 continue  # not a key of params.yaml
             if field.metadata.get(FAMILY_SECTIONS):
                 names = ", ".join(
-                    f"[`{_section_key(field.name, name)}`](#{_section_key(field.name, name)})"
+                    f"[`{_section_key(field.name, name)}`](#{_heading_anchor(_section_key(field.name, name))})"
                     for name in family_sections()
                 )
                 lines.append(f"- `{field.name}`: {descriptions[field.name]} Sections: {names}.")
                 continue
             if dataclasses.is_dataclass(hints[field.name]):
-                lines.append(f"- `{key}`: {descriptions[field.name]} See [`{key}`](#{key}).")
+                lines.append(f"- `{key}`: {descriptions[field.name]} See [`{key}`](#{_heading_anchor(key)}).")
                 continue
             kind, default = _type_name(hints[field.name]), _yaml_value(defaults[key])
             lines.append(f"- `{key}` ({kind}, default `{default}`): {descriptions[field.name]}")
@@ -194,3 +194,8 @@ def _plain(value: Any) -> Any:
     if isinstance(value, dict):
         return {key: _plain(item) for key, item in value.items()}
     return value
+
+
+def _heading_anchor(key: str) -> str:
+    """The anchor GitHub gives the heading `` `key` ``: punctuation but ``-`` and ``_`` dropped, so no dots."""
+    return key.replace(".", "")

@@ -219,6 +219,14 @@ class Params:
                 f"every tokenizer task must also be in tasks={list(self.tasks)} (its demos are ingested there)",
             )
         self._check_tasks_share_actions_and_observations()
+        per_task = {
+            "data.num_demos_per_task": self.data.num_demos_per_task,
+            "training.epochs_per_task": self.training.epochs_per_task,
+            "eval.max_steps": self.eval.max_steps,
+        }
+        for name, mapping in per_task.items():
+            for task in mapping:
+                self.require_known_task(f"{name}.{task}", task)
         for task in self.tasks:
             _require(
                 self.data.subset_size <= self.data.demos_for(task) or task in self.data.raw_files,
@@ -226,6 +234,15 @@ class Params:
                 self.data.subset_size,
                 f"must be <= the {self.data.demos_for(task)} demos collected for {task}",
             )
+
+    def require_known_task(self, key: str, task: str) -> None:
+        """Refuse a per-task setting for a task that is neither registered nor one of `tasks` (an offline one)."""
+        _require(
+            task in TASK_NAMES or task in self.tasks,
+            key,
+            task,
+            f"task must be a registered one {list(TASK_NAMES)} or listed in tasks={list(self.tasks)}",
+        )
 
     def _check_multitask(self, known: dict[str, Any]) -> None:
         """Multi-task families are registered and distinct, over two tasks or more of state observations."""

@@ -4,7 +4,6 @@ from dataclasses import dataclass
 
 from carp.config.checks import REGISTRY_URI_PREFIX, _positive_training_fields, _require, require_registry_alias
 from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND, TOKENIZER_KINDS
-from carp.tasks import TASK_NAMES
 
 
 @dataclass(frozen=True)
@@ -86,8 +85,6 @@ class TokenizerConfig:
             self.source,
             "must be 'pipeline' or a registry URI 'models:/<name>@<alias>'",
         )
-        for task in self.tasks:
-            _require(task in TASK_NAMES, "tokenizer.tasks", self.tasks, f"tasks must be among {TASK_NAMES}")
         _require(self.latent_channels >= 1, "tokenizer.latent_channels", self.latent_channels, "must be >= 1")
         _require(self.base_channels >= 1, "tokenizer.base_channels", self.base_channels, "must be >= 1")
         _require(

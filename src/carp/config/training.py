@@ -26,8 +26,9 @@ class TrainingConfig:
             elsewhere; ``float32`` or ``bfloat16`` force one. Weights, optimizer state, attention on CPU, the loss
             and inference stay float32 (see ``carp.training.runtime.resolve_precision``).
         epochs_per_task: Task -> epochs of that task's policies, overriding ``epochs``; each an integer >= 1, tasks
-            among the registered ones (``carp.tasks``). DVC tracks the mapping as one parameter, so a change reruns
-            every ``train_policy`` stage; a task whose settings did not change resumes from its finished training state.
+            registered (``carp.tasks``) or listed in ``tasks``. DVC tracks the mapping as one parameter, so a change
+            reruns every ``train_policy`` stage; a task whose settings did not change resumes from its finished
+            training state.
         epochs_per_policy: Policy family -> its epochs on every task, overriding ``epochs`` and ``epochs_per_task``
             (families converge at different rates: Diffusion Policy's denoisers need several times CARP's epochs);
             each an integer >= 1, families among the registered ones. Tracked like ``epochs_per_task``.

@@ -9,7 +9,6 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from carp.config.checks import ConfigError, _require, require_optimizer_settings, require_positive_int
-from carp.tasks import TASK_NAMES
 
 SECTION = "carp"
 ATTENTION_SETTINGS = ("auto", "masked", "blockwise")
@@ -108,7 +107,8 @@ class CarpInference:
         top_k: 1 takes the most likely token (greedy); k > 1 draws among the k most likely ones, with draws seeded
             per episode so results reproduce. An integer between 1 and ``codebook_size``.
         top_k_per_task: Task -> token choice when evaluating that task, overriding ``top_k``; each an integer between
-            1 and ``codebook_size``, tasks among the registered ones (``carp.tasks``).
+            1 and ``codebook_size``, tasks registered (``carp.tasks``) or
+            listed in ``tasks``.
     """
 
     top_k: int = 1
@@ -120,7 +120,6 @@ class CarpInference:
         key = f"inference.{self.SECTION}"
         require_positive_int(f"{key}.top_k", self.top_k)
         for task, top_k in self.top_k_per_task.items():
-            _require(task in TASK_NAMES, f"{key}.top_k_per_task.{task}", task, f"task must be one of {TASK_NAMES}")
             _require(top_k >= 1, f"{key}.top_k_per_task.{task}", top_k, "must be >= 1 (1 = greedy)")
 
     def settings_for(self, task: str) -> dict[str, Any]:
@@ -128,8 +127,10 @@ class CarpInference:
         return {"top_k": self.top_k_per_task.get(task, self.top_k)}
 
     def check_with(self, params: Any) -> None:
-        """Refuse a token choice above the vocabulary (`params.codebook_size`)."""
+        """Refuse a token choice above the vocabulary (`params.codebook_size`) or for a task the params do not know."""
         key = f"inference.{self.SECTION}"
+        for task in self.top_k_per_task:
+            params.require_known_task(f"{key}.top_k_per_task.{task}", task)
         entries = [(f"{key}.top_k", self.top_k)] + [
             (f"{key}.top_k_per_task.{task}", top_k) for task, top_k in self.top_k_per_task.items()
         ]
