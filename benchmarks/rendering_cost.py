@@ -33,11 +33,10 @@ except RenderingError as error:
     print(f"error: {error}", file=sys.stderr)
     sys.exit(1)
 
-from carp import simulation  # noqa: E402
 from carp.data.collect import run_expert_episode  # noqa: E402
 from carp.data.rendering import CameraRenderer, RenderSettings, load_demo_model, render_states  # noqa: E402
 from carp.reporting.image_grid import save_frame_grid  # noqa: E402
-from carp.tasks import get_task  # noqa: E402
+from carp.tasks import TASK_NAMES, get_task  # noqa: E402
 
 VARIANTS = {
     "lean": {},
@@ -62,9 +61,15 @@ def expert_states(task: str, steps: int, seed: int):
     return episode.states, episode.attrs
 
 
+def arm_env(task: str):
+    """A fresh env of the arm task `task`, absolute controller."""
+    task_spec = get_task(task)
+    return task_spec.make_env(task_spec.make_env_args("absolute"))
+
+
 def time_variant(task: str, states, attrs: dict, settings: RenderSettings, repeats: int) -> dict:
     """Setup time and per-frame render times of one task and setting."""
-    env = simulation.make_env(simulation.make_env_args(task))
+    env = arm_env(task)
     try:
         model = load_demo_model(env, attrs)
         started = time.perf_counter()
@@ -92,11 +97,10 @@ def main() -> int:
     parser.add_argument("--grid-dir", type=Path, default=Path("tmp/rendering"), help="where the frame grids go")
     parser.add_argument("--seed", type=int, default=0, help="reset seed of the expert episode")
     args = parser.parse_args()
-    unknown = [task for task in args.tasks if task not in simulation.TASK_ENV_NAMES]
+    arm_tasks = sorted(name for name in TASK_NAMES if get_task(name).supports_cameras)
+    unknown = [task for task in args.tasks if task not in arm_tasks]
     if unknown:
-        print(
-            f"error: --tasks {unknown}: unknown; expected some of {sorted(simulation.TASK_ENV_NAMES)}", file=sys.stderr
-        )
+        print(f"error: --tasks {unknown}: unknown; expected some of {arm_tasks}", file=sys.stderr)
         return 1
     if args.steps < 1 or args.image_size < 1 or args.repeats < 1:
         print("error: --steps, --image-size and --repeats must be >= 1", file=sys.stderr)
@@ -123,7 +127,7 @@ def main() -> int:
                 f"{median:8.2f} | {percentile(timing['frame_ms'], 0.9):8.2f} | {1e3 / median:8.1f} |",
                 flush=True,
             )
-        env = simulation.make_env(simulation.make_env_args(task))
+        env = arm_env(task)
         try:
             images = render_states(env, attrs, states, lean)
         finally:

@@ -2,7 +2,7 @@
 
 Every import that can run counts, the ones inside functions included: a stage that imports a module only when a
 branch runs still runs that module's code in some configuration, so its results depend on the file. So does a string
-naming a module (`"carp.tasks.pusht_task"`, `"carp.policies.carp.family:FAMILY"`): the task and family registries
+naming a module (`"carp.tasks.lift.task:TASK"`, `"carp.policies.carp.family:FAMILY"`): the task and family registries
 import their entries by name. Imports under `if TYPE_CHECKING:` never run and do not count. Importing `carp.a.b` also
 runs `carp/__init__.py` and `carp/a/__init__.py`, which count as reached for the stages' dependencies (but not as
 imports between modules, where they would join every module of a package).
@@ -31,7 +31,7 @@ PIPELINE = Path("pipeline")
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("carp", "carp.outputs", "carp.config.checks", "carp.training.checkpoint", "carp.serving.protocol"),
-    ("carp.simulation", "carp.tasks", "carp.data"),
+    ("carp.tasks", "carp.data"),
     ("carp.config", "carp.config_docs", "carp.policies.sections", "carp.policies.*.config"),
     (
         "carp.tokenizer",

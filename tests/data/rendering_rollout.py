@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from carp import simulation
-from carp.data.experts import make_expert
-from carp.data.rendering import CameraRenderer, RenderingError, RenderSettings, load_demo_model, render_demos
+from carp.data.camera_images import render_demos
+from carp.data.rendering import CameraRenderer, RenderingError, RenderSettings, load_demo_model
+from carp.tasks import get_task
+from carp.tasks.arms import simulation
 
 
 def _message(action) -> str:
@@ -30,11 +31,11 @@ def _message(action) -> str:
 def main() -> None:
     task, steps, seed, output = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
     settings = RenderSettings()
-    env_args = simulation.make_env_args(task)
-    env = simulation.make_env(env_args)
-    expert = make_expert(task, env)
+    task_spec = get_task(task)
+    env_args = task_spec.make_env_args("absolute")
+    env = task_spec.make_env(env_args)
     simulation.reset_env(env, seed)
-    expert.reset()
+    expert = task_spec.make_expert(env, seed)
     model_xml = env.sim.model.get_xml()  # what robomimic stores as a demo's model_file
     live: dict[str, list[np.ndarray]] = {key: [] for key in settings.image_keys}
     states = []

@@ -4,10 +4,11 @@ import h5py
 import numpy as np
 import pytest
 
-from carp import simulation
 from carp.data.collect import CollectionError, collect_demonstrations
 from carp.data.robomimic_io import read_demonstrations
 from carp.data.rotation import absolute_to_rot6d_actions, rot6d_to_absolute_actions
+from carp.tasks import get_task
+from carp.tasks.arms import simulation
 
 from .conftest import LIFT_DEMO_SEED
 
@@ -24,7 +25,7 @@ def test_collected_lift_file_reads_back_with_aligned_keys(lift_demo_collection):
     assert {"object", "cube_pos", "robot0_joint_pos", "robot0_eef_quat_site"} <= set(stored_keys)
     demos = read_demonstrations(path, stored_keys, action_dim=7)
     assert demos.names == ["demo_0", "demo_1"]
-    assert demos.env_args == simulation.make_env_args("lift")
+    assert demos.env_args == get_task("lift").make_env_args("absolute")
     assert demos.attrs["expert"] == "lift_scripted" and demos.attrs["controller"] == "absolute"
     assert demos.attrs["kept"] == 2 and demos.attrs["attempted"] == summary.attempted
     assert json.loads(demos.attrs["seeds"]) == summary.seeds
@@ -45,7 +46,7 @@ def test_rot6d_round_trip_of_recorded_actions_replays_to_success(lift_demo_colle
     episode = read_demonstrations(path, DEFAULT_OBS_KEYS, action_dim=7).episodes[0]
     converted = rot6d_to_absolute_actions(absolute_to_rot6d_actions(episode.actions))
     np.testing.assert_allclose(converted, episode.actions, atol=1e-6)
-    env = simulation.make_env(simulation.make_env_args("lift"))
+    env = simulation.make_env(get_task("lift").make_env_args("absolute"))
     try:
         obs = simulation.reset_env(env, episode.attrs["seed"])
         np.testing.assert_allclose(obs["robot0_eef_pos"], episode.obs["robot0_eef_pos"][0], atol=1e-9)

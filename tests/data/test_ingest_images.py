@@ -169,9 +169,9 @@ from pathlib import Path
 import numpy as np
 
 from carp.data.image_windows import ImageWindowReader
-from carp.data.camera_images import plan_images
+from carp.data.camera_images import plan_images, render_demos
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
-from carp.data.rendering import RenderSettings, render_demos
+from carp.data.rendering import RenderSettings
 from carp.data.robomimic_io import read_demonstrations
 
 raw, output = Path(sys.argv[1]), Path(sys.argv[2])

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import zarr
 
-import carp.simulation
-from carp.data import rendering
+from carp.data import camera_images, rendering
 from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
 from carp.data.render_cache import RenderCache, render_key
 from carp.data.rendering import RenderSettings
@@ -51,7 +50,7 @@ def fake_renderer(monkeypatch):
     def install(interrupt_at: int | None = None) -> FakeRenderer:
         renderer = FakeRenderer(interrupt_at)
         monkeypatch.setattr(rendering, "render_states", renderer)
-        monkeypatch.setattr(carp.simulation, "make_env", lambda env_args: FakeEnv())
+        monkeypatch.setattr(camera_images, "_make_env", lambda env_args: FakeEnv())
         return renderer
 
     return install

@@ -84,8 +84,9 @@ def test_stored_states_render_the_live_frames_exactly_and_upright(tmp_path, task
 @pytest.mark.slow
 def test_renderer_refuses_when_mujoco_has_no_offscreen_backend():
     script = (
-        "from carp import simulation; from carp.data.rendering import CameraRenderer, RenderSettings;"
-        "env = simulation.make_env(simulation.make_env_args('lift')); env.reset();"
+        "from carp.tasks import get_task; from carp.tasks.arms import simulation;"
+        "from carp.data.rendering import CameraRenderer, RenderSettings;"
+        "env = simulation.make_env(get_task('lift').make_env_args('absolute')); env.reset();"
         "CameraRenderer(env.sim.model._model, RenderSettings())"
     )
     completed = _run("-c", script, backend="disable")

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from carp import simulation
 from carp.data.rendering import RenderSettings, render_states
 from carp.evaluation.rollout import run_episode
 from carp.evaluation.sources import ExpertSource
 from carp.tasks import get_task
-from carp.tasks.robosuite_arms import video_settings
+from carp.tasks.arms import simulation
+from carp.tasks.arms.task import video_settings
 
 SETTINGS = RenderSettings(image_size=40)
 OBS_STEPS = 2
@@ -38,7 +38,7 @@ class RecordingExpert(ExpertSource):
 
 def main() -> None:
     steps, seed, output = int(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3])
-    env_args = simulation.make_env_args("lift")
+    env_args = get_task("lift").make_env_args("absolute")
     env = simulation.make_env(env_args)
     source = RecordingExpert()
     result = run_episode(

@@ -7,7 +7,7 @@ from carp.data.collect import collect_demonstrations
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.robomimic_io import DatasetError
 from carp.evaluation.replay import TokenizedReplaySource, replay_demonstrations
-from carp.tasks.robosuite_arms import DELTA_ACTIONS
+from carp.tasks.arms.task import DELTA_ACTIONS
 from carp.tokenizer.artifact import save_tokenizer_artifact
 from carp.tokenizer.kinds.binning import BinningTokenizer
 from carp.tokenizer.kinds.registry import load_tokenizer

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from carp import simulation
 from carp.evaluation.rollout import evaluate_episodes, run_episode
 from carp.evaluation.sources import ExpertSource
 from carp.tasks import get_task
+from carp.tasks.arms import simulation
 
 LIFT = get_task("lift")
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
@@ -35,7 +35,7 @@ class CrashingSource:
 
 @pytest.fixture(scope="module")
 def lift_env():
-    env = simulation.make_env(simulation.make_env_args("lift"))
+    env = simulation.make_env(get_task("lift").make_env_args("absolute"))
     yield env
     env.close()
 
@@ -61,7 +61,7 @@ def test_crash_inside_an_episode_is_a_recorded_failure(lift_env):
 
 @pytest.mark.slow
 def test_parallel_workers_match_in_process_results():
-    env_args = simulation.make_env_args("lift")
+    env_args = get_task("lift").make_env_args("absolute")
     seeds = [2000, 2001]
     parallel = evaluate_episodes(env_args, functools.partial(ExpertSource, "lift"), seeds, OBS_KEYS, 2, 400, workers=2)
     serial = evaluate_episodes(env_args, functools.partial(ExpertSource, "lift"), seeds, OBS_KEYS, 2, 400, workers=1)

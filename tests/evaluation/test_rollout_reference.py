@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 import torch
 
-from carp import simulation
 from carp.data.normalizer import MinMaxNormalizer
 from carp.data.rotation import ROT6D_ACTION_DIM
 from carp.evaluation.rollout import run_episode
@@ -26,7 +25,8 @@ from carp.policies.carp.config import CarpConfig
 from carp.policies.carp.policy import CarpPolicy
 from carp.policies.carp.spec import PolicySpec
 from carp.tasks import get_task
-from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS
+from carp.tasks.arms import simulation
+from carp.tasks.arms.task import ABSOLUTE_ACTIONS
 from carp.tokenizer.artifact import TokenizerArtifact
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
@@ -61,7 +61,7 @@ def reference_policy() -> CarpPolicy:
     with torch.no_grad():
         tokenizer.quantizer.codebook.normal_()
     spec = PolicySpec(
-        obs_dim=simulation.LOW_DIM_OBS_DIMS[TASK],
+        obs_dim=get_task(TASK).low_dim_obs_dim,
         obs_steps=OBS_STEPS,
         action_dim=ROT6D_ACTION_DIM,
         scales=tokenizer.spec.scales,
@@ -127,7 +127,7 @@ def write_reference(path: Path = REFERENCE_FILE) -> Path:
     Run it from the repository root only after a deliberate change of what a rollout executes:
     ``python -c "from tests.evaluation.test_rollout_reference import write_reference; write_reference()"``.
     """
-    env = simulation.make_env(simulation.make_env_args(TASK))
+    env = simulation.make_env(get_task(TASK).make_env_args("absolute"))
     try:
         with tempfile.TemporaryDirectory() as directory:
             recorded = record_rollout(env, "torch", Path(directory))
@@ -140,7 +140,7 @@ def write_reference(path: Path = REFERENCE_FILE) -> Path:
 
 @pytest.fixture(scope="module")
 def can_env():
-    env = simulation.make_env(simulation.make_env_args(TASK))
+    env = simulation.make_env(get_task(TASK).make_env_args("absolute"))
     yield env
     env.close()
 
@@ -157,9 +157,7 @@ def test_rollout_sees_and_executes_the_reference(can_env, reference, backend, tm
     recorded = record_rollout(can_env, backend, tmp_path)
     assert str(recorded["backend"]) == backend
     observations, actions = recorded["observations"], recorded["actions"]
-    assert (
-        observations.shape == reference["observations"].shape == (CHUNKS, OBS_STEPS, simulation.LOW_DIM_OBS_DIMS[TASK])
-    )
+    assert observations.shape == reference["observations"].shape == (CHUNKS, OBS_STEPS, get_task(TASK).low_dim_obs_dim)
     assert actions.shape == reference["actions"].shape == (CHUNKS, ACTION_STEPS, 7)
     # After the reset the history repeats the first observation, which depends on the episode seed only: no policy
     # rounding reaches it, so it is compared at float64 precision.

@@ -6,7 +6,7 @@ import pytest
 from carp.evaluation.sources import ChunkEnsemble, PolicySource, executed_actions
 from carp.policies.base import TimedPrediction
 from carp.policies.registry import load_policy
-from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS, DELTA_ACTIONS
+from carp.tasks.arms.task import ABSOLUTE_ACTIONS, DELTA_ACTIONS
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
 
 

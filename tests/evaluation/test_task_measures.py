@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from carp import simulation
 from carp.evaluation.rollout import EpisodeResult, run_episode
 from carp.evaluation.runner import episodes_table
 from carp.evaluation.sources import ExpertSource
 from carp.tasks import get_task
+from carp.tasks.arms import simulation
+from carp.tasks.arms.insertion_offset import InsertionOffset
 from carp.tasks.base import NoMeasure
-from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
+from carp.tasks.threading.insertion import THREADING_PAIRS
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 EPISODE_COLUMNS = ["seed", "success", "steps", "seconds", "chunks", "chunk_ms_median", "error"]
@@ -96,7 +97,7 @@ class HoldStill:
 
 @pytest.fixture(scope="module")
 def square_env():
-    env = simulation.make_env(simulation.make_env_args("square"))
+    env = simulation.make_env(get_task("square").make_env_args("absolute"))
     yield env
     env.close()
 
@@ -156,7 +157,7 @@ def test_the_scripted_expert_touches_the_peg_within_robosuites_on_peg_tolerance(
 
 @pytest.mark.slow
 def test_a_lift_episode_records_no_measure_and_keeps_its_columns():
-    env = simulation.make_env(simulation.make_env_args("lift"))
+    env = simulation.make_env(get_task("lift").make_env_args("absolute"))
     try:
         result = run_episode(get_task("lift"), env, HoldStill(), 0, OBS_KEYS, 2, 3)
     finally:
@@ -188,7 +189,7 @@ NUT_ASSEMBLY_MEASURES = [
 
 @pytest.mark.slow
 def test_nut_assembly_measures_each_nut_on_its_own_peg_at_the_offset_it_falls_with():
-    env = simulation.make_env(simulation.make_env_args("nut_assembly"))
+    env = simulation.make_env(get_task("nut_assembly").make_env_args("absolute"))
     try:
         # The square nut's -x wall lands on its peg's top; the round nut's hole (31.2 mm to its flats) is 15 mm off
         # the round peg's centre (20 mm radius), so its -y wall lands 3.8 mm over the peg's edge.
@@ -217,7 +218,7 @@ class _Contacts:
 
 
 def test_a_pair_untouched_stays_nan_and_the_episode_takes_the_pairs_that_touched():
-    from carp.tasks.insertion_offset import NUT_ASSEMBLY_PAIRS
+    from carp.tasks.nut_assembly.task import NUT_ASSEMBLY_PAIRS
 
     measure = InsertionOffset(NUT_ASSEMBLY_PAIRS)
     # Geoms 0-1 the square nut, 2 its peg, 3 the round nut, 4 its peg; bodies 1-4 in the same order.

@@ -10,13 +10,13 @@ from carp.evaluation.runner import episode_videos, write_episode_videos
 
 SCRIPT = """
 import sys
-from carp import simulation
+from carp.tasks.arms import simulation
 from carp.evaluation.rollout import run_episode
 from carp.tasks import get_task
 from carp.evaluation.runner import save_gif
 from carp.evaluation.sources import ExpertSource
 
-env = simulation.make_env(simulation.make_env_args("lift"), render_offscreen=True)
+env = simulation.make_env(get_task("lift").make_env_args("absolute"), render_offscreen=True)
 keys = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 result = run_episode(get_task("lift"), env, ExpertSource("lift"), 3000, keys, 2, 400, render_camera="agentview")
 assert result.success, result

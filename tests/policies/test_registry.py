@@ -29,7 +29,7 @@ from carp.policies.registry import (
     unregister_family,
 )
 from carp.policies.sections import SECTION_MODULES, get_sections, teacher_of
-from carp.tasks.robosuite_arms import DELTA_ACTIONS
+from carp.tasks.arms.task import DELTA_ACTIONS
 from carp.training.checkpoint import CheckpointError
 from carp.training.loop import PolicyTrainingData
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_artifact, tiny_policy, tiny_tokenizer
@@ -235,8 +235,8 @@ def test_inference_settings_are_the_familys_own(tmp_path):
 @pytest.mark.slow
 def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     """Train, save and evaluate a family defined in a test file, in simulation, with no change outside that file."""
-    from carp import simulation
     from carp.evaluation.runner import EvaluationSetup, evaluate_policy
+    from carp.tasks import get_task
 
     obs_keys = ["object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos"]  # Do = 19 on Lift
     shapes = PolicyContext(
@@ -251,7 +251,7 @@ def test_the_stub_family_runs_through_the_library_evaluation(tmp_path):
     path = tmp_path / "policy.pt"
     policy.save(path)
     setup = EvaluationSetup(
-        env_args=simulation.make_env_args("lift", controller="delta"),
+        env_args=get_task("lift").make_env_args("delta"),
         action_format=DELTA_ACTIONS,
         obs_keys=obs_keys,
         obs_steps=2,

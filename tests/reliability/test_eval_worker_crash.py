@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from carp import simulation
 from carp.evaluation.metrics import summarize_episodes
 from carp.evaluation.rollout import EPISODE_ATTEMPTS, WorkerStartError, evaluate_episodes
 from carp.evaluation.runner import episodes_table
+from carp.tasks import get_task
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 MAX_STEPS = 8
@@ -53,7 +53,13 @@ def _suicidal_factory() -> KillingSource:
 
 def _evaluate(source_factory, seeds: list[int]):
     return evaluate_episodes(
-        simulation.make_env_args("lift"), source_factory, seeds, OBS_KEYS, obs_steps=2, max_steps=MAX_STEPS, workers=2
+        get_task("lift").make_env_args("absolute"),
+        source_factory,
+        seeds,
+        OBS_KEYS,
+        obs_steps=2,
+        max_steps=MAX_STEPS,
+        workers=2,
     )
 
 

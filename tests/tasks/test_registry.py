@@ -1,12 +1,15 @@
 """The task seam: every registered task resolves by name and by the env_args of its files, and its action format maps
 stored actions to the policy's and back."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from carp.tasks import TASK_NAMES, get_task, task_for_env_args
+from carp.tasks.arms.task import ABSOLUTE_ACTIONS, DELTA_ACTIONS
 from carp.tasks.pusht_task import MaxReward
-from carp.tasks.robosuite_arms import ABSOLUTE_ACTIONS, DELTA_ACTIONS
 
 
 def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
@@ -16,6 +19,19 @@ def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():
         assert task.name == name
         assert task_for_env_args(task.make_env_args("absolute")) is task
     assert get_task("pusht").make_env_args("absolute")["env_name"] == "gym_pusht/PushT-v0"
+
+
+def test_the_names_are_listed_without_importing_a_task_or_its_simulator():
+    script = (
+        "import sys\n"
+        "from carp.tasks import TASK_NAMES\n"
+        "assert len(TASK_NAMES) == 8\n"
+        "loaded = [name for name in sys.modules if name.startswith(('robosuite', 'mujoco', 'gym_pusht', 'pymunk'))]\n"
+        "tasks = [name for name in sys.modules if name.startswith('carp.tasks.') and name != 'carp.tasks.base']\n"
+        "print(loaded, tasks)\n"
+    )
+    completed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert completed.stdout.strip() == "[] []"
 
 
 def test_unknown_tasks_and_envs_are_refused_naming_them():

@@ -4,10 +4,10 @@ them, and scripted experts whose demos succeed and pass the robomimic schema che
 import numpy as np
 import pytest
 
-from carp import simulation
 from carp.data.collect import collect_demonstrations, run_expert_episode
 from carp.data.robomimic_io import read_demonstrations
 from carp.tasks import get_task, task_for_env_args
+from carp.tasks.arms import simulation
 from tests.conftest import OBS_KEYS
 
 NEW_TASKS = ("stack", "nut_assembly", "stack_three")
@@ -51,7 +51,7 @@ def test_observations_carry_the_arm_tasks_default_keys_and_the_tasks_object_widt
     features = task.observations(task.reset(env, 0))
     assert task.default_obs_keys == OBS_KEYS
     widths = {key: features[key].shape for key in OBS_KEYS}
-    expected_object = (simulation.OBJECT_OBS_DIMS[task.name],)
+    expected_object = (get_task(task.name).object_obs_dim,)
     assert widths == {
         "object": expected_object,
         "robot0_eef_pos": (3,),
@@ -83,7 +83,7 @@ def test_the_expert_succeeds_on_fixed_seeds_and_its_demos_pass_the_schema(tmp_pa
     demos = read_demonstrations(path, OBS_KEYS, action_dim=7, env_name=get_task(task).env_name)
     assert simulation.controller_kind(demos.env_args) == controller
     for episode in demos.episodes:
-        assert episode.obs["object"].shape == (episode.length, simulation.OBJECT_OBS_DIMS[task])
+        assert episode.obs["object"].shape == (episode.length, get_task(task).object_obs_dim)
         assert episode.dones[-1] == 1 and episode.dones[:-1].sum() == 0
         assert set(np.unique(episode.actions[:, 6])) == {-1.0, 1.0}  # the gripper closed and opened again
         if controller == "delta":

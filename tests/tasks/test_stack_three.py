@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from carp import simulation
 from carp.tasks import get_task
+from carp.tasks.arms import simulation
 
 # robosuite's Stack object-state, in its order (23 values), then what StackThree appends (13).
 STACK_OBJECT_KEYS = (
@@ -58,14 +58,15 @@ def _table_height(env) -> float:
 
 
 @pytest.mark.slow
-def test_make_env_registers_stack_three_in_a_process_that_never_imported_it():
-    # Evaluation workers and ingestion rebuild the env from stored env_args in fresh processes.
+def test_its_task_registers_stack_three_in_a_process_that_never_imported_it():
+    # Evaluation workers and ingestion rebuild the env from stored env_args in fresh processes, through its task.
     script = (
         "import robosuite\n"
         "from robosuite.environments.base import REGISTERED_ENVS\n"
-        "from carp import simulation\n"
+        "from carp.tasks import get_task, task_for_env_args\n"
+        "env_args = get_task('stack_three').make_env_args('absolute')\n"
         "assert 'StackThree' not in REGISTERED_ENVS\n"
-        "env = simulation.make_env(simulation.make_env_args('stack_three'))\n"
+        "env = task_for_env_args(env_args).make_env(env_args)\n"
         "print(type(env).__name__)\n"
     )
     completed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=False)
@@ -94,7 +95,7 @@ def test_object_state_is_stacks_layout_then_the_third_cubes_pose_and_offsets(env
     observation = simulation.reset_env(env, 5)
     expected = np.concatenate([observation[key] for key in STACK_OBJECT_KEYS + THIRD_CUBE_KEYS])
     np.testing.assert_array_equal(observation["object-state"], expected)
-    assert observation["object-state"].shape == (simulation.OBJECT_OBS_DIMS["stack_three"],) == (36,)
+    assert observation["object-state"].shape == (get_task("stack_three").object_obs_dim,) == (36,)
     assert [observation[key].shape[0] for key in THIRD_CUBE_KEYS] == [3, 4, 3, 3]
     np.testing.assert_allclose(observation["cubeC_to_cubeA"], observation["cubeA_pos"] - observation["cubeC_pos"])
     np.testing.assert_allclose(
@@ -148,7 +149,7 @@ def test_a_tower_whose_top_cube_the_gripper_holds_or_touches_has_not_succeeded(e
 
 
 def test_a_shaped_reward_is_refused():
-    env_args = simulation.make_env_args("stack_three")
+    env_args = get_task("stack_three").make_env_args("absolute")
     env_args["env_kwargs"]["reward_shaping"] = True
     with pytest.raises(ValueError, match="StackThree has a sparse reward only"):
-        simulation.make_env(env_args)
+        get_task("stack_three").make_env(env_args)

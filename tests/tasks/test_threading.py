@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from carp import simulation
 from carp.data.collect import collect_demonstrations
 from carp.data.robomimic_io import read_demonstrations
 from carp.tasks import get_task, task_for_env_args
-from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
-from carp.tasks.threading import RING_HALF_DEPTH_M, RING_INNER_RADIUS_M
+from carp.tasks.arms import simulation
+from carp.tasks.arms.insertion_offset import InsertionOffset
+from carp.tasks.threading.env import RING_HALF_DEPTH_M, RING_INNER_RADIUS_M
+from carp.tasks.threading.insertion import THREADING_PAIRS
 from tests.conftest import OBS_KEYS
 
 OBJECT_KEYS = (
@@ -70,14 +71,15 @@ def _needle_on_axis(
 
 
 @pytest.mark.slow
-def test_make_env_registers_threading_in_a_process_that_never_imported_it():
-    # Evaluation workers and ingestion rebuild the env from stored env_args in fresh processes.
+def test_its_task_registers_threading_in_a_process_that_never_imported_it():
+    # Evaluation workers and ingestion rebuild the env from stored env_args in fresh processes, through its task.
     script = (
         "import robosuite\n"
         "from robosuite.environments.base import REGISTERED_ENVS\n"
-        "from carp import simulation\n"
+        "from carp.tasks import get_task, task_for_env_args\n"
+        "env_args = get_task('threading').make_env_args('absolute')\n"
         "assert 'Threading' not in REGISTERED_ENVS\n"
-        "env = simulation.make_env(simulation.make_env_args('threading'))\n"
+        "env = task_for_env_args(env_args).make_env(env_args)\n"
         "print(type(env).__name__)\n"
     )
     completed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=False)
@@ -127,7 +129,7 @@ def test_object_state_is_the_needles_and_the_rings_poses_then_the_offsets(task, 
     observation = simulation.reset_env(env, 5)
     expected = np.concatenate([observation[key] for key in OBJECT_KEYS])
     np.testing.assert_array_equal(observation["object-state"], expected)
-    assert observation["object-state"].shape == (simulation.OBJECT_OBS_DIMS["threading"],) == (23,)
+    assert observation["object-state"].shape == (get_task("threading").object_obs_dim,) == (23,)
     assert tuple(observation[key].shape[0] for key in OBJECT_KEYS) == OBJECT_KEY_WIDTHS
     np.testing.assert_allclose(observation["ring_pos"], env.ring_center())
     np.testing.assert_allclose(observation["needle_tip_to_ring"], env.ring_center() - env.needle_tip())
@@ -183,10 +185,10 @@ def test_a_needle_past_the_ring_that_never_crossed_its_hole_does_not_succeed(env
 
 
 def test_a_shaped_reward_is_refused():
-    env_args = simulation.make_env_args("threading")
+    env_args = get_task("threading").make_env_args("absolute")
     env_args["env_kwargs"]["reward_shaping"] = True
     with pytest.raises(ValueError, match="Threading has a sparse reward only"):
-        simulation.make_env(env_args)
+        get_task("threading").make_env(env_args)
 
 
 @pytest.mark.parametrize(
@@ -238,7 +240,7 @@ def test_the_expert_threads_the_needle_on_fixed_seeds_and_its_demos_pass_the_sch
     demos = read_demonstrations(path, OBS_KEYS, action_dim=7, env_name="Threading")
     assert simulation.controller_kind(demos.env_args) == controller
     for episode in demos.episodes:
-        assert episode.obs["object"].shape == (episode.length, simulation.OBJECT_OBS_DIMS["threading"])
+        assert episode.obs["object"].shape == (episode.length, get_task("threading").object_obs_dim)
         assert episode.dones[-1] == 1 and episode.dones[:-1].sum() == 0
         assert set(np.unique(episode.actions[:, 6])) == {-1.0, 1.0}  # open at the start, closed on the handle
         if controller == "delta":

@@ -9,7 +9,7 @@ needs an offscreen OpenGL backend; the entry point chooses it (``MUJOCO_GL``) be
 import logging
 import multiprocessing
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -174,7 +174,6 @@ def _render_in_order(
 ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
     """Render the demos at ``indices``, yielding ``(index, images)`` in that order, here or on spawned workers."""
     from carp.data.rendering import render_states
-    from carp.simulation import make_env
 
     def named(index: int, error: RenderingError) -> RenderingError:
         return RenderingError(f"{demos.path}: demo '{demos.names[index]}': {error}")
@@ -182,7 +181,7 @@ def _render_in_order(
     if not indices:
         return
     if workers <= 1 or len(indices) == 1:
-        env = make_env(demos.env_args)
+        env = _make_env(demos.env_args)
         try:
             for index in indices:
                 episode = demos.episodes[index]
@@ -219,13 +218,49 @@ def _render_in_order(
         executor.shutdown(wait=True, cancel_futures=True)
 
 
+def _make_env(env_args: Mapping):
+    """The env a file's env_args describe, built by its task (which registers an env class carp defines)."""
+    from carp.tasks import task_for_env_args
+
+    return task_for_env_args(env_args).make_env(env_args)
+
+
+def render_demos(
+    env_args: Mapping,
+    demos: Sequence[tuple[Mapping, np.ndarray]],
+    settings: RenderSettings,
+    description: str = "render",
+) -> list[dict[str, np.ndarray]]:
+    """Render the camera images of several demos of one file, with a progress bar over frames, in this process.
+
+    Args:
+        env_args: the file's ``data.attrs["env_args"]``.
+        demos: per demo, its attributes and its (T_i, S) states.
+        settings: cameras, size and render flags.
+        description: label of the progress bar.
+
+    Returns:
+        Per demo, obs key -> (T_i, image_size, image_size, 3) uint8 images.
+    """
+    from carp.data.rendering import render_states
+
+    env = _make_env(env_args)
+    rendered = []
+    try:
+        with tqdm(total=sum(len(states) for _, states in demos), desc=description, unit="frame") as progress:
+            for attrs, states in demos:
+                rendered.append(render_states(env, attrs, states, settings))
+                progress.update(len(states))
+    finally:
+        env.close()
+    return rendered
+
+
 _worker_state: dict = {}
 
 
 def _start_render_worker(env_args: dict, settings: RenderSettings) -> None:
-    from carp.simulation import make_env
-
-    _worker_state.update(env=make_env(env_args), settings=settings)
+    _worker_state.update(env=_make_env(env_args), settings=settings)
 
 
 def _render_in_worker(attrs: dict, states: np.ndarray) -> dict[str, np.ndarray]:
@@ -239,6 +274,7 @@ __all__ = [
     "check_renderable",
     "check_stored_images",
     "plan_images",
+    "render_demos",
     "rendered_episodes",
     "stored_episodes",
 ]

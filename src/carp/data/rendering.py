@@ -25,11 +25,10 @@ that renders sets it first, e.g. ``os.environ.setdefault("MUJOCO_GL", offscreen_
 """
 
 import ctypes.util
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 IMAGE_SIZE = 84
@@ -193,9 +192,9 @@ def load_demo_model(env, attrs: Mapping):
     robosuite rebuilds its model at every reset with random object sizes and placements, so stored states are only
     meaningful in their own model. A robomimic file stores that model's XML per demo (attribute ``model_file``; its
     asset paths are rebased on this robosuite install as robomimic does); carp's collection stores the reset seed
-    instead (attribute ``seed``), from which :func:`carp.simulation.reset_env` rebuilds the same model. The seed gives
-    the recorded model exactly; an XML holds its numbers to fewer digits, so poses differ by a rounding error and a
-    few pixels on edges and fine textures may differ by some intensity levels.
+    instead (attribute ``seed``), from which :func:`carp.tasks.arms.simulation.reset_env` rebuilds the same model.
+    The seed gives the recorded model exactly; an XML holds its numbers to fewer digits, so poses differ by a rounding
+    error and a few pixels on edges and fine textures may differ by some intensity levels.
 
     Args:
         env: a robosuite env built from the demo file's ``env_args``.
@@ -204,7 +203,7 @@ def load_demo_model(env, attrs: Mapping):
     Raises:
         RenderingError: the demo has neither attribute.
     """
-    from carp.simulation import reset_env
+    from carp.tasks.arms.simulation import reset_env
 
     if "model_file" in attrs:
         env.reset()
@@ -236,34 +235,3 @@ def render_states(env, attrs: Mapping, states: np.ndarray, settings: RenderSetti
             for key, image in renderer.render(state).items():
                 images[key][step] = image
     return images
-
-
-def render_demos(
-    env_args: Mapping,
-    demos: Sequence[tuple[Mapping, np.ndarray]],
-    settings: RenderSettings,
-    description: str = "render",
-) -> list[dict[str, np.ndarray]]:
-    """Render the camera images of several demos of one file, with a progress bar over frames.
-
-    Args:
-        env_args: the file's ``data.attrs["env_args"]``.
-        demos: per demo, its attributes and its (T_i, S) states.
-        settings: cameras, size and render flags.
-        description: label of the progress bar.
-
-    Returns:
-        Per demo, obs key -> (T_i, image_size, image_size, 3) uint8 images.
-    """
-    from carp.simulation import make_env
-
-    env = make_env(env_args)
-    rendered = []
-    try:
-        with tqdm(total=sum(len(states) for _, states in demos), desc=description, unit="frame") as progress:
-            for attrs, states in demos:
-                rendered.append(render_states(env, attrs, states, settings))
-                progress.update(len(states))
-    finally:
-        env.close()
-    return rendered

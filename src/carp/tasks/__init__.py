@@ -1,7 +1,10 @@
-"""Tasks by name: the registry knows each task's name and the module holding it, and imports that module on demand.
+"""Tasks by name: the registry knows each task's name and where its task object is, and imports it on demand.
 
-A new task is a module with a `Task` object (`carp.tasks.base`) and one line here. Task modules import their simulator
-only inside the functions that need it, so reading this registry (the params' validation does) stays cheap.
+Each task has a folder here (``carp.tasks.<name>``) holding its task object (`carp.tasks.base.Task`, in its ``task``
+module), its scripted expert, its measures and, where carp defines it, its environment; the robosuite arm tasks share
+`carp.tasks.arms`. A new task is such a folder and one line in `TASK_ENTRIES`. Task modules import their simulator only
+inside the functions that need it, so reading this registry (the params' validation does) stays cheap: listing the
+names imports no task module at all.
 
 A name the registry does not know is a task without a simulator when its demos are a LeRobotDataset folder
 (`resolve_task`): the module `OFFLINE_TASKS` names builds it from the dataset's ``meta/info.json``, and rebuilds it
@@ -12,21 +15,21 @@ import importlib
 from collections.abc import Mapping
 from pathlib import Path
 
-from carp.tasks.base import Task
+from carp.tasks.base import Task, load_entry
 
-TASK_MODULES: dict[str, str] = {
-    "lift": "carp.tasks.robosuite_arms",
-    "can": "carp.tasks.robosuite_arms",
-    "square": "carp.tasks.robosuite_arms",
-    "stack": "carp.tasks.robosuite_arms",
-    "nut_assembly": "carp.tasks.robosuite_arms",
-    "stack_three": "carp.tasks.robosuite_arms",
-    "threading": "carp.tasks.robosuite_arms",
-    "pusht": "carp.tasks.pusht_task",
+TASK_ENTRIES: dict[str, str] = {
+    "lift": "carp.tasks.lift.task:TASK",
+    "can": "carp.tasks.can.task:TASK",
+    "square": "carp.tasks.square.task:TASK",
+    "stack": "carp.tasks.stack.task:TASK",
+    "nut_assembly": "carp.tasks.nut_assembly.task:TASK",
+    "stack_three": "carp.tasks.stack_three.task:TASK",
+    "threading": "carp.tasks.threading.task:TASK",
+    "pusht": "carp.tasks.pusht_task:TASK",
 }
-"""Task name -> module whose ``TASKS`` mapping holds the task under that name."""
+"""Task name -> ``module:attribute`` of its task object, imported on first use."""
 
-TASK_NAMES: tuple[str, ...] = tuple(TASK_MODULES)
+TASK_NAMES: tuple[str, ...] = tuple(TASK_ENTRIES)
 
 OFFLINE_TASKS = "carp.tasks.offline"
 """The module of tasks without a simulator: ``ENV_NAME``, ``task_from_source(name, folder)`` and
@@ -39,9 +42,9 @@ def get_task(name: str) -> Task:
     Raises:
         ValueError: an unknown name, listing the known ones.
     """
-    if name not in TASK_MODULES:
+    if name not in TASK_ENTRIES:
         raise ValueError(f"unknown task '{name}'; expected one of {list(TASK_NAMES)}")
-    return importlib.import_module(TASK_MODULES[name]).TASKS[name]
+    return load_entry(TASK_ENTRIES[name])
 
 
 def resolve_task(name: str, demo_source: str | Path | None = None) -> Task:
@@ -54,7 +57,7 @@ def resolve_task(name: str, demo_source: str | Path | None = None) -> Task:
         ValueError: an unknown name without demos, or whose demos are no LeRobotDataset folder (a typo'd task name);
             the message lists the registered names.
     """
-    if name in TASK_MODULES:
+    if name in TASK_ENTRIES:
         return get_task(name)
     offline = importlib.import_module(OFFLINE_TASKS)
     if demo_source is None:

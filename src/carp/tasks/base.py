@@ -1,14 +1,15 @@
 """What every task offers collection, ingestion, evaluation and the report: the seam between them and a simulator.
 
-A task is a small object (`Task`) in its own module, found by name through `carp.tasks.get_task`. Collection asks it
+A task is a small object (`Task`) in its own folder, found by name through `carp.tasks.get_task`. Collection asks it
 for the env, the seeded reset, the observations, the scripted expert and success; evaluation asks the same, plus its
 per-episode measures and its video frames; ingestion and the policies ask its `ActionFormat`, how the actions stored in
-a demo file map to the actions a policy learns and back. Nothing outside a task's module tests a task's name.
+a demo file map to the actions a policy learns and back. Nothing outside a task's folder tests a task's name.
 """
 
+import importlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -16,6 +17,12 @@ ROLLOUTS = "rollouts"
 """A task's `Task.evaluation` when it has a simulator: the evaluate stage rolls policies out in it."""
 OFFLINE = "offline"
 """A task's `Task.evaluation` without one: the evaluate stage scores action errors on held-out demos."""
+
+
+def load_entry(entry: str) -> Any:
+    """The attribute a ``module:attribute`` string names (`carp.tasks.TASK_ENTRIES`), its module imported on use."""
+    module, attribute = entry.split(":")
+    return getattr(importlib.import_module(module), attribute)
 
 
 def _unchanged(actions: np.ndarray) -> np.ndarray:

@@ -160,4 +160,4 @@ class PushTTask:
         }
 
 
-TASKS = {"pusht": PushTTask()}
+TASK = PushTTask()

@@ -12,7 +12,7 @@ from carp.policies.carp import onnx_policy as onnx_module
 from carp.policies.carp.onnx_policy import OnnxPolicy, export_policy_graphs
 from carp.policies.carp.sampling import generate_chunk
 from carp.policies.registry import load_policy
-from carp.tasks.robosuite_arms import DELTA_ACTIONS
+from carp.tasks.arms.task import DELTA_ACTIONS
 from tests.policies.carp.factories import OBS_DIM, OBS_STEPS, tiny_policy
 
 SCALES = (1, 2, 4)

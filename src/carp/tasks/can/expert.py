@@ -4,7 +4,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from carp.data.experts.base import HOME_YAW_RAD, ScriptedExpert
+from carp.tasks.arms.expert import HOME_YAW_RAD, ScriptedExpert
 
 
 class CanExpert(ScriptedExpert):

@@ -5,7 +5,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from carp.data.experts.base import HOME_YAW_RAD, ScriptedExpert, nearest_symmetric_yaw, yaw_of
+from carp.tasks.arms.expert import HOME_YAW_RAD, ScriptedExpert, nearest_symmetric_yaw, yaw_of
 
 
 class LiftExpert(ScriptedExpert):

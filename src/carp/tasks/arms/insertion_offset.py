@@ -6,17 +6,14 @@ nut's centre at their first contact. The same measure serves every task that ins
 across the insertion's axis; `InsertionOffset` watches the simulator's contacts and records each pair's offset at its
 first contact, in millimetres.
 
-- Square and NutAssembly (`NutOnPeg`): the centres are the points robosuite's own on-peg check compares
+- Square and NutAssembly (`NutOnPeg`, here): the centres are the points robosuite's own on-peg check compares
   (`NutAssembly.on_peg`): the peg body's position (``peg1`` square, ``peg2`` round) and the nut's root body's
   position, which is the centre of its hole (the square nut's four walls and the round nut's eight sit symmetrically
   around it; the handle shifts the centre of mass off it, not the body's origin). The pegs stand upright, so the
   plane is the horizontal one and the distance is in x and y. Square has one nut and peg; NutAssembly has two pairs,
   each measured on its own.
-- Threading (`NeedleInRing`): the ring's centre, and the point where the needle's axis (through the bar, from the
-  handle to the tip) meets the ring's mid-plane; the plane is the ring's, upright, across its horizontal axis. A
-  needle at first contact is usually still in front of the ring, and its axis extended to the plane is where it
-  would pass; a needle lying within 6 degrees of the ring's plane meets it nowhere near the ring, and is measured by
-  its tip's distance from the ring's axis instead.
+- Threading (`carp.tasks.threading.insertion.NeedleInRing`): the ring's centre, and the point where the needle's axis
+  meets the ring's mid-plane.
 
 Deviations and consequences of robosuite's geometry:
 
@@ -28,17 +25,12 @@ Deviations and consequences of robosuite's geometry:
   comes within 6.75 mm of the peg's, turned to match it, slides down around the peg without touching it: robosuite
   counts it as on the peg, and it has no measure (NaN). Only the episodes whose nut touched the peg are measured.
   The round nut's hole (62.4 mm across its flats) leaves 11.2 mm of room around its peg (40 mm across).
-- Likewise the ring (40 mm across inside) leaves 16 mm of room around the needle's bar (8 mm across): a needle that
-  passes within 16 mm of the ring's centre, along its axis, never touches it and has no measure.
 """
 
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-
-NEEDLE_IN_RING_PLANE_COSINE = 0.1
-"""Below this cosine between the needle and the ring's axis (about 84 degrees) the needle is measured by its tip."""
 
 
 class InsertionPair(Protocol):
@@ -90,42 +82,6 @@ class NutOnPeg:
         return float(np.linalg.norm(positions[nut][:2] - positions[peg][:2]))
 
 
-@dataclass(frozen=True)
-class NeedleInRing:
-    """Threading's needle and ring (`carp.tasks.threading`); contacts with the tripod's legs do not count.
-
-    Attributes:
-        prefix: as `InsertionPair`'s.
-    """
-
-    prefix: str = ""
-
-    def geoms(self, env) -> tuple[np.ndarray, np.ndarray]:
-        """The needle's handle and bar, and the ring's segments."""
-        return np.asarray(env.needle_geom_ids), np.asarray(env.ring_geom_ids)
-
-    def offset_m(self, env) -> float:
-        """Distance from the ring's centre to where the needle's axis meets the ring's mid-plane (module docstring)."""
-        center, axis = env.ring_center(), env.ring_axis()
-        tip, needle = env.needle_tip(), env.needle_axis()
-        tip_depth = float(np.dot(tip - center, axis))
-        cosine = float(np.dot(needle, axis))
-        if abs(cosine) < NEEDLE_IN_RING_PLANE_COSINE:
-            return float(np.linalg.norm(tip - center - tip_depth * axis))
-        crossing = tip - needle * (tip_depth / cosine)
-        return float(np.linalg.norm(crossing - center))
-
-
-SQUARE_PAIRS = (NutOnPeg(0),)
-"""NutAssemblySquare: the square nut on the square peg."""
-
-NUT_ASSEMBLY_PAIRS = (NutOnPeg(0, "square_nut_"), NutOnPeg(1, "round_nut_"))
-"""NutAssembly: each nut on its own peg, each measured apart."""
-
-THREADING_PAIRS = (NeedleInRing(),)
-"""Threading: the needle through the ring."""
-
-
 class InsertionOffset:
     """Each tool's offset from its target's centre at their first contact, in millimetres.
 
@@ -133,10 +89,10 @@ class InsertionOffset:
     ``insertion_contact_step`` the first step any pair touched; a pair with a prefix also has its own two columns.
 
     Args:
-        pairs: the tool and target pairs to watch.
+        pairs: the tool and target pairs to watch (each task's, e.g. `carp.tasks.square.task.SQUARE_PAIRS`).
     """
 
-    def __init__(self, pairs: tuple[InsertionPair, ...] = SQUARE_PAIRS) -> None:
+    def __init__(self, pairs: tuple[InsertionPair, ...]) -> None:
         if not pairs:
             raise ValueError("InsertionOffset needs at least one tool and target pair")
         self.pairs = pairs

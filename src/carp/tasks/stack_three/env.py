@@ -5,7 +5,7 @@ and asks for the tower B (bottom), A, C (top), released. It changes Stack in the
 
 - the third cube is placed by Stack's own placement sampler (uniform in the same 16 cm square of the table, any yaw,
   no two cubes' footprints overlapping), drawn from the env's ``rng`` after A and B, so a reset stays a function of
-  the seed that `carp.simulation.reset_env` gives that generator;
+  the seed that `carp.tasks.arms.simulation.reset_env` gives that generator;
 - ``object-state`` keeps Stack's 23 values first (A's pose, B's pose, A to B, gripper to A, gripper to B) and appends,
   in Stack's convention for C, C's position (3) and xyzw quaternion (4), ``cubeC_to_cubeA`` (A's position minus C's,
   3: as Stack's ``cubeA_to_cubeB`` points from the cube to carry to the cube it goes on) and ``gripper_to_cubeC``
@@ -19,7 +19,8 @@ and asks for the tower B (bottom), A, C (top), released. It changes Stack in the
 MimicGen (Mandlekar et al., 2023) has a three-cube stacking task of this kind; this env is written on robosuite
 1.5.2's Stack, not taken from it. Importing this module registers ``StackThree`` with robosuite (its environments'
 metaclass registers every subclass by class name), so ``robosuite.make("StackThree", ...)`` works from then on;
-`carp.simulation.make_env` imports it before building one.
+the task's ``make_env``
+(`carp.tasks.arms.task.RobosuiteArmTask`) imports it before building one.
 """
 
 import numpy as np

@@ -3,11 +3,12 @@ import json
 import numpy as np
 import pytest
 
-from carp import simulation
+from carp.tasks import get_task
+from carp.tasks.arms import simulation
 
 
 def test_absolute_env_args_set_world_frame_absolute_arm_input():
-    env_args = simulation.make_env_args("square")
+    env_args = get_task("square").make_env_args("absolute")
     arm = env_args["env_kwargs"]["controller_configs"]["body_parts"]["right"]
     assert env_args["env_name"] == "NutAssemblySquare"
     assert env_args["type"] == 1
@@ -20,7 +21,7 @@ def test_absolute_env_args_set_world_frame_absolute_arm_input():
 
 
 def test_delta_env_args_keep_default_delta_osc():
-    env_args = simulation.make_env_args("can", controller="delta")
+    env_args = get_task("can").make_env_args("delta")
     arm = env_args["env_kwargs"]["controller_configs"]["body_parts"]["right"]
     assert env_args["env_name"] == "PickPlaceCan"
     assert arm["input_type"] == "delta" and arm["input_ref_frame"] == "base"
@@ -38,7 +39,7 @@ def test_controller_kind_reads_robosuite_1_4_part_configs():
 )
 def test_make_env_args_rejects_unknown_values(task, controller, message):
     with pytest.raises(ValueError, match=message):
-        simulation.make_env_args(task, controller)
+        get_task(task).make_env_args(controller)
 
 
 def test_low_dim_observations_skip_images_and_use_robomimic_object_key():
@@ -55,7 +56,7 @@ def test_low_dim_observations_skip_images_and_use_robomimic_object_key():
 
 @pytest.fixture(scope="module")
 def lift_env():
-    env = simulation.make_env(simulation.make_env_args("lift"))
+    env = simulation.make_env(get_task("lift").make_env_args("absolute"))
     yield env
     env.close()
 
@@ -74,9 +75,9 @@ def test_reset_is_reproducible_per_seed(lift_env):
 def test_lift_observations_match_design_dims(lift_env):
     features = simulation.low_dim_observations(simulation.reset_env(lift_env, 0))
     widths = {key: features[key].shape[0] for key in ("object", "robot0_eef_pos", "robot0_eef_quat")}
-    assert widths == {"object": simulation.OBJECT_OBS_DIMS["lift"], "robot0_eef_pos": 3, "robot0_eef_quat": 4}
+    assert widths == {"object": get_task("lift").object_obs_dim, "robot0_eef_pos": 3, "robot0_eef_quat": 4}
     low_dim = sum(features[key].shape[0] for key in ("object", "robot0_eef_pos", "robot0_eef_quat"))
-    assert low_dim + features["robot0_gripper_qpos"].shape[0] == simulation.LOW_DIM_OBS_DIMS["lift"] == 19
+    assert low_dim + features["robot0_gripper_qpos"].shape[0] == get_task("lift").low_dim_obs_dim == 19
     assert not simulation.is_success(lift_env)
 
 
@@ -96,9 +97,9 @@ def test_absolute_action_at_current_pose_holds_still(lift_env):
 @pytest.mark.slow
 @pytest.mark.parametrize("task", ["can", "square"])
 def test_object_observation_dims(task):
-    env = simulation.make_env(simulation.make_env_args(task, "delta"))
+    env = simulation.make_env(get_task(task).make_env_args("delta"))
     try:
         features = simulation.low_dim_observations(simulation.reset_env(env, 0))
     finally:
         env.close()
-    assert features["object"].shape == (simulation.OBJECT_OBS_DIMS[task],)
+    assert features["object"].shape == (get_task(task).object_obs_dim,)

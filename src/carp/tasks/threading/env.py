@@ -12,7 +12,7 @@ The scene is robosuite's table with the Panda (as in Lift) and two objects built
 The needle's bar is 8 mm across, so a bar on the ring's axis has 16 mm of room all round: a bar that enters the ring
 with its axis within 16 mm of the ring's passes without touching it.
 
-A reset draws, from the env's ``rng`` (which `carp.simulation.reset_env` seeds), the tripod's position (x in
+A reset draws, from the env's ``rng`` (which `carp.tasks.arms.simulation.reset_env` seeds), the tripod's position (x in
 [0.10, 0.16] m, y in [0.06, 0.14] m from the table's centre) and yaw (its ring's axis within 30 degrees of +x, away
 from the robot), then the needle's position (x in [-0.12, -0.02] m, y in [-0.20, -0.12] m) and yaw (its tip within 60
 degrees of +x); the two regions are apart, so the needle never starts under the tripod.
@@ -27,7 +27,8 @@ quaternion (4), ``needle_tip_to_ring`` (the ring's centre minus the tip, 3), ``g
 
 MimicGen (Mandlekar et al., 2023) has a threading task of this kind; this env is written on robosuite 1.5.2, not
 taken from it. Importing this module registers ``Threading`` with robosuite (its environments' metaclass registers
-every subclass by class name); `carp.simulation.make_env` imports it before building one.
+every subclass by class name); the task's ``make_env``
+(`carp.tasks.arms.task.RobosuiteArmTask`) imports it before building one.
 """
 
 import math

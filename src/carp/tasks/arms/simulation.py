@@ -1,4 +1,4 @@
-"""robosuite environments shared by demonstration collection and evaluation.
+"""The robosuite Panda arm simulation every arm task runs on: env_args, env construction, seeded reset, observations.
 
 An environment is described by robomimic-style ``env_args`` (a JSON-serializable dict stored in every demonstration
 file), so that evaluation rebuilds exactly the env the data came from. Two action spaces exist for the Panda's OSC
@@ -13,35 +13,12 @@ pose controller in robosuite 1.5:
 """
 
 import copy
-import importlib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-TASK_ENV_NAMES = {
-    "lift": "Lift",
-    "can": "PickPlaceCan",
-    "square": "NutAssemblySquare",
-    "stack": "Stack",
-    "nut_assembly": "NutAssembly",
-    "stack_three": "StackThree",
-    "threading": "Threading",
-}
-# Environments carp defines on robosuite's, by env name -> the module whose import registers them with robosuite.
-CARP_ENV_MODULES = {"StackThree": "carp.tasks.stack_three", "Threading": "carp.tasks.threading"}
-# Width of robomimic's "object" observation (robosuite's "object-state") per task.
-OBJECT_OBS_DIMS = {
-    "lift": 10,
-    "can": 14,
-    "square": 14,
-    "stack": 23,
-    "nut_assembly": 28,
-    "stack_three": 36,
-    "threading": 23,
-}
 # robot0_eef_pos (3) + robot0_eef_quat (4) + robot0_gripper_qpos (2), the proprioception used by default.
 ROBOT_OBS_DIM = 9
-LOW_DIM_OBS_DIMS = {task: dim + ROBOT_OBS_DIM for task, dim in OBJECT_OBS_DIMS.items()}
 CONTROLLERS = ("absolute", "delta")
 ROBOT = "Panda"
 CONTROL_FREQUENCY_HZ = 20
@@ -49,12 +26,6 @@ CONTROL_FREQUENCY_HZ = 20
 # robomimic names robosuite's concatenated object state "object"; the rest of the keys keep robosuite's names.
 _ROBOMIMIC_KEY_NAMES = {"object-state": "object"}
 _IMAGE_SUFFIXES = ("_image", "_depth", "_segmentation")
-
-
-def _check_task(task: str) -> str:
-    if task not in TASK_ENV_NAMES:
-        raise ValueError(f"unknown task '{task}'; expected one of {sorted(TASK_ENV_NAMES)}")
-    return TASK_ENV_NAMES[task]
 
 
 def controller_config(controller: str = "absolute") -> dict:
@@ -78,19 +49,18 @@ def controller_config(controller: str = "absolute") -> dict:
     return config
 
 
-def make_env_args(task: str, controller: str = "absolute") -> dict:
-    """robomimic-style env_args (JSON-serializable) for a task and controller.
+def make_env_args(env_name: str, controller: str = "absolute") -> dict:
+    """robomimic-style env_args (JSON-serializable) for a robosuite env and controller.
 
     Args:
-        task: short task name, a key of :data:`TASK_ENV_NAMES`.
+        env_name: robosuite's name of the env class, e.g. ``Lift`` (a task's ``env_name``).
         controller: ``"absolute"`` or ``"delta"``.
 
     Raises:
-        ValueError: unknown task or controller, naming the value.
+        ValueError: unknown controller, naming the value.
     """
     import robosuite
 
-    env_name = _check_task(task)
     return {
         "env_name": env_name,
         "type": 1,  # robomimic's EnvType.ROBOSUITE_TYPE
@@ -125,6 +95,9 @@ def make_env(
 ):
     """Build the robosuite env described by env_args.
 
+    robosuite knows an env class once its defining module has run: robosuite's own always, one carp defines (a task's
+    ``env_module``) after its import, which the task's ``make_env`` does before calling this.
+
     Args:
         env_args: dict from :func:`make_env_args` or a robomimic file's ``data.attrs["env_args"]``.
         render_offscreen: enable the offscreen renderer (videos, image observations).
@@ -136,10 +109,6 @@ def make_env(
     """
     import robosuite
 
-    # Every process that builds an env passes here (evaluation workers, collection, ingestion from stored env_args),
-    # and robosuite knows an env class only once its defining module has run.
-    if env_args["env_name"] in CARP_ENV_MODULES:
-        importlib.import_module(CARP_ENV_MODULES[env_args["env_name"]])
     kwargs = copy.deepcopy(dict(env_args["env_kwargs"]))
     use_cameras = len(camera_names) > 0
     kwargs.update(

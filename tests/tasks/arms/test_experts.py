@@ -5,9 +5,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from carp import simulation
-from carp.data import experts
 from carp.data.rotation import absolute_to_rot6d_actions, rot6d_to_absolute_actions
+from carp.tasks import TASK_NAMES, get_task
+from carp.tasks.arms import expert as experts
+from carp.tasks.arms import simulation
+from carp.tasks.arms.task import RobosuiteArmTask
+from carp.tasks.square.expert import SquareExpert
 
 
 @pytest.mark.parametrize("yaw", np.linspace(-math.pi, math.pi, 73))
@@ -68,11 +71,11 @@ def test_yaw_turns_keep_to_the_home_side(start, end):
 @pytest.mark.parametrize("handle_yaw", np.linspace(-math.pi, math.pi, 37))
 def test_square_plan_keeps_handle_towards_robot_and_gripper_near_home(handle_yaw):
     target = min(
-        experts.SquareExpert.handle_yaw_options,
+        SquareExpert.handle_yaw_options,
         key=lambda option: abs(experts.wrap_angle(option - handle_yaw)),
     )
     turn = experts.wrap_angle(target - handle_yaw)
-    grasp_yaw = experts.SquareExpert._grasp_yaw(handle_yaw, turn)
+    grasp_yaw = SquareExpert._grasp_yaw(handle_yaw, turn)
     assert abs(turn) <= math.pi / 2 + 1e-9
     # The handle never ends up pointing away from the robot (+x).
     assert math.cos(target) < 0.5
@@ -82,19 +85,21 @@ def test_square_plan_keeps_handle_towards_robot_and_gripper_near_home(handle_yaw
         assert abs(yaw - experts.HOME_YAW_RAD) <= math.radians(135) + 1e-9
 
 
-def test_make_expert_rejects_unknown_task():
-    with pytest.raises(ValueError, match="no scripted expert for task 'peg_in_hole'"):
-        experts.make_expert("peg_in_hole", env=None)
+def test_every_arm_task_names_a_scripted_expert_of_its_own():
+    arm_tasks = [get_task(name) for name in TASK_NAMES if isinstance(get_task(name), RobosuiteArmTask)]
+    assert len(arm_tasks) == 7
+    for task in arm_tasks:
+        assert task.expert_name == f"{task.name}_scripted"
 
 
 def run_expert(task: str, controller: str, seeds) -> list[tuple[bool, int, np.ndarray]]:
-    env = simulation.make_env(simulation.make_env_args(task, controller))
-    expert = experts.make_expert(task, env)
+    task_spec = get_task(task)
+    env = task_spec.make_env(task_spec.make_env_args(controller))
     results = []
     try:
         for seed in seeds:
             simulation.reset_env(env, seed)
-            expert.reset()
+            expert = task_spec.make_expert(env, seed)
             actions = []
             success = False
             for _ in range(400):

@@ -13,11 +13,11 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from carp.data.experts.base import HOME_YAW_RAD, ScriptedExpert, gripper_rotation, wrap_angle, yaw_of
+from carp.tasks.arms.expert import HOME_YAW_RAD, ScriptedExpert, gripper_rotation, wrap_angle, yaw_of
 
 
 class ThreadingExpert(ScriptedExpert):
-    """Threading (`carp.tasks.threading`): the needle's handle in the fingers, its tip along the ring's axis.
+    """Threading (`carp.tasks.threading.env`): the needle's handle in the fingers, its tip along the ring's axis.
 
     Phases: grasp the handle from above (closing across it, on the side that keeps the wrist nearest home once the
     needle is turned along the ring's axis), lift above the ring's top, turn and carry the tip to a point on the axis

@@ -1,23 +1,26 @@
-"""Panda arm tasks on the task seam: robosuite's Lift, Can, Square, Stack, NutAssembly; carp's StackThree, Threading.
+"""What the Panda arm tasks share on the task seam: `RobosuiteArmTask`, their action formats and their frames.
 
-They run on `carp.simulation` and share everything but their env class, their scripted expert and (Square,
-NutAssembly, Threading) the insertion-offset measure. An action is the OSC controller's 7-D input; with
+Each arm task (Lift, Can, Square, Stack, NutAssembly, StackThree, Threading) is a `RobosuiteArmTask` in its own
+folder (``carp.tasks.<name>.task``), which names its robosuite env, the width of its ``object`` observation, its
+scripted expert (a `carp.tasks.arms.expert.ScriptedExpert`), the module defining its env class when carp defines it,
+and its per-episode measure. They run on `carp.tasks.arms.simulation`. An action is the OSC controller's 7-D input; with
 ``data.controller: absolute`` the policy learns its 10-D form with a continuous 6-D rotation (`carp.data.rotation`).
 """
 
+import importlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from carp import simulation
 from carp.data.rotation import (
     ABSOLUTE_ACTION_DIM,
     ROT6D_ACTION_DIM,
     absolute_to_rot6d_actions,
     rot6d_to_absolute_actions,
 )
-from carp.tasks.base import ROLLOUTS, ActionFormat, EpisodeMeasure, Expert, NoMeasure
+from carp.tasks.arms import simulation
+from carp.tasks.base import ROLLOUTS, ActionFormat, EpisodeMeasure, Expert, NoMeasure, load_entry
 
 ABSOLUTE_ACTIONS = ActionFormat(
     space=f"panda-abs{ROT6D_ACTION_DIM}",
@@ -34,24 +37,6 @@ DELTA_ACTIONS = ActionFormat(
     dimension_names=("dx", "dy", "dz", "drx", "dry", "drz", "gripper"),
 )
 _ACTION_FORMATS = {"absolute": ABSOLUTE_ACTIONS, "delta": DELTA_ACTIONS}
-
-
-def _insertion_offset() -> EpisodeMeasure:
-    from carp.tasks.insertion_offset import InsertionOffset  # imported on use: the registry stays light
-
-    return InsertionOffset()
-
-
-def _nut_assembly_offsets() -> EpisodeMeasure:
-    from carp.tasks.insertion_offset import NUT_ASSEMBLY_PAIRS, InsertionOffset
-
-    return InsertionOffset(NUT_ASSEMBLY_PAIRS)
-
-
-def _threading_offset() -> EpisodeMeasure:
-    from carp.tasks.insertion_offset import THREADING_PAIRS, InsertionOffset
-
-    return InsertionOffset(THREADING_PAIRS)
 
 
 VIDEO_SIZE = 256
@@ -97,10 +82,21 @@ class _StateFrames:
 
 @dataclass(frozen=True)
 class RobosuiteArmTask:
-    """One of robosuite's Panda tasks; see `carp.tasks.base.Task` for what each member means."""
+    """One of the Panda arm tasks; see `carp.tasks.base.Task` for what the members it shares with every task mean.
+
+    Attributes:
+        object_obs_dim: width of robomimic's ``object`` observation (robosuite's ``object-state``).
+        expert: ``module:attribute`` of the task's scripted expert class, imported on use.
+        env_module: the module whose import registers the env class with robosuite, for an env carp defines; None for
+            robosuite's own.
+        measure_factory: builds a fresh per-episode measure (`measure`).
+    """
 
     name: str
     env_name: str
+    object_obs_dim: int
+    expert: str
+    env_module: str | None = None
     measure_factory: Callable[[], EpisodeMeasure] = NoMeasure
     default_max_steps: int = 400
     step_limit: int | None = None
@@ -112,6 +108,11 @@ class RobosuiteArmTask:
     paper_demos: str = "robomimic's proficient-human demonstrations"
     evaluation: str = ROLLOUTS
 
+    @property
+    def low_dim_obs_dim(self) -> int:
+        """Width of the default low-dim observation: ``object`` and the proprioception (`simulation.ROBOT_OBS_DIM`)."""
+        return self.object_obs_dim + simulation.ROBOT_OBS_DIM
+
     def action_format(self, controller: str) -> ActionFormat:
         """`ABSOLUTE_ACTIONS` or `DELTA_ACTIONS`."""
         if controller not in _ACTION_FORMATS:
@@ -119,19 +120,24 @@ class RobosuiteArmTask:
         return _ACTION_FORMATS[controller]
 
     def controller_of(self, env_args: Mapping) -> str:
-        """``absolute`` or ``delta`` (`carp.simulation.controller_kind`)."""
+        """``absolute`` or ``delta`` (`carp.tasks.arms.simulation.controller_kind`)."""
         return simulation.controller_kind(env_args)
 
     def make_env_args(self, controller: str) -> dict:
-        """`carp.simulation.make_env_args` for this task."""
-        return simulation.make_env_args(self.name, controller)
+        """`carp.tasks.arms.simulation.make_env_args` for this task's env."""
+        return simulation.make_env_args(self.env_name, controller)
 
     def make_env(self, env_args: Mapping, camera_names: Sequence[str] = (), image_size: int = 84):
-        """`carp.simulation.make_env`."""
+        """`carp.tasks.arms.simulation.make_env`, after importing ``env_module`` (robosuite then knows its env class).
+
+        Every process that builds an env passes here (evaluation workers, collection, ingestion from stored env_args).
+        """
+        if self.env_module is not None:
+            importlib.import_module(self.env_module)
         return simulation.make_env(env_args, camera_names=camera_names, image_size=image_size)
 
     def reset(self, env, seed: int) -> Mapping[str, np.ndarray]:
-        """`carp.simulation.reset_env`."""
+        """`carp.tasks.arms.simulation.reset_env`."""
         return simulation.reset_env(env, seed)
 
     def step(self, env, action: np.ndarray) -> tuple[Mapping[str, np.ndarray], float]:
@@ -140,7 +146,7 @@ class RobosuiteArmTask:
         return observation, float(reward)
 
     def observations(self, observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """`carp.simulation.low_dim_observations`."""
+        """`carp.tasks.arms.simulation.low_dim_observations`."""
         return simulation.low_dim_observations(observation)
 
     def is_success(self, env) -> bool:
@@ -154,20 +160,16 @@ class RobosuiteArmTask:
     @property
     def expert_name(self) -> str:
         """The scripted expert's name, e.g. ``lift_scripted``."""
-        from carp.data.experts import EXPERTS
-
-        return EXPERTS[self.name].name
+        return load_entry(self.expert).name
 
     def make_expert(self, env, seed: int) -> Expert:
         """The task's scripted expert, reset for the episode (the script does not draw: ``seed`` is not read)."""
-        from carp.data.experts import make_expert
-
-        expert = make_expert(self.name, env)
+        expert = load_entry(self.expert)(env)
         expert.reset()
         return expert
 
     def measure(self) -> EpisodeMeasure:
-        """The nut tasks' and Threading's insertion offsets; nothing for Lift, Can, Stack and StackThree."""
+        """A fresh ``measure_factory()``: the nut tasks' and Threading's insertion offsets, nothing for the others."""
         return self.measure_factory()
 
     def video(self, env, camera: str) -> _StateFrames:
@@ -189,25 +191,3 @@ class RobosuiteArmTask:
         import robosuite
 
         return {"robosuite_version": robosuite.__version__, "mujoco_version": mujoco.__version__}
-
-
-TASKS = {
-    "lift": RobosuiteArmTask("lift", simulation.TASK_ENV_NAMES["lift"]),
-    "can": RobosuiteArmTask("can", simulation.TASK_ENV_NAMES["can"]),
-    "square": RobosuiteArmTask("square", simulation.TASK_ENV_NAMES["square"], measure_factory=_insertion_offset),
-    "stack": RobosuiteArmTask("stack", simulation.TASK_ENV_NAMES["stack"]),
-    "nut_assembly": RobosuiteArmTask(
-        "nut_assembly", simulation.TASK_ENV_NAMES["nut_assembly"], measure_factory=_nut_assembly_offsets
-    ),
-    "stack_three": RobosuiteArmTask(
-        "stack_three",
-        simulation.TASK_ENV_NAMES["stack_three"],
-        paper_demos="any published demonstrations (the paper has no three-cube stack)",
-    ),
-    "threading": RobosuiteArmTask(
-        "threading",
-        simulation.TASK_ENV_NAMES["threading"],
-        measure_factory=_threading_offset,
-        paper_demos="any published demonstrations (the paper has no threading task)",
-    ),
-}
