@@ -1,8 +1,15 @@
 """train_tokenizer stage: action windows of tokenizer.tasks -> models/tokenizer/ + metrics, history and figure.
 
-With ``tokenizer.source: models:/<name>@<alias>`` nothing is trained: the registered tokenizer is fetched (its sha256
-checked) and measured on this pipeline's held-out windows, so a reused tokenizer's fit to the new task is on record.
+The kind is ``tokenizer.kind``: ``carp_msvq`` trains CARP's multi-scale VQ-VAE for ``tokenizer.epochs``; another
+kind is fitted by its own ``fit`` with its section ``tokenizer_<kind>`` (no epochs, so its history is empty) and
+measured by its rate and distortion (`carp.tokenizer.kinds.evaluation`). With ``tokenizer.source:
+models:/<name>@<alias>`` nothing is trained: the registered tokenizer is fetched (its sha256 checked), refused in one
+line unless its kind and action space (and for carp_msvq its scales and codebook size) fit the params, and measured
+on this pipeline's held-out windows, so a reused tokenizer's fit to the new task is on record.
 """
+
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -27,12 +34,15 @@ from carp.outputs import write_history, write_json
 from carp.tokenizer.artifact import (
     NonFiniteTokenizerError,
     TokenizerMismatchError,
-    check_compatible,
     save_tokenizer_artifact,
 )
 from carp.tokenizer.evaluation import dimension_names, evaluate_tokenizer, summary_line
+from carp.tokenizer.kinds.artifact import check_fits_params, save_kind_artifact
+from carp.tokenizer.kinds.evaluation import evaluate_kind
+from carp.tokenizer.kinds.registry import build_tokenizer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tracking.registry import fetch_registered_tokenizer
+from carp.training.checkpoint import one_line
 from carp.training.tokenizer_trainer import train_tokenizer
 
 
@@ -44,16 +54,14 @@ def main() -> None:
     torch.set_num_threads(1)
     params = load(parse_args(__doc__).params)
     data, config = params.data, params.tokenizer
-    if config.kind != DEFAULT_TOKENIZER_KIND:
-        fail(
-            f"tokenizer.kind={config.kind}: only {DEFAULT_TOKENIZER_KIND} is trained by the pipeline; {config.kind} is "
-            "not yet trained by the pipeline (measure it with benchmarks/tokenizer_kinds.py)"
-        )
     tasks = list(params.tokenizer_tasks)
     windows = {
         task: load_task_windows(PROCESSED_DIR / task, data.action_horizon, data.obs_steps, data.action_steps)
         for task in tasks
     }
+    if config.kind != DEFAULT_TOKENIZER_KIND:
+        train_kind(params, windows)
+        return
     # Every task is normalized with its own statistics, in training and in every policy (carp.tokenizer.artifact).
     own_normalizers = {task: task_windows.action_normalizer for task, task_windows in windows.items()}
     history: list[dict] = []
@@ -94,9 +102,9 @@ def main() -> None:
         else:
             try:
                 artifact, reference = fetch_registered_tokenizer(tracking_uri(params), config.source)
-                check_compatible(artifact, params.action_space, params.scales, params.codebook_size)
             except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError) as error:
                 fail(str(error))
+            refuse_unfit(artifact, params)
             tokenizer, trained_with = artifact.tokenizer, artifact.action_normalizers
             run.set_tags({"carp.tokenizer_version": reference.version})
 
@@ -121,6 +129,77 @@ def main() -> None:
     action = "trained on" if config.source == "pipeline" else f"fetched {config.source}, trained on"
     names = dimension_names(tokenizer.spec.action_dim, params.action_format.dimension_names)
     print(f"tokenizer {action} {list(trained_with)}: {summary_line(metrics, names)} on {tasks}; sha256 {sha256[:12]}")
+
+
+def refuse_unfit(artifact, params) -> None:
+    """Stop with one line naming the registered model, the key and both values when it does not fit the params."""
+    try:
+        check_fits_params(
+            artifact,
+            params.tokenizer.kind,
+            params.action_space,
+            params.data.action_horizon,
+            params.scales,
+            params.codebook_size,
+        )
+    except TokenizerMismatchError as error:
+        fail(f"{params.tokenizer.source}: {error}")
+
+
+def train_kind(params, windows: dict) -> None:
+    """Fit (or fetch) a kind other than carp_msvq, measure it on held-out windows and save it as the stage's output."""
+    config, tasks = params.tokenizer, list(windows)
+    normalizers = {task: task_windows.action_normalizer for task, task_windows in windows.items()}
+    with (
+        mlflow_stage(params, "train_tokenizer", "tokenizer", {"carp.tokenizer_source": config.source}) as run,
+        tempfile.TemporaryDirectory(prefix="carp-tokenizer-") as download,
+    ):
+        run.set_tags({"carp.tokenizer_kind": config.kind})
+        files_from = None
+        if config.source == "pipeline":
+            tokenizer = build_tokenizer(
+                config.kind, params.tokenizer_kind_config, params.action_format.policy_dim, params.data.action_horizon
+            )
+            train = [normalizers[task].normalize(w.train_actions.astype(np.float64)) for task, w in windows.items()]
+            try:
+                tokenizer.fit(torch.as_tensor(np.concatenate(train), dtype=torch.float32))
+            except ValueError as error:
+                fail(f"tokenizer.kind={config.kind}: {one_line(error)}")
+            trained_with = normalizers
+        else:
+            try:
+                artifact, reference = fetch_registered_tokenizer(tracking_uri(params), config.source, Path(download))
+            except (LookupError, TokenizerMismatchError, NonFiniteTokenizerError) as error:
+                fail(str(error))
+            refuse_unfit(artifact, params)
+            tokenizer, trained_with, files_from = artifact.tokenizer, artifact.action_normalizers, artifact.directory
+            run.set_tags({"carp.tokenizer_version": reference.version})
+        held_out = {task: w.valid_actions if len(w.valid_actions) else w.train_actions for task, w in windows.items()}
+        buffer = windows[tasks[0]].buffer
+        episode = int(np.flatnonzero(buffer.valid_episodes)[0]) if buffer.valid_episodes.any() else 0
+        figure = TOKENIZER_REPORT_DIR / "reconstruction.png"
+        names = params.action_format.dimension_names
+        metrics, timings = evaluate_kind(
+            tokenizer, held_out, normalizers, (tasks[0], buffer.episode(episode)[1]), figure, names
+        )
+        try:
+            sha256 = save_kind_artifact(
+                TOKENIZER_DIR, tokenizer, trained_with, params.action_space, metrics, files_from=files_from
+            )
+        except NonFiniteTokenizerError as error:
+            figure.unlink(missing_ok=True)
+            fail(str(error))
+        run.log_metrics({key.replace("/", "."): value for key, value in {**metrics, **timings}.items()})
+        run.log_artifact(figure)
+        run.set_tags({"carp.tokenizer_sha256": sha256})
+    write_json(TOKENIZER_REPORT_DIR / "metrics.json", metrics)
+    write_history(TOKENIZER_REPORT_DIR / "history.csv", [])
+    action = "fitted on" if config.source == "pipeline" else f"fetched {config.source}, fitted on"
+    summary = summary_line(metrics, dimension_names(tokenizer.action_dim, names))
+    print(
+        f"{config.kind} tokenizer {action} {list(trained_with)}: {summary}, {metrics['tokens_per_chunk/mean']:.1f} "
+        f"tokens per chunk, V={tokenizer.vocabulary_size} on {tasks}; sha256 {sha256[:12]}"
+    )
 
 
 if __name__ == "__main__":

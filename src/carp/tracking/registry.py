@@ -31,14 +31,19 @@ from mlflow.models import ModelSignature
 from mlflow.types import ParamSchema, ParamSpec
 
 from carp.config.checks import require_registry_alias
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND
 from carp.data.sources import file_sha256
 from carp.evaluation.selection import confirmed_checkpoint, find_candidates
 from carp.outputs import write_text
-from carp.tokenizer.artifact import TokenizerArtifact, load_tokenizer_artifact
+from carp.tokenizer.artifact import TokenizerArtifact
+from carp.tokenizer.kinds.artifact import KindArtifact, artifact_kind, load_any_artifact
+from carp.tokenizer.kinds.base import KIND_FILENAME
 
 logger = logging.getLogger(__name__)
 
 SHA_TAG = "carp.sha256"
+KIND_TAG = "carp.tokenizer_kind"
+ACTION_SPACE_TAG = "carp.action_space"
 ARTIFACT_KEY = "tokenizer"
 POLICY_ARTIFACT_KEY = "policy"
 POLICY_FILENAME = "policy.pt"
@@ -85,29 +90,41 @@ TokenizerReference = ModelReference
 
 
 class TokenizerModel(mlflow.pyfunc.PythonModel):
-    """pyfunc wrapper: ``predict`` maps raw action chunks (B, H, A) of one task to token sequences (B, L).
+    """pyfunc wrapper: ``predict`` maps raw action chunks (B, H, A) of one task to token ids (B, L).
 
     Actions are normalized with the statistics of the task named by the ``task`` inference parameter, which may be
-    omitted for a tokenizer trained on a single task (`carp.tokenizer.artifact`: normalization is per task).
+    omitted for a tokenizer trained on a single task (`carp.tokenizer.artifact`: normalization is per task). A
+    variable-length kind (FAST) pads each row past its length with -1.
     """
 
     def load_context(self, context) -> None:
-        """Load the tokenizer directory shipped with the model."""
-        self.artifact: TokenizerArtifact = load_tokenizer_artifact(Path(context.artifacts[ARTIFACT_KEY]))
+        """Load the tokenizer directory shipped with the model (any kind)."""
+        self.artifact: TokenizerArtifact | KindArtifact = load_any_artifact(Path(context.artifacts[ARTIFACT_KEY]))
 
     def predict(self, context, model_input: np.ndarray, params: dict | None = None) -> np.ndarray:
         """Raw actions (B, H, A) or (B, H*A) -> token ids (B, L) int64; ``params["task"]`` picks the statistics."""
-        spec = self.artifact.tokenizer.spec
-        actions = np.asarray(model_input, dtype=np.float32).reshape(-1, spec.action_horizon, spec.action_dim)
+        tokenizer = self.artifact.tokenizer
+        if isinstance(self.artifact, KindArtifact):
+            horizon, action_dim = tokenizer.action_horizon, tokenizer.action_dim
+        else:
+            horizon, action_dim = tokenizer.spec.action_horizon, tokenizer.spec.action_dim
+        actions = np.asarray(model_input, dtype=np.float32).reshape(-1, horizon, action_dim)
         task = (params or {}).get("task") or None
-        normalized = torch.as_tensor(self.artifact.action_normalizer(task).normalize(actions))
+        normalized = torch.as_tensor(self.artifact.action_normalizer(task).normalize(actions)).float()
         with torch.inference_mode():
-            return self.artifact.tokenizer.encode_to_sequence(normalized).numpy()
+            if isinstance(self.artifact, KindArtifact):
+                return tokenizer.encode(normalized).ids.numpy()
+            return tokenizer.encode_to_sequence(normalized).numpy()
 
 
-def registered_model_name(action_space: str) -> str:
-    """``carp-tokenizer-<action-space>``, e.g. ``carp-tokenizer-panda-abs10``."""
-    return f"carp-tokenizer-{action_space}"
+def registered_model_name(action_space: str, kind: str = DEFAULT_TOKENIZER_KIND) -> str:
+    """``carp-tokenizer-<action-space>`` for ``carp_msvq``, ``carp-tokenizer-<kind>-<action-space>`` for the others.
+
+    E.g. ``carp-tokenizer-panda-abs10`` and ``carp-tokenizer-fast-panda-abs10``.
+    """
+    if kind == DEFAULT_TOKENIZER_KIND:
+        return f"carp-tokenizer-{action_space}"
+    return f"carp-tokenizer-{kind}-{action_space}"
 
 
 def register_tokenizer(
@@ -121,7 +138,8 @@ def register_tokenizer(
 
     Args:
         tracking_uri: absolute MLflow tracking URI (the registry lives in the same store).
-        directory: tokenizer artifact directory.
+        directory: tokenizer artifact directory, of any kind (`carp.tokenizer.kinds.artifact.load_any_artifact`);
+            the version is tagged with its kind and action space.
         name: registered model name.
         alias: alias to set on the version.
         run_id: the active MLflow run that logs the model.
@@ -130,7 +148,7 @@ def register_tokenizer(
     Raises:
         carp.tokenizer.artifact.NonFiniteTokenizerError: the artifact holds a value that is not finite.
     """
-    load_tokenizer_artifact(directory)
+    artifact = load_any_artifact(directory)
     return _register_version(
         tracking_uri,
         name,
@@ -141,6 +159,7 @@ def register_tokenizer(
         artifacts={ARTIFACT_KEY: str(directory)},
         # Declares the `task` inference parameter; MLflow drops parameters a signature does not name.
         signature=ModelSignature(inputs=None, params=ParamSchema([ParamSpec("task", "string", "")])),
+        tags={KIND_TAG: artifact_kind(artifact), ACTION_SPACE_TAG: artifact.action_space},
     )
 
 
@@ -255,8 +274,8 @@ def _download_version(tracking_uri: str, reference: ModelReference, destination:
 
 def fetch_registered_tokenizer(
     tracking_uri: str, uri: str, destination: Path | None = None
-) -> tuple[TokenizerArtifact, ModelReference]:
-    """Resolve ``models:/<name>@<alias>``, download its tokenizer and check the weights' hash against the version tag.
+) -> tuple[TokenizerArtifact | KindArtifact, ModelReference]:
+    """Resolve ``models:/<name>@<alias>``, download its tokenizer (any kind) and check its hash against the version tag.
 
     The download goes to ``destination`` when given (kept), else to a temporary directory that is removed on return.
 
@@ -274,10 +293,10 @@ def fetch_registered_tokenizer(
         tempfile.TemporaryDirectory(prefix="carp-tokenizer-") if destination is None else nullcontext(destination)
     ) as download_directory:
         local = _download_version(tracking_uri, reference, Path(download_directory))
-        directories = [p.parent for p in local.rglob("tokenizer.pt")]
+        directories = [p.parent for p in local.rglob(KIND_FILENAME)] or [p.parent for p in local.rglob("tokenizer.pt")]
         if not directories:
-            raise LookupError(f"tokenizer {uri}: version {reference.version} has no tokenizer.pt artifact")
-        artifact = load_tokenizer_artifact(directories[0], expected_sha256=reference.sha256 or None)
+            raise LookupError(f"tokenizer {uri}: version {reference.version} has no tokenizer artifact")
+        artifact = load_any_artifact(directories[0], reference.sha256 or None, f"the registered version {uri}")
     return artifact, replace(reference, sha256=artifact.sha256)
 
 

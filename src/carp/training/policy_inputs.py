@@ -29,7 +29,9 @@ from carp.policies.context import PolicyContext
 from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
 from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tasks import task_for_env_args
-from carp.tokenizer.artifact import TokenizerArtifact, check_compatible, load_tokenizer_artifact
+from carp.tokenizer.artifact import TokenizerArtifact, TokenizerMismatchError, check_compatible, load_tokenizer_artifact
+from carp.tokenizer.kinds.artifact import is_kind_artifact
+from carp.tokenizer.kinds.base import read_kind_file
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import PolicyTrainingData
 
@@ -246,9 +248,17 @@ class ReferencedTokenizer:
         Raises:
             FileNotFoundError: a file is missing.
             CheckpointError: the tokenizer is corrupt or not the referenced one.
-            TokenizerMismatchError: the tokenizer does not fit the params.
+            TokenizerMismatchError: the tokenizer does not fit the params, or is of another kind than carp_msvq.
         """
         reference = TokenizerReference.load(self.reference_path)
+        if is_kind_artifact(self.directory):
+            # The token-predicting families read carp_msvq's module (spec, ids per dimension, scales); the others
+            # would take any kind, but a policy records the tokenizer it was trained beside as carp_msvq's artifact.
+            kind, _ = read_kind_file(self.directory)
+            raise TokenizerMismatchError(
+                f"{self.directory}: a {kind!r} tokenizer (tokenizer.kind); policies train beside carp_msvq only; "
+                "train and register other kinds with `dvc repro register_tokenizer`"
+            )
         artifact = load_tokenizer_artifact(
             self.directory, expected_sha256=reference.sha256, recorded_in=self.reference_path
         )
