@@ -1,6 +1,6 @@
 """The scripted Push-T expert's success rate and speed over a range of DP test seeds.
 
-Each episode resets Push-T to DP's initial state for its seed (``carp.tasks.pusht.reset_state``) and lets a fresh
+Each episode resets Push-T to DP's initial state for its seed (``carp.tasks.pusht.env.reset_state``) and lets a fresh
 ``PushTExpert`` act until success or the 300-step limit. The table reports the successes, the wall time per episode
 (planning and simulation together, on whatever load the machine has) and the control steps per episode.
 
@@ -13,8 +13,8 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from carp.tasks.pusht import PushTEnv
-from carp.tasks.pusht_expert import push_library, run_episode
+from carp.tasks.pusht.env import PushTEnv
+from carp.tasks.pusht.expert import push_library, run_episode
 
 
 def main() -> None:

@@ -66,7 +66,7 @@ def test_a_lerobot_camera_is_stored_as_the_image_key_ingestion_reads(tmp_path):
 def test_an_imported_camera_ingests_into_the_image_buffer(tmp_path):
     from carp.data.ingest import BUFFER_DIRNAME, ingest_demonstrations
     from carp.data.rendering import RenderSettings
-    from carp.tasks.pusht import make_env_args
+    from carp.tasks.pusht.env import make_env_args
 
     raw = tmp_path / "raw" / "pusht.hdf5"
     demos = import_demos(

@@ -9,7 +9,7 @@ import pytest
 
 from carp.tasks import TASK_NAMES, get_task, task_for_env_args
 from carp.tasks.arms.task import ABSOLUTE_ACTIONS, DELTA_ACTIONS
-from carp.tasks.pusht_task import MaxReward
+from carp.tasks.pusht.task import MaxReward
 
 
 def test_every_task_is_found_by_name_and_by_the_env_args_it_writes():

@@ -25,7 +25,7 @@ TASK_ENTRIES: dict[str, str] = {
     "nut_assembly": "carp.tasks.nut_assembly.task:TASK",
     "stack_three": "carp.tasks.stack_three.task:TASK",
     "threading": "carp.tasks.threading.task:TASK",
-    "pusht": "carp.tasks.pusht_task:TASK",
+    "pusht": "carp.tasks.pusht.task:TASK",
 }
 """Task name -> ``module:attribute`` of its task object, imported on first use."""
 

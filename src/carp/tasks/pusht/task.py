@@ -1,4 +1,4 @@
-"""Push-T behind the task seam: DP's state-based protocol (`carp.tasks.pusht`) and the planning expert.
+"""Push-T behind the task seam: DP's state-based protocol (`carp.tasks.pusht.env`) and the planning expert.
 
 Actions are stored and learned alike: the agent's absolute 2-D target in workspace pixels (action space
 ``pusht-abs2``), so ``data.controller`` must stay ``absolute``. The observation is DP's fixed 20 values
@@ -11,13 +11,13 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from carp.tasks import pusht
 from carp.tasks.base import ROLLOUTS, ActionFormat
+from carp.tasks.pusht import env as pusht_env
 
 PUSHT_ACTIONS = ActionFormat(
-    space=f"pusht-abs{pusht.ACTION_DIM}",
-    stored_dim=pusht.ACTION_DIM,
-    policy_dim=pusht.ACTION_DIM,
+    space=f"pusht-abs{pusht_env.ACTION_DIM}",
+    stored_dim=pusht_env.ACTION_DIM,
+    policy_dim=pusht_env.ACTION_DIM,
     dimension_names=("target_x", "target_y"),
 )
 
@@ -30,11 +30,11 @@ class MaxReward:
     def __init__(self) -> None:
         self.best = 0.0
 
-    def reset(self, env: pusht.PushTEnv) -> None:
+    def reset(self, env: pusht_env.PushTEnv) -> None:
         """Start at 0: as in DP's runner, only the rewards of steps count, not the initial state's."""
         self.best = 0.0
 
-    def observe(self, env: pusht.PushTEnv, step: int) -> None:
+    def observe(self, env: pusht_env.PushTEnv, step: int) -> None:
         """Keep the highest reward so far."""
         self.best = max(self.best, env.reward())
 
@@ -44,15 +44,15 @@ class MaxReward:
 
 
 class PushTDemonstrator:
-    """The planning expert (`carp.tasks.pusht_expert.PushTExpert`) bound to one episode, acting without arguments.
+    """The planning expert (`carp.tasks.pusht.expert.PushTExpert`) bound to one episode, acting without arguments.
 
     Its tie breaks are seeded with the episode's seed, so a demo depends on its seed only.
     """
 
     name = "pusht_planner"
 
-    def __init__(self, env: pusht.PushTEnv, seed: int) -> None:
-        from carp.tasks.pusht_expert import PushTExpert
+    def __init__(self, env: pusht_env.PushTEnv, seed: int) -> None:
+        from carp.tasks.pusht.expert import PushTExpert
 
         self.env = env
         self.expert = PushTExpert(seed=seed)
@@ -65,7 +65,7 @@ class PushTDemonstrator:
 class _RenderedFrames:
     """Video frames drawn by gym-pusht (goal, block, agent, the last target)."""
 
-    def __init__(self, env: pusht.PushTEnv) -> None:
+    def __init__(self, env: pusht_env.PushTEnv) -> None:
         self.env = env
 
     def frame(self) -> np.ndarray:
@@ -80,11 +80,11 @@ class PushTTask:
     """DP's state-based Push-T; see `carp.tasks.base.Task` for what each member means."""
 
     name = "pusht"
-    env_name = pusht.ENV_NAME
-    default_max_steps = pusht.MAX_STEPS
-    step_limit = pusht.MAX_STEPS
-    control_frequency_hz = pusht.CONTROL_FREQUENCY_HZ
-    default_obs_keys = tuple(pusht.OBSERVATION_DIMS)
+    env_name = pusht_env.ENV_NAME
+    default_max_steps = pusht_env.MAX_STEPS
+    step_limit = pusht_env.MAX_STEPS
+    control_frequency_hz = pusht_env.CONTROL_FREQUENCY_HZ
+    default_obs_keys = tuple(pusht_env.OBSERVATION_DIMS)
     configurable_obs_keys = False
     supports_cameras = False
     score_measure = SCORE_MEASURE
@@ -102,23 +102,23 @@ class PushTTask:
         return "absolute"
 
     def make_env_args(self, controller: str) -> dict:
-        """`carp.tasks.pusht.make_env_args`, after checking the controller."""
+        """`carp.tasks.pusht.env.make_env_args`, after checking the controller."""
         self.action_format(controller)
-        return pusht.make_env_args()
+        return pusht_env.make_env_args()
 
-    def make_env(self, env_args: Mapping, camera_names: Sequence[str] = (), image_size: int = 84) -> pusht.PushTEnv:
+    def make_env(self, env_args: Mapping, camera_names: Sequence[str] = (), image_size: int = 84) -> pusht_env.PushTEnv:
         """A `PushTEnv` whose own step limit is lifted: the rollout's ``max_steps`` ends episodes."""
         if camera_names:
             raise ValueError(f"pusht: camera observations {list(camera_names)} are not supported (state only)")
-        env = pusht.make_env(env_args)
+        env = pusht_env.make_env(env_args)
         env.max_steps = np.iinfo(np.int64).max
         return env
 
-    def reset(self, env: pusht.PushTEnv, seed: int) -> dict[str, np.ndarray]:
+    def reset(self, env: pusht_env.PushTEnv, seed: int) -> dict[str, np.ndarray]:
         """DP's test reset for ``seed``."""
         return env.reset(seed)
 
-    def step(self, env: pusht.PushTEnv, action: np.ndarray) -> tuple[dict[str, np.ndarray], float]:
+    def step(self, env: pusht_env.PushTEnv, action: np.ndarray) -> tuple[dict[str, np.ndarray], float]:
         """One 10 Hz control step towards the target ``action`` (2,); DP's reward."""
         step = env.step(action)
         return step.observation, step.reward
@@ -127,17 +127,17 @@ class PushTTask:
         """The observation as float64 arrays (it has no images)."""
         return {key: np.asarray(value, dtype=np.float64).reshape(-1) for key, value in observation.items()}
 
-    def is_success(self, env: pusht.PushTEnv) -> bool:
+    def is_success(self, env: pusht_env.PushTEnv) -> bool:
         """Coverage of the goal above 95%."""
         return env.is_success()
 
-    def simulator_state(self, env: pusht.PushTEnv) -> np.ndarray:
+    def simulator_state(self, env: pusht_env.PushTEnv) -> np.ndarray:
         """(5,) agent x, y, block x, y, angle."""
         return env.state()
 
     expert_name = PushTDemonstrator.name
 
-    def make_expert(self, env: pusht.PushTEnv, seed: int) -> PushTDemonstrator:
+    def make_expert(self, env: pusht_env.PushTEnv, seed: int) -> PushTDemonstrator:
         """The planning expert for this episode."""
         return PushTDemonstrator(env, seed)
 
@@ -145,11 +145,11 @@ class PushTTask:
         """DP's score of one episode."""
         return MaxReward()
 
-    def video(self, env: pusht.PushTEnv, camera: str) -> _RenderedFrames:
+    def video(self, env: pusht_env.PushTEnv, camera: str) -> _RenderedFrames:
         """gym-pusht's top-down drawing (there is one view, so ``camera`` is not read)."""
         return _RenderedFrames(env)
 
-    def cameras(self, env: pusht.PushTEnv, settings) -> _RenderedFrames:
+    def cameras(self, env: pusht_env.PushTEnv, settings) -> _RenderedFrames:
         """Refused: state-based Push-T has no camera observations."""
         raise ValueError("pusht: camera observations are not supported (state only)")
 

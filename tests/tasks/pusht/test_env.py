@@ -10,7 +10,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pytest
 
-from carp.tasks import pusht
+from carp.tasks.pusht import env as pusht
 
 FAR_FROM_GOAL = (400.0, 450.0, math.pi)  # stem pointing up, in the lower right corner, clear of the goal and walls
 AGENT_AWAY = (50.0, 50.0)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from carp.tasks.pusht import GOAL_POSE, MAX_STEPS, WORKSPACE_SIZE, PushTEnv, rotation_matrix
+from carp.tasks.pusht.env import GOAL_POSE, MAX_STEPS, WORKSPACE_SIZE, PushTEnv, rotation_matrix
 
 AGENT_RADIUS = 15.0
 PHYSICS_STEPS_PER_CONTROL = 10

@@ -16,7 +16,7 @@ from carp.data.robomimic_io import DatasetError, read_demonstrations, write_demo
 from carp.evaluation.rollout import evaluate_episodes, run_episode
 from carp.evaluation.sources import ExpertSource
 from carp.tasks import get_task
-from carp.tasks.pusht import ENV_NAME
+from carp.tasks.pusht.env import ENV_NAME
 from tests.conftest import make_episode
 
 PUSHT = get_task("pusht")

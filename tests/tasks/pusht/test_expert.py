@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from carp.tasks import pusht, pusht_expert
+from carp.tasks.pusht import env as pusht
+from carp.tasks.pusht import expert as pusht_expert
 
 # Poses well inside the workspace, where no wall is in reach of a library push.
 POSES_AWAY_FROM_WALLS = [(200.0, 300.0, 1.1), (300.0, 220.0, -2.4), (256.0, 256.0, math.pi)]
