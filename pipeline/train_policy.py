@@ -28,6 +28,7 @@ from stage_support import (
     stage_policy_paths,
 )
 
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND
 from carp.policies.registry import get_family
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.training import distributed
@@ -74,8 +75,10 @@ def main() -> None:
         )
     try:
         # models/tokenizer holds the referenced tokenizer whatever its source (train_tokenizer fetches registered ones).
+        # The kinds the family takes; a family that declares none trains beside carp_msvq only.
+        kinds = get_family(args.policy).tokenizer_kinds or (DEFAULT_TOKENIZER_KIND,)
         tokenizer = ReferencedTokenizer(
-            TOKENIZER_DIR, TOKENIZER_REF, params.action_space, params.scales, params.codebook_size
+            TOKENIZER_DIR, TOKENIZER_REF, params.action_space, params.scales, params.codebook_size, kinds
         )
         if args.multitask:
             task_dirs = {task: PROCESSED_DIR / task for task in params.tasks}

@@ -173,6 +173,14 @@ def test_success_table_names_each_rows_token_choice(inputs):
     assert table.set_index("task")["decoding"].to_dict() == {"lift": "greedy", "can": "top-5 draws", "square": "-"}
 
 
+def test_success_table_shows_the_repaired_share_where_a_policy_reports_it(inputs):
+    lift = inputs.evaluation["lift"]["carp"]
+    assert "repaired chunks" not in success_table({"lift": {"carp": lift}}).columns
+    fast = lift | {"repaired_chunks": 3, "predicted_chunks": 40, "repaired_chunk_rate": 0.075}
+    table = success_table({"lift": {"carp": lift, "next_token": fast}}).set_index("policy")
+    assert table["repaired chunks"].to_dict() == {"carp": "-", "next_token": "7.5%"}
+
+
 def _baseline(lift: dict) -> dict:
     """The same episodes as a slower family with 10 denoising steps in PyTorch."""
     return lift | {

@@ -42,6 +42,7 @@ class ChunkTiming:
     prediction: float = 0.0
     decoding: float = 0.0
     encoding: float = 0.0  # the part of `prediction` spent encoding the observations (an image policy's cameras)
+    repaired: int | None = None  # chunks whose tokens the tokenizer repaired (0 or 1 at batch 1); None: not reported
 
 
 class ActionSource(Protocol):
@@ -79,6 +80,7 @@ class EpisodeResult:
     frames: list[np.ndarray] = field(default_factory=list)
     render_seconds: list[float] = field(default_factory=list)
     task_measures: dict[str, float] = field(default_factory=dict)
+    repaired_chunks: list[int] = field(default_factory=list)  # per chunk, where the policy reports repairs
 
 
 def flatten_observation(task: Task, obs: Mapping[str, np.ndarray], obs_keys: Sequence[str]) -> np.ndarray:
@@ -141,6 +143,8 @@ def run_episode(
                 result.prediction_seconds.append(timing.prediction)
                 result.decoding_seconds.append(timing.decoding)
                 result.encoding_seconds.append(timing.encoding)
+                if timing.repaired is not None:
+                    result.repaired_chunks.append(timing.repaired)
             for action in actions:
                 obs, _ = task.step(env, action)
                 history.append(flatten_observation(task, obs, obs_keys))

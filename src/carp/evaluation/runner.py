@@ -136,6 +136,7 @@ def evaluate_policy(
         # The camera encoder's share of the prediction time, so the report can give the latency without it.
         summary.update(latency_summary([s for r in results for s in r.encoding_seconds], "latency_encode"))
     summary.update(measure_summary([r.task_measures for r in results]))
+    summary.update(repair_summary(results))
     summary["score"] = task_score(summary, None if task is None else get_task(task).score_measure)
     summary.update(inference)  # the report names each row's inference settings (CARP: its token choice)
     summary.update(policy_facts(policy))
@@ -144,6 +145,22 @@ def evaluate_policy(
     summary["action_steps"] = setup.action_steps if setup.ensemble_m is None else 1
     summary["ensemble_m"] = setup.ensemble_m
     return summary, results
+
+
+def repair_summary(results: Sequence[EpisodeResult]) -> dict[str, float]:
+    """`repaired_chunks` of `predicted_chunks` (the tokenizer repaired their tokens) and `repaired_chunk_rate`.
+
+    Empty for a policy that reports no repairs (every family but the next-token one over a kind other than
+    carp_msvq, whose sampled sequences can be malformed, e.g. FAST's).
+    """
+    repaired = [count for result in results for count in result.repaired_chunks]
+    if not repaired:
+        return {}
+    return {
+        "repaired_chunks": int(sum(repaired)),
+        "predicted_chunks": len(repaired),
+        "repaired_chunk_rate": float(sum(repaired)) / len(repaired),
+    }
 
 
 def deploy(policy: Policy, checkpoint_path: Path, backend: str, directory: Path) -> Deployment:

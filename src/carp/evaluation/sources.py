@@ -156,5 +156,8 @@ class PolicySource:
             executed = self.action_format.to_env(action[None])
         decoding_seconds = timed.decoding_seconds + time.perf_counter() - started
         return executed, ChunkTiming(
-            prediction=timed.prediction_seconds, decoding=decoding_seconds, encoding=timed.encoding_seconds
+            prediction=timed.prediction_seconds,
+            decoding=decoding_seconds,
+            encoding=timed.encoding_seconds,
+            repaired=timed.repaired_chunks,
         )

@@ -39,6 +39,9 @@ class TimedPrediction(NamedTuple):
         model_calls: sequential network calls that produced the chunk (K scales, L tokens or N denoising steps).
         encoding_seconds: the part of `prediction_seconds` that turned the observations into the network's
             features (for an image policy the camera encoder; for a state policy only the normalization).
+        repaired_chunks: how many of the B chunks came from tokens the tokenizer could not decode exactly and
+            repaired (the next-token family over a kind such as FAST); None for a policy whose predictions always
+            decode as they are.
     """
 
     actions: np.ndarray
@@ -46,6 +49,7 @@ class TimedPrediction(NamedTuple):
     decoding_seconds: float
     model_calls: int
     encoding_seconds: float = 0.0
+    repaired_chunks: int | None = None
 
 
 @dataclass(frozen=True)

@@ -1,13 +1,16 @@
 """What a family's builder gets from the data: shapes, normalizers, the tokenizer and metadata."""
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from carp.config.image_encoder import ImageEncoderConfig
 from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.observations import observation_feature_dim
 from carp.policies.tasks import TASKS_METADATA_KEY, PolicyTasks
 from carp.tokenizer.artifact import TokenizerArtifact
+
+if TYPE_CHECKING:
+    from carp.tokenizer.kinds.artifact import KindArtifact
 
 
 @dataclass(frozen=True)
@@ -20,7 +23,8 @@ class PolicyContext:
         action_normalizer: min-max statistics of the `A` action dimensions of the task (likewise).
         obs_steps: `To`.
         action_horizon: `H`.
-        tokenizer_artifact: the registered tokenizer, for families that predict its tokens; None otherwise.
+        tokenizer_artifact: the registered tokenizer, for families that predict its tokens (carp_msvq's artifact,
+            or another kind's for a family that takes it); None otherwise.
         tasks: the tasks of a multi-task policy (with their statistics and the task embedding's width); None for a
             single-task policy. Recorded in `metadata`, through which every family's policy receives it.
         metadata: plain values stored in the checkpoint (task, tokenizer reference, tracking run; the tasks).
@@ -31,7 +35,7 @@ class PolicyContext:
     action_normalizer: MinMaxNormalizer
     obs_steps: int
     action_horizon: int
-    tokenizer_artifact: TokenizerArtifact | None = None
+    tokenizer_artifact: "TokenizerArtifact | KindArtifact | None" = None
     tasks: PolicyTasks | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     image_encoder: ImageEncoderConfig | None = None

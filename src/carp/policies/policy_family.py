@@ -46,3 +46,12 @@ class PolicyFamily:
         :attr:`TrainingRun.teacher`. None for a family trained from the data alone.
         """
         return getattr(self.config_class, "TEACHER", None)
+
+    @property
+    def tokenizer_kinds(self) -> tuple[str, ...] | None:
+        """The tokenizer kinds whose tokens the family's policy predicts, or None for a family that declares none.
+
+        Declared by the config class's `TOKENIZER_KINDS` (checked when the params load); a family that declares
+        none trains beside carp_msvq's tokenizer only.
+        """
+        return getattr(self.config_class, "TOKENIZER_KINDS", None)

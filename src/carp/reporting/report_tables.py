@@ -63,7 +63,12 @@ def comparison_table(
 
 
 def success_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFrame:
-    """One row per (task, policy): successes, rate, 95% Wilson interval, mean episode length, inference setting."""
+    """One row per (task, policy): successes, rate, 95% Wilson interval, mean episode length, inference setting.
+
+    A run with a policy that reports repaired chunks (the next-token family over a kind such as FAST) adds the
+    column `repaired chunks`: the share of predicted chunks whose tokens the tokenizer repaired, "-" for the others.
+    """
+    repairs = any("repaired_chunk_rate" in metrics for policies in evaluation.values() for metrics in policies.values())
     rows = []
     for task, policies in evaluation.items():
         for policy, metrics in policies.items():
@@ -81,6 +86,9 @@ def success_table(evaluation: Mapping[str, Mapping[str, Mapping]]) -> pd.DataFra
                     "decoding": metrics.get("inference") or token_choice(metrics.get("top_k")),
                 }
             )
+            if repairs:
+                rate = metrics.get("repaired_chunk_rate")
+                rows[-1]["repaired chunks"] = "-" if rate is None else f"{100 * rate:.1f}%"
     return pd.DataFrame(rows)
 
 

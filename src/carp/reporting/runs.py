@@ -195,6 +195,10 @@ def pooled_metrics(runs: Runs) -> dict[str, Any]:
         mean_episode_steps=float(np.mean(np.concatenate([run.episodes["steps"].to_numpy() for run in runs.values()]))),
         seeds=len(summaries),
     )
+    if all("repaired_chunks" in summary for summary in summaries):
+        repaired = sum(int(summary["repaired_chunks"]) for summary in summaries)
+        predicted = sum(int(summary["predicted_chunks"]) for summary in summaries)
+        pooled.update(repaired_chunks=repaired, predicted_chunks=predicted, repaired_chunk_rate=repaired / predicted)
     for key in summaries[0]:
         if "latency" in key and key.endswith(("_median", "_p90")):
             pooled[key] = float(np.median([summary[key] for summary in summaries if key in summary]))

@@ -12,6 +12,7 @@ import torch
 
 from carp.config.data import DataConfig
 from carp.config.image_encoder import ImageEncoderConfig
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND
 from carp.config.training import TrainingConfig
 from carp.data.dataset import (
     TaskWindows,
@@ -30,7 +31,7 @@ from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
 from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tasks import task_for_env_args
 from carp.tokenizer.artifact import TokenizerArtifact, TokenizerMismatchError, check_compatible, load_tokenizer_artifact
-from carp.tokenizer.kinds.artifact import is_kind_artifact
+from carp.tokenizer.kinds.artifact import KindArtifact, is_kind_artifact, load_kind_artifact
 from carp.tokenizer.kinds.base import read_kind_file
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import PolicyTrainingData
@@ -47,7 +48,7 @@ class PolicyInputs(Protocol):
     """What a policy trains from, one task's windows or several tasks': the one seam of the training path."""
 
     reference: TokenizerReference
-    artifact: TokenizerArtifact
+    artifact: TokenizerArtifact | KindArtifact
 
     @property
     def label(self) -> str:
@@ -79,7 +80,7 @@ class TaskPolicyInputs:
 
     task: str
     reference: TokenizerReference
-    artifact: TokenizerArtifact
+    artifact: TokenizerArtifact | KindArtifact
     windows: TaskWindows
     image_encoder: ImageEncoderConfig | None = None
     train_images: ImageWindowReader | None = None
@@ -144,7 +145,7 @@ class MultiTaskPolicyInputs:
     """
 
     reference: TokenizerReference
-    artifact: TokenizerArtifact
+    artifact: TokenizerArtifact | KindArtifact
     windows: dict[str, TaskWindows]
     task_embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM
 
@@ -232,8 +233,10 @@ class ReferencedTokenizer:
         directory: the referenced tokenizer, whatever its source (a registered one is fetched there first).
         reference_path: the tokenizer reference file; the artifact's sha256 must equal the one it records.
         action_space: the params' action space, which the tokenizer must have been trained in.
-        scales: the params' scale schedule, which the tokenizer must use.
-        codebook_size: the params' `V`, which the tokenizer must use.
+        scales: the params' scale schedule, which a carp_msvq tokenizer must use.
+        codebook_size: the params' `V`, which a carp_msvq tokenizer must use.
+        kinds: the tokenizer kinds the trained family takes (`PolicyFamily.tokenizer_kinds`); carp_msvq only for a
+            family that declares none.
     """
 
     directory: Path
@@ -241,29 +244,53 @@ class ReferencedTokenizer:
     action_space: str
     scales: tuple[int, ...]
     codebook_size: int
+    kinds: tuple[str, ...] = (DEFAULT_TOKENIZER_KIND,)
 
-    def load(self) -> tuple[TokenizerReference, TokenizerArtifact]:
+    def load(self) -> tuple[TokenizerReference, TokenizerArtifact | KindArtifact]:
         """The reference and the artifact, checked against each other and the params.
 
         Raises:
             FileNotFoundError: a file is missing.
             CheckpointError: the tokenizer is corrupt or not the referenced one.
-            TokenizerMismatchError: the tokenizer does not fit the params, or is of another kind than carp_msvq.
+            TokenizerMismatchError: the tokenizer does not fit the params, or is of a kind the family does not take.
         """
         reference = TokenizerReference.load(self.reference_path)
         if is_kind_artifact(self.directory):
-            # The token-predicting families read carp_msvq's module (spec, ids per dimension, scales); the others
-            # would take any kind, but a policy records the tokenizer it was trained beside as carp_msvq's artifact.
             kind, _ = read_kind_file(self.directory)
-            raise TokenizerMismatchError(
-                f"{self.directory}: a {kind!r} tokenizer (tokenizer.kind); policies train beside carp_msvq only; "
-                "train and register other kinds with `dvc repro register_tokenizer`"
+            if kind not in self.kinds:
+                # The carp family reads carp_msvq's module (spec, ids per dimension, scales); the families that
+                # predict no tokens record the tokenizer they were trained beside as carp_msvq's artifact.
+                raise TokenizerMismatchError(
+                    f"{self.directory}: a {kind!r} tokenizer (tokenizer.kind); this policy family trains beside "
+                    f"{' or '.join(self.kinds)} only (next_token takes any kind)"
+                )
+            artifact = load_kind_artifact(
+                self.directory, expected_sha256=reference.sha256, recorded_in=str(self.reference_path)
             )
+            if artifact.action_space != self.action_space:
+                raise TokenizerMismatchError(
+                    f"{self.directory}: action space is {artifact.action_space!r} in the tokenizer but the params ask "
+                    f"for {self.action_space!r}"
+                )
+            return reference, artifact
         artifact = load_tokenizer_artifact(
             self.directory, expected_sha256=reference.sha256, recorded_in=self.reference_path
         )
         check_compatible(artifact, self.action_space, self.scales, self.codebook_size)
         return reference, artifact
+
+
+def check_kind_horizon(artifact: TokenizerArtifact | KindArtifact, data: DataConfig) -> None:
+    """Refuse a kind's tokenizer fitted on chunks of another `H` than the params' (carp_msvq's is checked with it).
+
+    Raises:
+        TokenizerMismatchError: names both horizons.
+    """
+    if isinstance(artifact, KindArtifact) and artifact.tokenizer.action_horizon != data.action_horizon:
+        raise TokenizerMismatchError(
+            f"data.action_horizon is {artifact.tokenizer.action_horizon} in the tokenizer but the params ask for "
+            f"{data.action_horizon}"
+        )
 
 
 def load_task_policy_inputs(
@@ -292,6 +319,7 @@ def load_task_policy_inputs(
             another image size than `image_encoder`.
     """
     reference, artifact = tokenizer.load()
+    check_kind_horizon(artifact, data)
     windows = load_task_windows(task_dir, data.action_horizon, data.obs_steps, data.action_steps)
     try:
         # Checked before any training: the trained checkpoint records this protocol, and an old buffer that cannot
@@ -335,5 +363,6 @@ def load_multitask_policy_inputs(
     if len(task_dirs) < 2:
         raise ValueError(f"a multi-task policy needs at least two tasks, got {list(task_dirs)}")
     reference, artifact = tokenizer.load()
+    check_kind_horizon(artifact, data)
     windows = load_multitask_windows(task_dirs, data.action_horizon, data.obs_steps, data.action_steps)
     return MultiTaskPolicyInputs(reference, artifact, windows)

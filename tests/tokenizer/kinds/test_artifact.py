@@ -110,7 +110,7 @@ def test_a_kind_is_registered_under_its_kind_and_action_space_and_fetched_back(t
     assert torch.equal(artifact.tokenizer.encode(held_out_chunks).ids, fast.encode(held_out_chunks).ids)
 
 
-def test_the_policy_stages_refuse_another_kind_in_one_line(tmp_path, fast):
+def test_a_policy_family_that_takes_no_other_kind_refuses_it_in_one_line(tmp_path, fast):
     from carp.tracking.registry import TokenizerReference
     from carp.training.policy_inputs import ReferencedTokenizer
 
@@ -120,6 +120,20 @@ def test_the_policy_stages_refuse_another_kind_in_one_line(tmp_path, fast):
     with pytest.raises(TokenizerMismatchError) as raised:
         referenced.load()
     assert str(raised.value) == (
-        f"{tmp_path / 'tokenizer'}: a 'fast' tokenizer (tokenizer.kind); policies train beside carp_msvq only; "
-        "train and register other kinds with `dvc repro register_tokenizer`"
+        f"{tmp_path / 'tokenizer'}: a 'fast' tokenizer (tokenizer.kind); this policy family trains beside carp_msvq "
+        "only (next_token takes any kind)"
     )
+
+
+def test_a_family_that_takes_the_kind_loads_it_checked_against_the_reference_and_action_space(tmp_path, fast):
+    from carp.config.tokenizer_kinds import TOKENIZER_KINDS
+    from carp.tracking.registry import TokenizerReference
+    from carp.training.policy_inputs import ReferencedTokenizer
+
+    sha = save_kind_artifact(tmp_path / "tokenizer", fast, {"lift": LIFT}, "panda-test3")
+    TokenizerReference("carp-tokenizer-fast-panda-test3", "1", "default", "run", sha).save(tmp_path / "ref.json")
+    directory, reference = tmp_path / "tokenizer", tmp_path / "ref.json"
+    _, artifact = ReferencedTokenizer(directory, reference, "panda-test3", (1, 2), 8, TOKENIZER_KINDS).load()
+    assert isinstance(artifact, KindArtifact) and artifact.kind == "fast" and artifact.sha256 == sha
+    with pytest.raises(TokenizerMismatchError, match="action space is 'panda-test3' in the tokenizer"):
+        ReferencedTokenizer(directory, reference, "panda-other", (1, 2), 8, TOKENIZER_KINDS).load()

@@ -11,6 +11,7 @@ loop settings shared by every family (epochs, batch size, checkpoints, seed) are
 from dataclasses import dataclass
 from typing import ClassVar
 
+from carp.config.tokenizer_kinds import TOKENIZER_KINDS
 from carp.policies.carp.config import CarpInference, TransformerConfig
 
 SECTION = "next_token"
@@ -25,6 +26,8 @@ class NextTokenConfig(TransformerConfig):
     """
 
     SECTION: ClassVar[str] = SECTION
+    TOKENIZER_KINDS: ClassVar[tuple[str, ...]] = TOKENIZER_KINDS
+    """Every kind: the family predicts any kind's token sequence (`carp.policies.next_token.kind_policy`)."""
 
 
 @dataclass(frozen=True)

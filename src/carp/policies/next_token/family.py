@@ -1,4 +1,7 @@
-"""The next-token entry of the policy registry: CARP's tokenizer and transformer size, one token per step.
+"""The next-token entry of the policy registry: the registered tokenizer's tokens, one per step, at CARP's size.
+
+With carp_msvq (the default kind) it predicts CARP's tokens in CARP's order (`policy`); with any other kind, that
+kind's tokens over its own vocabulary (`kind_policy`).
 
 It trains through the shared loop (`carp.training.loop`) on teacher-forced cross entropy with CARP's optimizer recipe
 (AdamW betas 0.9/0.95 as in VAR, no weight decay on biases and embeddings, linear warm-up then cosine decay, optional
@@ -6,15 +9,18 @@ EMA with a constant decay), so that the two families differ in how many tokens a
 """
 
 import dataclasses
+from typing import Any
 
 from torch import nn
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from carp.policies.context import PolicyContext
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
+from carp.policies.next_token.kind_policy import TOKENIZER_KEY, NextTokenKindPolicy
 from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
 from carp.policies.policy_family import PolicyFamily
+from carp.tokenizer.kinds.artifact import KindArtifact
 from carp.training.loop import OptimizerRecipe, matrix_decay_groups
 from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
@@ -22,10 +28,26 @@ from carp.training.runtime import seed_everything
 ADAM_BETAS = (0.9, 0.95)
 
 
-def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
-    """An untrained next-token policy sized by `config` for the data and tokenizer of `context`."""
+def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy | NextTokenKindPolicy:
+    """An untrained next-token policy sized by `config` for the data and tokenizer of `context`.
+
+    carp_msvq's artifact gives :class:`NextTokenPolicy` (per-dimension vocabularies, CARP's token order); any other
+    kind's gives :class:`NextTokenKindPolicy` (one shared vocabulary, an end token for a variable-length kind).
+    """
     if context.tokenizer_artifact is None:
         raise ValueError("a next_token policy needs the registered tokenizer")
+    if isinstance(context.tokenizer_artifact, KindArtifact):
+        transformer = NextTokenKindPolicy.transformer_for(
+            config, context.feature_dim, context.obs_steps, context.tokenizer_artifact.tokenizer
+        )
+        return NextTokenKindPolicy(
+            context.tokenizer_artifact,
+            transformer,
+            context.obs_normalizer,
+            context.action_normalizer,
+            context.metadata,
+            context.image_encoder,
+        )
     spec = context.tokenizer_artifact.tokenizer.spec
     transformer = NextTokenTransformer(
         config,
@@ -45,7 +67,14 @@ def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy:
     )
 
 
-def train(config: NextTokenConfig, run: TrainingRun) -> NextTokenPolicy:
+def from_checkpoint(checkpoint: dict[str, Any]) -> NextTokenPolicy | NextTokenKindPolicy:
+    """Rebuild either next-token policy: one that embeds another kind's files (`tokenizer_kind`) or carp_msvq's."""
+    if TOKENIZER_KEY in checkpoint:
+        return NextTokenKindPolicy.from_checkpoint(checkpoint)
+    return NextTokenPolicy.from_checkpoint(checkpoint)
+
+
+def train(config: NextTokenConfig, run: TrainingRun) -> NextTokenPolicy | NextTokenKindPolicy:
     """Build the policy after seeding (reproducible weights) and train it in the shared loop."""
     seed_everything(run.training.seed)
     context = run.context
@@ -72,4 +101,4 @@ def train(config: NextTokenConfig, run: TrainingRun) -> NextTokenPolicy:
     return run.train_with_loss(policy, recipe, identity)
 
 
-FAMILY = PolicyFamily(POLICY_TYPE, NextTokenConfig, NextTokenInference, build, NextTokenPolicy.from_checkpoint, train)
+FAMILY = PolicyFamily(POLICY_TYPE, NextTokenConfig, NextTokenInference, build, from_checkpoint, train)

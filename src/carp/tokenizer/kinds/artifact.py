@@ -12,9 +12,11 @@ import hashlib
 import json
 import math
 import shutil
+import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -43,6 +45,7 @@ class KindArtifact:
     sha256: str
     metrics: dict[str, float] = field(default_factory=dict)
     directory: Path | None = None  # the folder it was loaded from, whose files a copy keeps byte for byte
+    files: dict[str, bytes] | None = None  # the kind's files when it came from a payload (a policy checkpoint)
 
     @property
     def kind(self) -> str:
@@ -65,6 +68,71 @@ class KindArtifact:
         if task not in self.action_normalizers:
             raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {self.tasks}")
         return self.action_normalizers[task]
+
+    def kind_files(self) -> dict[str, bytes]:
+        """The kind's files, relative POSIX name -> bytes (``tokenizer.json`` left out): what the sha256 covers.
+
+        Taken byte for byte from the payload or folder the artifact came from, so that the sha256 holds for a copy;
+        saved afresh only for a tokenizer that has neither.
+        """
+        if self.files is not None:
+            return dict(self.files)
+        if self.directory is not None:
+            return _read_kind_files(self.directory)
+        with tempfile.TemporaryDirectory(prefix="carp-kind-") as scratch:
+            self.tokenizer.save(Path(scratch))
+            return _read_kind_files(Path(scratch))
+
+    def to_payload(self) -> dict[str, Any]:
+        """What a policy checkpoint embeds to decode without the pipeline's folder: the kind's files and statistics."""
+        return {
+            "kind": self.kind,
+            "files": self.kind_files(),
+            "action_normalizers": {task: normalizer.to_dict() for task, normalizer in self.action_normalizers.items()},
+            "action_space": self.action_space,
+            "metrics": dict(self.metrics),
+        }
+
+    @classmethod
+    def from_payload(
+        cls, payload: dict[str, Any], expected_sha256: str | None = None, recorded_in: str = "the reference"
+    ) -> "KindArtifact":
+        """Rebuild an artifact from :meth:`to_payload` output: its files are loaded through a temporary folder.
+
+        Raises:
+            TokenizerMismatchError: the files and statistics hash differently from ``expected_sha256`` (both named).
+            ValueError: a file name that leaves the folder, or files of another kind than the payload names.
+            KeyError: the payload is incomplete.
+        """
+        files = dict(payload["files"])
+        normalizers = {task: MinMaxNormalizer.from_dict(state) for task, state in payload["action_normalizers"].items()}
+        with tempfile.TemporaryDirectory(prefix="carp-kind-") as scratch:
+            folder = Path(scratch)
+            for name, content in files.items():
+                target = folder / name
+                if Path(name).is_absolute() or ".." in Path(name).parts:
+                    raise ValueError(f"tokenizer file name {name!r} leaves the tokenizer's folder")
+                target.parent.mkdir(parents=True, exist_ok=True)
+                target.write_bytes(content)
+            tokenizer = load_tokenizer(folder)
+            sha256 = folder_sha256(folder, normalizers)
+        if tokenizer.kind != payload["kind"]:
+            raise ValueError(f"the embedded tokenizer files are of kind {tokenizer.kind!r}, not {payload['kind']!r}")
+        if expected_sha256 is not None and sha256 != expected_sha256:
+            raise TokenizerMismatchError(
+                f"tokenizer files have sha256 {sha256[:12]}..., not the sha256 {expected_sha256[:12]}... "
+                f"recorded in {recorded_in}"
+            )
+        metrics = {key: float(value) for key, value in payload.get("metrics", {}).items()}
+        return cls(tokenizer, normalizers, payload["action_space"], sha256, metrics, None, files)
+
+
+def _read_kind_files(directory: Path) -> dict[str, bytes]:
+    directory = Path(directory)
+    return {
+        path.relative_to(directory).as_posix(): path.read_bytes()
+        for path in sorted(p for p in directory.rglob("*") if p.is_file() and p.name != METADATA_FILENAME)
+    }
 
 
 def is_kind_artifact(directory: Path) -> bool:

@@ -138,6 +138,14 @@ class ActionTokenizer(Protocol):
         ...
 
 
+def is_variable_length(tokenizer: ActionTokenizer) -> bool:
+    """Whether the kind gives each chunk its own token count (FAST) rather than L tokens for every chunk.
+
+    A kind declares it with a class attribute ``variable_length = True``; the fixed-length kinds need not declare it.
+    """
+    return bool(getattr(tokenizer, "variable_length", False))
+
+
 def check_chunks(chunks: torch.Tensor, action_horizon: int, action_dim: int) -> None:
     """Refuse chunks that are not (B, H, A)."""
     if chunks.dim() != 3 or tuple(chunks.shape[1:]) != (action_horizon, action_dim):

@@ -54,6 +54,7 @@ class FastTokenizer:
     """
 
     kind = KIND
+    variable_length = True
 
     def __init__(self, action_dim: int, action_horizon: int, scale: float = 10.0, vocabulary_size: int = 1024) -> None:
         self.action_dim, self.action_horizon = action_dim, action_horizon
