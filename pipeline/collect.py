@@ -6,6 +6,7 @@ from stage_support import PROJECT_DIR, STAGING_DIR, fail, load, mlflow_stage, pa
 
 from carp.data.demo_sources import import_demos
 from carp.data.robomimic_io import DatasetError
+from carp.tasks.base import lerobot_adapter
 
 
 def main() -> None:
@@ -24,6 +25,8 @@ def main() -> None:
             # is refused here, before anything is written at the output. An image run reads the proprioception
             # only: a camera file need not hold the object's pose. A LeRobotDataset that records no env_args takes
             # the task's own (a task without a simulator: the description of the dataset's actions and observations).
+            # A task may derive obs keys a LeRobotDataset lacks from its other features (Push-T: from
+            # lerobot/pusht_keypoints' T vertices).
             demos = import_demos(
                 source,
                 output,
@@ -35,6 +38,7 @@ def main() -> None:
                 env_args=lambda: task.make_env_args(params.data.controller),
                 cameras=params.data.cameras if params.data.image_keys else (),
                 image_size=params.data.image_size,
+                adapter=lerobot_adapter(task),
             )
         except DatasetError as error:
             fail(str(error))

@@ -6,7 +6,9 @@
 The collect stage imports either into ``data/raw/<task>.hdf5`` (robomimic schema), so ingestion and everything after
 it read one format. A robomimic file is copied byte for byte; a LeRobotDataset is converted, its episodes named
 ``demo_<episode_index>``, its splits written as masks and its tasks as attributes. Either way the input is checked
-completely before the destination is replaced, and a failed check leaves it as it was.
+completely before the destination is replaced, and a failed check leaves it as it was. A task may derive the obs keys
+a LeRobotDataset lacks from its other features (:mod:`carp.data.lerobot.derived`, Push-T from
+``lerobot/pusht_keypoints``); a robomimic file must hold them.
 """
 
 from collections.abc import Callable, Sequence
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from carp.data.lerobot import is_lerobot_dataset
+from carp.data.lerobot.derived import FeatureAdapter
 from carp.data.robomimic_io import Demonstrations, import_demonstrations, select_demos, write_demonstrations
 from carp.data.robomimic_schema import check_valid_mask
 
@@ -26,7 +29,7 @@ class DemoFormat:
         name: the format's name, recorded by :mod:`carp.data.sources`.
         holds: whether a path is in this format.
         importer: ``(source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args,
-            cameras, image_size)`` -> the demos read; see :func:`import_demos`.
+            cameras, image_size, adapter)`` -> the demos read; see :func:`import_demos`.
     """
 
     name: str
@@ -35,7 +38,7 @@ class DemoFormat:
 
 
 def _import_robomimic(
-    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size
+    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size, adapter
 ):
     # A robomimic file's cameras are its `<camera>_image` keys, which ingestion reads (or renders) itself.
     return import_demonstrations(
@@ -45,7 +48,7 @@ def _import_robomimic(
 
 
 def _import_lerobot(
-    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size
+    source, destination, obs_keys, action_dim, filter_key, staging_dir, env_name, env_args, cameras, image_size, adapter
 ):
     from carp.data.lerobot.reader import read_lerobot_demonstrations
 
@@ -58,6 +61,7 @@ def _import_lerobot(
         env_args=env_args() if env_args else None,
         cameras=cameras,
         image_size=image_size,
+        adapter=adapter,
     )
     check_valid_mask(source, select_demos(source, demos.names, demos.masks, filter_key), demos.masks, filter_key)
     write_demonstrations(
@@ -94,6 +98,7 @@ def import_demos(
     env_args: Callable[[], dict] | None = None,
     cameras: Sequence[str] = (),
     image_size: int = 84,
+    adapter: FeatureAdapter | None = None,
 ) -> Demonstrations:
     """Check a user's demos in any format of :data:`FORMATS` and write them to ``destination`` as a robomimic file.
 
@@ -110,6 +115,8 @@ def import_demos(
         cameras: cameras a LeRobotDataset's videos are decoded for, stored as ``obs/<camera>_image`` uint8
             (T, image_size, image_size, 3) (:mod:`carp.data.lerobot.videos`).
         image_size: side of those images in pixels.
+        adapter: the task's derivation of obs keys a LeRobotDataset lacks from its other features
+            (:mod:`carp.data.lerobot.derived`); not read for a robomimic file.
 
     Raises:
         DatasetError: ``source`` is unusable; ``destination`` is left as it was.
@@ -127,4 +134,5 @@ def import_demos(
         env_args,
         tuple(cameras),
         image_size,
+        adapter,
     )

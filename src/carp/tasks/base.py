@@ -25,6 +25,14 @@ def load_entry(entry: str) -> Any:
     return getattr(importlib.import_module(module), attribute)
 
 
+def lerobot_adapter(task: "Task") -> Any:
+    """The task's ``lerobot_adapter`` (a `carp.data.lerobot.derived.FeatureAdapter`), None for a task without one.
+
+    The collect stage hands it to the LeRobot reader, which uses it only when a dataset lacks the task's obs keys.
+    """
+    return getattr(task, "lerobot_adapter", None)
+
+
 def _unchanged(actions: np.ndarray) -> np.ndarray:
     return actions
 
@@ -123,6 +131,10 @@ class Task(Protocol):
             demos stand in for.
         evaluation: how the evaluate stage scores a policy on it: `ROLLOUTS` (episodes in its simulator) or `OFFLINE`
             (action errors on held-out demos, for a task without a simulator, `carp.tasks.offline`).
+
+    A task may also offer ``lerobot_adapter``, a `carp.data.lerobot.derived.FeatureAdapter` deriving its obs keys
+    from other features of a published LeRobotDataset (Push-T: from ``lerobot/pusht_keypoints``); see
+    `lerobot_adapter`.
     """
 
     name: str

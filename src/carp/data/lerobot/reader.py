@@ -14,6 +14,10 @@ the caller writes anything:
    :mod:`carp.data.robomimic_schema`);
 5. with cameras, each is a video feature of (H, W, 3) frames with a frame at every step's time
    (:mod:`carp.data.lerobot.videos`).
+
+A task may derive obs keys the dataset lacks from other features (:mod:`carp.data.lerobot.derived`): given its
+adapter, the reader checks and reads the adapter's source features instead, and the adapter's checks name the file,
+the episode and the frame like the reader's own.
 """
 
 import json
@@ -25,6 +29,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from carp.data.lerobot.derived import FeatureAdapter
 from carp.data.lerobot.metadata import (
     CAMERA_DTYPES,
     INFO_PATH,
@@ -43,6 +48,8 @@ ACTION = "action"
 REWARD = "next.reward"
 DONE = "next.done"
 SIM_STATE = "sim_state"
+# Keys of an adapter's source features among the columns read, apart from the obs keys.
+SOURCE_PREFIX = "source:"
 OBSERVATION_PREFIX = "observation."
 # LeRobot's default tolerance when it checks that timestamps advance by 1 / fps (its ``tolerance_s``).
 TIMESTAMP_TOLERANCE_S = 1e-4
@@ -70,6 +77,7 @@ def read_lerobot_demonstrations(
     env_args: dict | None = None,
     cameras: Sequence[str] = (),
     image_size: int = 84,
+    adapter: FeatureAdapter | None = None,
 ) -> Demonstrations:
     """Read and check the episodes of a LeRobotDataset folder.
 
@@ -83,11 +91,13 @@ def read_lerobot_demonstrations(
             that file.
         cameras: cameras whose video features are decoded into ``obs["<camera>_image"]``, (T, S, S, 3) uint8.
         image_size: S, the side of the camera images.
+        adapter: the task's derivation of its obs keys from other features, used when one of the keys it provides
+            names no feature; ``None`` requires every obs key as a feature.
 
     Returns:
         Demonstrations whose episodes hold ``obs[key]`` (T, D_key) float64, ``actions`` (T, A) float64, ``rewards``
-        and ``dones`` (T,) and ``states`` (T, S) when the dataset has them, and ``attrs`` with the episode index and
-        its task texts; the splits become ``masks``.
+        and ``dones`` (T,) and ``states`` (T, S) when the dataset (or the adapter) has them, and ``attrs`` with the
+        episode index and its task texts; the splits become ``masks``.
 
     Raises:
         DatasetError: one line naming the file, the episode and the key of the first problem.
@@ -96,7 +106,11 @@ def read_lerobot_demonstrations(
     meta = read_metadata(root)
     env_args = _env_args(meta, env_args)
     check_env_name(root, env_args, env_name)
-    columns = _columns(meta, obs_keys, action_dim)
+    adapter = _adapter_in_use(meta, obs_keys, adapter)
+    read_keys = [key for key in obs_keys if adapter is None or key not in adapter.provides]
+    columns = _columns(meta, read_keys, action_dim)
+    if adapter is not None:
+        columns.update(_adapter_columns(meta, adapter))
     videos = {camera: _video_feature(meta, camera) for camera in cameras}
     all_names = [demo_name(entry.index) for entry in meta.episodes]
     masks = {name: [demo_name(index) for index in indices] for name, indices in meta.splits.items()}
@@ -104,7 +118,7 @@ def read_lerobot_demonstrations(
     check_valid_mask(root, names, masks, filter_key)
     wanted = set(names)
     entries = [entry for entry in meta.episodes if demo_name(entry.index) in wanted]
-    episodes = _read_episodes(meta, entries, columns, videos, image_size)
+    episodes = _read_episodes(meta, entries, columns, videos, image_size, adapter)
     check_stored_ranges(root, names, f"key '{ACTION}'", [episode.actions for episode in episodes])
     for key in obs_keys:
         check_stored_ranges(root, names, f"obs key '{key}'", [episode.obs[key] for episode in episodes])
@@ -134,6 +148,31 @@ def _env_args(meta: Metadata, fallback: dict | None) -> dict:
     if fallback is None:
         raise DatasetError(f"{where}: key 'env_args': missing, and no task names the environment")
     return dict(fallback)
+
+
+def _adapter_in_use(meta: Metadata, obs_keys: Sequence[str], adapter: FeatureAdapter | None) -> FeatureAdapter | None:
+    """``adapter`` when one of the obs keys it provides names no feature, else None (the keys are read as stored)."""
+    if adapter is None:
+        return None
+    missing = [key for key in obs_keys if key in adapter.provides and obs_feature_name(key, meta.features) is None]
+    return adapter if missing else None
+
+
+def _adapter_columns(meta: Metadata, adapter: FeatureAdapter) -> dict[str, Feature]:
+    """The adapter's source features (keyed :data:`SOURCE_PREFIX` + name), checked against ``info.json``."""
+    info = meta.root / INFO_PATH
+    missing = [key for key in adapter.provides if obs_feature_name(key, meta.features) is None]
+    columns = {}
+    for name, width in adapter.sources.items():
+        feature = meta.features.get(name)
+        if feature is None or _low_dim(info, feature).shape != (width,):
+            found = "no such feature" if feature is None else f"shape={list(feature.shape)}"
+            raise DatasetError(
+                f"{info}: obs keys {missing}: not features of this dataset, and feature '{name}': {found}, so they "
+                f"cannot be derived either; the layout that works: {adapter.layout} (features: {sorted(meta.features)})"
+            )
+        columns[SOURCE_PREFIX + name] = feature
+    return columns
 
 
 def _columns(meta: Metadata, obs_keys: Sequence[str], action_dim: int | None) -> dict[str, Feature]:
@@ -196,6 +235,7 @@ def _read_episodes(
     columns: dict[str, Feature],
     videos: dict[str, Feature],
     image_size: int,
+    adapter: FeatureAdapter | None,
 ) -> list[Episode]:
     """The episodes of ``entries``, reading each data file once."""
     by_file: dict[Path, list[EpisodeEntry]] = {}
@@ -206,7 +246,7 @@ def _read_episodes(
     for data_file, placed in by_file.items():
         if not wanted & {entry.index for entry in placed}:
             continue
-        frames = _FileFrames(meta, meta.root / data_file, columns, videos, image_size)
+        frames = _FileFrames(meta, meta.root / data_file, columns, videos, image_size, adapter)
         frames.check_episodes(placed)
         for entry in placed:
             if entry.index in wanted:
@@ -218,10 +258,16 @@ class _FileFrames:
     """The frames of one data file, with every check that names the file, an episode and a key."""
 
     def __init__(
-        self, meta: Metadata, path: Path, columns: dict[str, Feature], videos: dict[str, Feature], image_size: int
+        self,
+        meta: Metadata,
+        path: Path,
+        columns: dict[str, Feature],
+        videos: dict[str, Feature],
+        image_size: int,
+        adapter: FeatureAdapter | None,
     ):
         self.meta, self.path, self.columns = meta, path, columns
-        self.videos, self.image_size = videos, image_size
+        self.videos, self.image_size, self.adapter = videos, image_size, adapter
         if not path.is_file():
             raise DatasetError(f"{path}: file not found (the episode index places episodes in it)")
         try:
@@ -350,6 +396,11 @@ class _FileFrames:
             )
         actions = values.pop(ACTION)
         rewards, dones, states = values.pop(REWARD, None), values.pop(DONE, None), values.pop(SIM_STATE, None)
+        if self.adapter is not None:
+            sources = {name: values.pop(SOURCE_PREFIX + name) for name in self.adapter.sources}
+            derived = self.adapter.derive(sources, where)
+            values.update(derived.obs)
+            states = derived.states if states is None else states
         attrs = {
             **self._carp_attrs(entry.index),
             "lerobot_episode_index": entry.index,

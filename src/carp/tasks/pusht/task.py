@@ -145,6 +145,17 @@ class PushTTask:
         """DP's score of one episode."""
         return MaxReward()
 
+    @property
+    def lerobot_adapter(self):
+        """Derives DP's observations and the states from ``lerobot/pusht_keypoints``' T vertices.
+
+        `carp.tasks.pusht.lerobot.PushTKeypoints`, used for a LeRobotDataset without ``block_keypoints`` and
+        ``agent_pos``.
+        """
+        from carp.tasks.pusht.lerobot import PushTKeypoints
+
+        return PushTKeypoints()
+
     def video(self, env: pusht_env.PushTEnv, camera: str) -> _RenderedFrames:
         """gym-pusht's top-down drawing (there is one view, so ``camera`` is not read)."""
         return _RenderedFrames(env)
