@@ -1,0 +1,46 @@
+"""`dvc repro` with FAST's tokens and the next-token family: it trains, evaluates with the repaired share, reloads
+without the pipeline's tokenizer folder, and a second run reruns nothing."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from carp.policies.next_token.kind_policy import NextTokenKindPolicy
+from carp.policies.registry import load_policy
+from tests.pipeline.workspace import dvc, make_workspace, run, stages_run
+
+pytestmark = pytest.mark.slow
+
+PARAMS = {
+    "tokenizer": {"kind": "fast"},
+    "tokenizer_fast": {"vocabulary_size": 256},
+    "policies": ["next_token"],
+    "next_token": {"depth": 1, "width": 16, "num_heads": 2, "warmup_steps": 2},
+}
+
+
+def test_fast_tokens_train_and_evaluate_with_the_next_token_family(tmp_path):
+    workspace = make_workspace(tmp_path / "ws", PARAMS)
+    done = run(dvc("repro"), workspace, timeout=1800)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert {"train_tokenizer", "train_policy@lift-next_token-0", "evaluate@lift-next_token-0"} <= stages_run(
+        done.stdout
+    )
+    summary = json.loads((workspace / "reports" / "eval" / "lift" / "next_token" / "seed0.json").read_text())
+    assert summary["policy_type"] == "next_token" and summary["episodes"] == 2
+    assert 0.0 <= summary["repaired_chunk_rate"] <= 1.0 and summary["repaired_chunks"] >= 0
+
+    # The checkpoint decodes on its own: the pipeline's tokenizer folder is not read.
+    checkpoint = workspace / "models" / "policy" / "lift" / "next_token" / "seed0" / "policy.pt"
+    shutil.move(workspace / "models" / "tokenizer", tmp_path / "tokenizer")
+    policy = load_policy(checkpoint)
+    shutil.move(tmp_path / "tokenizer", workspace / "models" / "tokenizer")
+    assert isinstance(policy, NextTokenKindPolicy) and policy.tokenizer.kind == "fast"
+    obs = np.zeros((1, 2, policy.obs_normalizer.num_features), dtype=np.float32)
+    assert policy.predict_action(obs).shape == (1, 16, 10)
+
+    again = run(dvc("repro"), workspace, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert stages_run(again.stdout) == {"check_inputs"}, again.stdout[-2000:]
