@@ -3,6 +3,7 @@
 The student's train_policy stage writes `teacher.pt` beside `policy.pt`; the teacher's training state stays in the
 stage's checkpoints, so a rerun for a student-only change distils again from the same teacher without retraining it.
 The teacher's params reach the student's stage alone (through check_inputs' `data/inputs/teachers/<family>.json`).
+The test starts from a copy of the shared arm pipeline: its demos and tokenizer stand, the policies' stages run.
 """
 
 import json
@@ -11,9 +12,9 @@ import sys
 import pytest
 import yaml
 
-from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import TINY_UNET, copy_pipeline
+from tests.pipeline.workspace import run, stages_run
 
-TINY_UNET = {"down_dims": [16, 32], "kernel_size": 3, "num_groups": 8, "step_embedding_dim": 16, "warmup_steps": 2}
 STUDENT_STAGE = "train_policy@lift-consistency_policy-0"
 
 
@@ -34,9 +35,10 @@ def edit_params(workspace, change) -> None:
 
 
 @pytest.mark.slow
-def test_the_student_stage_trains_its_teacher_once_and_reuses_it(tmp_path):
-    workspace = make_workspace(
-        tmp_path / "carp",
+def test_the_student_stage_trains_its_teacher_once_and_reuses_it(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(
+        lift_pipeline,
+        tmp_path,
         {
             "policies": ["carp", "consistency_policy"],
             "training": {"epochs": 1},

@@ -1,7 +1,8 @@
 """End to end: `dvc repro` on tiny params in a temporary copy of the repository, then a second run is a no-op.
 
-VQ-BeT trains and evaluates beside CARP here, so the one pipeline run also covers a family that no other end-to-end
-test runs."""
+The run is the shared arm pipeline (tests/pipeline/shared_workspaces.py, built once per test run), checked here in a
+copy of its own. VQ-BeT trains and evaluates beside CARP there, so the one pipeline run also covers a family that no
+other end-to-end test runs."""
 
 import json
 import re
@@ -12,7 +13,8 @@ import h5py
 import pytest
 import yaml
 
-from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import run, stages_run
 from tests.tools.test_import_graph import tool as import_graph
 
 
@@ -36,14 +38,10 @@ def _stale_after(workspace, changed: str) -> set[str]:
 
 
 @pytest.mark.slow
-def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(tmp_path):
-    # A task's entry in num_demos_per_task overrides num_demos (3 in the tiny params) for its collection.
-    workspace = make_workspace(
-        tmp_path / "carp", {"data": {"num_demos_per_task": {"lift": 4}}, "policies": ["carp", "vq_bet"]}
-    )
-
-    first = run([sys.executable, "-m", "dvc", "repro"], workspace)
-    assert first.returncode == 0, first.stderr[-3000:]
+def test_dvc_repro_runs_every_stage_and_second_run_is_a_no_op(lift_pipeline, tmp_path):
+    # The shared pipeline's params (LIFT_PIPELINE): a task's entry in num_demos_per_task overrides num_demos (3 in the
+    # tiny params) for its collection; its `dvc repro` ran every stage (the fixture fails if it did not).
+    workspace = copy_pipeline(lift_pipeline, tmp_path)
 
     for output in (
         "data/inputs/lift.json",

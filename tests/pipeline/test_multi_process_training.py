@@ -1,5 +1,6 @@
 """`train_policy` with `training.num_processes: 2`: the unchanged stage command starts itself again under torchrun,
-two gloo processes train, and rank 0 alone logs to MLflow and writes the outputs."""
+two gloo processes train, and rank 0 alone logs to MLflow and writes the outputs. The stage runs in a copy of the
+shared arm pipeline, whose demos stand."""
 
 import os
 import subprocess
@@ -11,7 +12,8 @@ import yaml
 from mlflow import MlflowClient
 
 from carp.policies.registry import load_policy
-from tests.pipeline.workspace import REPO, dvc, make_workspace, run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import REPO, dvc, run
 
 EPOCHS = 3
 PARAMS = {
@@ -24,8 +26,8 @@ STAGE = "train_policy@lift-diffusion_transformer-0"
 
 
 @pytest.mark.slow
-def test_two_processes_train_the_stage_and_rank_0_alone_logs_and_writes(tmp_path):
-    workspace = make_workspace(tmp_path / "carp", PARAMS)
+def test_two_processes_train_the_stage_and_rank_0_alone_logs_and_writes(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(lift_pipeline, tmp_path, PARAMS)
     completed = run(dvc("repro", STAGE), workspace, timeout=1200)
     assert completed.returncode == 0, completed.stderr[-3000:]
     assert "training on 2 processes (torchrun)" in completed.stderr

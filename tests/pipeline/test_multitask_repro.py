@@ -1,7 +1,8 @@
 """End to end with a multi-task policy: `dvc repro` on tiny params over Lift and Can (a 10-wide and a 14-wide `object`
 observation, padded inside the policy) trains the single-task CARPs and one multi-task CARP over both tasks,
 evaluates it on each task beside them, and the report sets them side by side; a second run runs nothing but the
-input check. A run of the multi-task policy alone, referencing the single-task evaluations, reruns only the report."""
+input check. A run of the multi-task policy alone, referencing the single-task evaluations, reruns only the report.
+The run starts from a copy of the shared arm pipeline, whose Lift demos stand."""
 
 import json
 import shutil
@@ -12,11 +13,13 @@ import yaml
 
 from carp.policies.registry import load_policy
 from carp.serving.startup import load_served_model
-from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import run, stages_run
 
 TASKS = ["lift", "can"]
 MULTITASK = {
     "tasks": TASKS,
+    "policies": ["carp"],
     "multitask": ["carp"],
     "data": {"num_demos": 2},
     "eval": {"episodes": 1, "workers": 1},
@@ -24,8 +27,8 @@ MULTITASK = {
 
 
 @pytest.mark.slow
-def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(tmp_path):
-    workspace = make_workspace(tmp_path / "carp", MULTITASK)
+def test_a_multi_task_policy_trains_over_every_task_and_is_evaluated_on_each(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(lift_pipeline, tmp_path, MULTITASK)
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
     assert {"train_multitask@carp-0", "evaluate_multitask@lift-carp-0", "evaluate_multitask@can-carp-0"} <= (

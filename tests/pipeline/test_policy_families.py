@@ -1,6 +1,7 @@
 """End to end with two policy families and two training seeds: `dvc repro` on tiny params trains and evaluates CARP and
 a tiny DP-T beside it, selects each seed's checkpoint on validation seeds, registers CARP's confirmed checkpoints, the
-report compares them, and a change to one family's params makes only that family's stages stale."""
+report compares them, and a change to one family's params makes only that family's stages stale. The run starts from a
+copy of the shared arm pipeline: its demos and tokenizer stand, the policies' stages run."""
 
 import json
 import shutil
@@ -12,7 +13,8 @@ import yaml
 
 from carp.data.sources import file_sha256
 from carp.tracking.registry import resolve_alias
-from tests.pipeline.workspace import make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import run, stages_run
 
 FAMILIES = {
     "policies": ["carp", "diffusion_transformer"],
@@ -33,8 +35,8 @@ def stale_stages(workspace) -> set[str]:
 
 
 @pytest.mark.slow
-def test_two_families_train_evaluate_and_report_side_by_side(tmp_path):
-    workspace = make_workspace(tmp_path / "carp", FAMILIES)
+def test_two_families_train_evaluate_and_report_side_by_side(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(lift_pipeline, tmp_path, FAMILIES)
     first = run([sys.executable, "-m", "dvc", "repro"], workspace)
     assert first.returncode == 0, first.stderr[-3000:]
     for policy in FAMILIES["policies"]:

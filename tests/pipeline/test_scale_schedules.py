@@ -1,9 +1,9 @@
 """Every scale schedule of the paper's Fig. 10 trains, evaluates, exports and serves through the real pipeline.
 
-One tiny workspace runs `dvc repro` with `scales: [1]` (a single scale, below the encoder's latent length of 4), then
-`dvc exp run -S scales=...` for the others: two scales, three (the last below the latent length) and five and six
-(a latent longer than the encoder's, resampled to the last scale). After each, the evaluated CARP policy is served
-on the ONNX Runtime backend and its chunk compared with the in-process prediction.
+A copy of the shared arm pipeline (its demos stand) runs `dvc repro` with `scales: [1]` (a single scale, below the
+encoder's latent length of 4), then `dvc exp run -S scales=...` for the others: two scales, three (the last below the
+latent length) and five and six (a latent longer than the encoder's, resampled to the last scale). After each, the
+evaluated CARP policy is served on the ONNX Runtime backend and its chunk compared with the in-process prediction.
 """
 
 import sys
@@ -17,7 +17,8 @@ from carp.config import load_params
 from carp.policies.registry import load_policy
 from carp.serving.server import PolicyServer, ServerSettings, ServerThread
 from carp.serving.startup import load_served_model
-from tests.pipeline.workspace import dvc, make_workspace, run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import dvc, run
 
 pytestmark = pytest.mark.slow
 
@@ -46,8 +47,8 @@ def served_and_in_process(workspace, checkpoint, seed: int) -> tuple[np.ndarray,
         thread.stop()
 
 
-def test_every_schedule_trains_evaluates_exports_and_serves(tmp_path):
-    workspace = make_workspace(tmp_path / "ws", {"scales": SCHEDULES[0]})
+def test_every_schedule_trains_evaluates_exports_and_serves(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(lift_pipeline, tmp_path, {"scales": SCHEDULES[0], "policies": ["carp"]})
     for index, schedule in enumerate(SCHEDULES):
         command = (
             [sys.executable, "-m", "dvc", "repro"] if index == 0 else dvc("exp", "run", "-S", f"scales={schedule}")

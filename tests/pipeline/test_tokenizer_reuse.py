@@ -1,4 +1,7 @@
-"""Walkthrough: a tokenizer registered from Lift and Can demos serves a Square policy without any tokenizer training."""
+"""Walkthrough: a tokenizer registered from Lift and Can demos serves a Square policy without any tokenizer training.
+
+The walkthrough starts from a copy of the shared arm pipeline (its Lift demos stand) without its MLflow store, so the
+store holds this walkthrough's runs alone."""
 
 import json
 
@@ -7,7 +10,8 @@ import torch
 import yaml
 
 from carp.tracking.runs import find_runs
-from tests.pipeline.workspace import dvc, make_workspace, run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import dvc, run
 
 
 def _set_params(workspace, change) -> None:
@@ -18,8 +22,9 @@ def _set_params(workspace, change) -> None:
 
 
 @pytest.mark.slow
-def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(tmp_path):
-    workspace = make_workspace(tmp_path / "carp", {"tasks": ["lift", "can"], "eval": {"episodes": 1, "workers": 1}})
+def test_square_policy_reuses_a_tokenizer_registered_on_lift_and_can(lift_pipeline, tmp_path):
+    variation = {"tasks": ["lift", "can"], "policies": ["carp"], "eval": {"episodes": 1, "workers": 1}}
+    workspace = copy_pipeline(lift_pipeline, tmp_path, variation, tracking=False)
     first = run(dvc("repro", "register_tokenizer"), workspace)
     assert first.returncode == 0, first.stderr[-3000:]
     reference = json.loads((workspace / "models/tokenizer_ref.json").read_text())
