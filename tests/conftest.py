@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from carp.data.robomimic_io import Episode, write_demonstrations
+from tests.pipeline.shared_workspaces import lift_demos, lift_pipeline, pusht_pipeline  # noqa: F401 (end-to-end tier)
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 OBS_WIDTHS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
@@ -68,3 +69,10 @@ def synthetic_file(tmp_path: Path) -> Path:
     path = tmp_path / "raw.hdf5"
     write_synthetic_file(path)
     return path
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Modules holding slow tests run first (each module keeps its order): under pytest-xdist the long end-to-end
+    modules start at once and the quick ones fill the workers' time at the end."""
+    slow_modules = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow_modules)
