@@ -1,5 +1,6 @@
 """`dvc repro` with FAST's tokens and the next-token family: it trains, evaluates with the repaired share, reloads
-without the pipeline's tokenizer folder, and a second run reruns nothing."""
+without the pipeline's tokenizer folder, and a second run reruns nothing. The run starts from a copy of the shared arm
+pipeline, whose demos stand."""
 
 import json
 import shutil
@@ -9,7 +10,8 @@ import pytest
 
 from carp.policies.next_token.kind_policy import NextTokenKindPolicy
 from carp.policies.registry import load_policy
-from tests.pipeline.workspace import dvc, make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import dvc, run, stages_run
 
 pytestmark = pytest.mark.slow
 
@@ -21,8 +23,8 @@ PARAMS = {
 }
 
 
-def test_fast_tokens_train_and_evaluate_with_the_next_token_family(tmp_path):
-    workspace = make_workspace(tmp_path / "ws", PARAMS)
+def test_fast_tokens_train_and_evaluate_with_the_next_token_family(lift_pipeline, tmp_path):
+    workspace = copy_pipeline(lift_pipeline, tmp_path, PARAMS)
     done = run(dvc("repro"), workspace, timeout=1800)
     assert done.returncode == 0, done.stderr[-3000:]
     assert {"train_tokenizer", "train_policy@lift-next_token-0", "evaluate@lift-next_token-0"} <= stages_run(

@@ -1,6 +1,9 @@
 """End to end on Push-T: `dvc repro` with `tasks: [pusht]` on tiny params collects with the planning expert, ingests
 2-D targets, trains a tokenizer and CARP (with VQ-BeT and Consistency Policy beside it) in Push-T's action space,
-evaluates with DP's score and a video, reports them with the scripted-demo caveat, and a second run does nothing."""
+evaluates with DP's score and a video, reports them with the scripted-demo caveat, and a second run does nothing.
+
+The run is the shared Push-T pipeline (tests/pipeline/shared_workspaces.py, built once per test run), checked here in
+a copy of its own."""
 
 import json
 import sys
@@ -8,25 +11,16 @@ import sys
 import pandas as pd
 import pytest
 
-from tests.pipeline.test_consistency_repro import TINY_UNET
-from tests.pipeline.workspace import make_workspace, run, stages_run
-
-# The two families whose tokenizer and teacher are their own (VQ-BeT's residual VQ-VAE, Consistency Policy's EDM
-# teacher) run beside CARP, at the sizes of their own e2e tests.
-PUSHT = {
-    "tasks": ["pusht"],
-    "policies": ["carp", "vq_bet", "consistency_policy"],
-    "edm_unet": TINY_UNET,
-    "consistency_policy": TINY_UNET | {"num_levels": 10},
-    "eval": {"max_steps": {"pusht": 30}, "video": True, "video_episodes": 1},
-}
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import run, stages_run
 
 
 @pytest.mark.slow
-def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(tmp_path):
-    workspace = make_workspace(tmp_path / "carp", PUSHT)
-    first = run([sys.executable, "-m", "dvc", "repro"], workspace)
-    assert first.returncode == 0, first.stderr[-3000:]
+def test_push_t_runs_through_every_stage_and_a_second_run_does_nothing(pusht_pipeline, tmp_path):
+    # The shared pipeline's params (PUSHT_PIPELINE): the two families whose tokenizer and teacher are their own
+    # (VQ-BeT's residual VQ-VAE, Consistency Policy's EDM teacher) run beside CARP, at the sizes of their own e2e
+    # tests; its `dvc repro` ran every stage (the fixture fails if it did not).
+    workspace = copy_pipeline(pusht_pipeline, tmp_path)
     for output in (
         "data/raw/pusht.hdf5",
         "data/processed/pusht/replay.zarr",
