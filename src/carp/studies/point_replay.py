@@ -12,6 +12,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from carp.data.ingest import NORMALIZATION_FILENAME
 from carp.data.normalizer import load_normalizers
 from carp.data.robomimic_io import DatasetError
@@ -89,3 +91,16 @@ def replay_cell(figures: Mapping[str, Mapping[str, int]], task: str) -> str:
     """``successes/demos`` of `task`, or ``-`` when the point has no replay of it."""
     entry = figures.get(task)
     return f"{entry['successes']}/{entry['demos']}" if entry else "-"
+
+
+def nominal_rate(tokenizer_dir: Path) -> dict[str, float]:
+    """``bits_per_chunk`` (tokens x log2 V) and ``tokens_per_chunk/mean`` of a point's tokenizer copy.
+
+    carp_msvq's metrics file holds its errors and code usage only; its rate follows from its fixed layout. Empty
+    without a tokenizer copy; a kind's measured rate in its metrics file takes precedence.
+    """
+    if not Path(tokenizer_dir).is_dir():
+        return {}
+    tokenizer = load_tokenizer(tokenizer_dir)
+    tokens = float(tokenizer.tokens_per_chunk.mean)
+    return {"bits_per_chunk": tokens * float(np.log2(tokenizer.vocabulary_size)), "tokens_per_chunk/mean": tokens}

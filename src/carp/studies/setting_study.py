@@ -1,15 +1,17 @@
-"""Studies of one tokenizer setting: the number of scales K (supplementary Fig. 10) and the codebook size V.
+"""Studies of one setting: scales K (supplementary Fig. 10), codebook size V, tokenizer kind, tokenizer source.
 
-A point of the study is one DVC experiment of the whole pipeline with the setting changed (``-S scales=[1,2,3]`` or
-``-S codebook_size=256``) and everything else as the workspace's params say. After each experiment its evaluation
-files, its tokenizer's metrics and the tokenizer itself are copied into ``<output>/<point>/``, and the demos are
-replayed open loop through that tokenizer (`carp.studies.point_replay`); a point whose copy is complete is not run
-again, so an interrupted study resumes, and folders of the same study run in other clones (``study.references``)
-join the report at every point. The report shows, per task, each family's success against the setting with its band
-over training seeds, the tokenizer's error, code usage and perplexity, its replay success and the latency per chunk,
-and each point's
-verdict against the reference point (the workspace's own setting), all points under one correction. The scales study
-also checks the paper's reading of Fig. 10: fewer than 4 scales tokenize too coarsely, and 5 or 6 add nothing.
+The tokenizer studies' points are made by `carp.studies.tokenizer_studies`.
+
+A point of the study is one DVC experiment of the whole pipeline with the setting changed (``-S scales=[1,2,3]``,
+``-S codebook_size=256``, ``-S tokenizer.kind=fsq``) and everything else as the workspace's params say, less the
+families that cannot take the point's setting. After each experiment its evaluation files, its tokenizer's metrics
+and the tokenizer itself are copied into ``<output>/<point>/``, and the demos are replayed open loop through that
+tokenizer (`carp.studies.point_replay`); a point whose copy is complete is not run again, so an interrupted study
+resumes, and folders of the same study run in other clones (``study.references``) join the report at every point.
+The report shows, per task, each family's success against the setting with its band over training seeds, the
+tokenizer's error and the figures the study varies (code usage and perplexity, or rate), its replay success and the
+latency per chunk, and each point's verdict against the reference point, all points under one correction. The scales
+study also checks the paper's reading of Fig. 10: fewer than 4 scales tokenize too coarsely, and 5 or 6 add nothing.
 """
 
 import json
@@ -33,12 +35,13 @@ from carp.reporting.claims import oriented_verdict
 from carp.reporting.comparison import decide_groups, family_rate, family_rate_cells
 from carp.reporting.document import Section, write_sections
 from carp.reporting.figures import finish_figure  # noqa: E402
-from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, referenced_runs
+from carp.reporting.runs import Runs, merge_runs, outcomes_by_seed, pooled_metrics, referenced_runs
 from carp.studies.data_efficiency import COMPLETE_MARKER, Evaluations  # noqa: E402
-from carp.studies.point_replay import TOKENIZER_FOLDER, read_replay, replay_cell
+from carp.studies.point_replay import TOKENIZER_FOLDER, nominal_rate, read_replay, replay_cell
 
 TOKENIZER_METRICS = "tokenizer_metrics.json"
 EVAL_FOLDER = "eval"
+USAGE_NOTE = "Code usage is the share of the V codes used over all scales."
 
 
 @dataclass(frozen=True)
@@ -46,47 +49,93 @@ class SettingStudy:
     """One study: the param it varies, the values it tries and the value the others are compared with.
 
     Attributes:
-        name: the study's name (``scales`` or ``codebook``), also its folder under ``reports/studies``.
-        key: the param set by ``dvc exp run -S`` (``scales`` or ``codebook_size``).
+        name: the study's name (``scales``, ``codebook``, ``tokenizers`` or ``tokenizer_reuse``), also its folder
+            under ``reports/studies``.
+        key: the param set by ``dvc exp run -S`` (``scales``, ``codebook_size``, ``tokenizer.kind`` or
+            ``tokenizer.source``).
         values: the points, in the order of the report's axis.
         reference: the value every other point is compared with; one of `values`.
+        point_families: value -> the families trained at that point, for points that train fewer than the
+            workspace's ``policies`` (a family that cannot take the point's setting); other points train them all.
+        point_overrides: value -> further ``-S`` overrides of that point (the narrowed ``policies`` and the lists
+            that must stay inside it).
+        shared_overrides: ``-S`` overrides every point adds (e.g. the tasks of the tokenizer reuse study).
+        note: a paragraph the report adds to every task's section (what the columns of this study mean).
     """
 
     name: str
     key: str
     values: tuple[Any, ...]
     reference: Any
+    point_families: tuple[tuple[Any, tuple[str, ...]], ...] = ()
+    point_overrides: tuple[tuple[Any, tuple[str, ...]], ...] = ()
+    shared_overrides: tuple[str, ...] = ()
+    note: str = ""
 
     def __post_init__(self) -> None:
         if self.reference not in self.values:
             raise ValueError(f"study {self.name}: the reference {self.reference!r} is not one of its points")
 
+    @property
+    def categorical(self) -> bool:
+        """Whether the points are categories (tokenizer kinds, tokenizer sources) rather than numbers."""
+        return self.key in ("tokenizer.kind", "tokenizer.source")
+
+    @property
+    def axis_name(self) -> str:
+        """The x axis's title in the report's figure."""
+        return {"scales": "scales K", "codebook_size": "codebook size V", "tokenizer.kind": "tokenizer kind"}.get(
+            self.key, "tokenizer"
+        )
+
     def folder(self, value: Any) -> str:
-        """The point's folder and experiment suffix, e.g. ``K3`` for scales [1, 2, 3] or ``V256``."""
-        return f"K{len(value)}" if self.key == "scales" else f"V{value}"
+        """The point's folder and experiment suffix: ``K3`` for scales [1, 2, 3], ``V256``, ``fsq``, ``own``."""
+        if self.key == "scales":
+            return f"K{len(value)}"
+        if self.key == "tokenizer.kind":
+            return str(value)
+        if self.key == "tokenizer.source":
+            return "own" if value == "pipeline" else "reused"
+        return f"V{value}"
 
     def label(self, value: Any) -> str:
-        """The point as the report names it, e.g. ``K=3 [1, 2, 3]`` or ``V=256``."""
-        return f"K={len(value)} {list(value)}" if self.key == "scales" else f"V={value}"
+        """The point as the report names it, e.g. ``K=3 [1, 2, 3]``, ``V=256``, ``fsq`` or ``reused tokenizer``."""
+        if self.key == "scales":
+            return f"K={len(value)} {list(value)}"
+        if self.key == "tokenizer.kind":
+            return str(value)
+        if self.key == "tokenizer.source":
+            return f"{self.folder(value)} tokenizer"
+        return f"V={value}"
 
     def axis(self, value: Any) -> float:
-        """The point's position on the report's x axis: K, or V."""
+        """The point's position on the report's x axis: K, V, or the point's index for categories."""
+        if self.categorical:
+            return float(self.values.index(value))
         return float(len(value)) if self.key == "scales" else float(value)
 
     def overrides(self, value: Any) -> list[str]:
-        """The `dvc exp run -S` value that makes the point."""
+        """The `dvc exp run -S` values that make the point."""
         shown = "[" + ",".join(map(str, value)) + "]" if self.key == "scales" else str(value)
-        return [f"{self.key}={shown}"]
+        return [f"{self.key}={shown}", *dict(self.point_overrides).get(value, ()), *self.shared_overrides]
+
+    def families(self, value: Any, policies: Sequence[str]) -> list[str]:
+        """The families trained at the point: `policies` (the workspace's) unless the point narrows them."""
+        return list(dict(self.point_families).get(value, policies))
+
+    def point_marker(self, value: Any, layout_marker: Mapping[str, Any]) -> dict[str, Any]:
+        """The workspace's layout with the point's own families: what the point trains and evaluates."""
+        return {**layout_marker, "policies": self.families(value, layout_marker["policies"])}
 
 
 def scales_study(schedules: Sequence[Sequence[int]], reference: Sequence[int]) -> SettingStudy:
     """The scales study over `schedules`, against the workspace's `reference` schedule."""
-    return SettingStudy("scales", "scales", tuple(tuple(s) for s in schedules), tuple(reference))
+    return SettingStudy("scales", "scales", tuple(tuple(s) for s in schedules), tuple(reference), note=USAGE_NOTE)
 
 
 def codebook_study(sizes: Sequence[int], reference: int) -> SettingStudy:
     """The codebook study over `sizes`, against the workspace's `reference` size."""
-    return SettingStudy("codebook", "codebook_size", tuple(sizes), reference)
+    return SettingStudy("codebook", "codebook_size", tuple(sizes), reference, note=USAGE_NOTE)
 
 
 def harvest_point(
@@ -148,11 +197,16 @@ class StudyPoint:
     replay: Mapping[str, Mapping[str, int]] = dataclass_field(default_factory=dict)
 
 
-def load_point(point_dir: Path, tasks: Sequence[str]) -> StudyPoint:
-    """A point folder's evaluations of `tasks` (whichever families and seeds it holds), tokenizer metrics and replay."""
+def load_point(point_dir: Path, tasks: Sequence[str], rate: bool = False) -> StudyPoint:
+    """A point folder's evaluations of `tasks` (whichever families and seeds it holds), tokenizer metrics and replay.
+
+    With `rate`, a tokenizer whose metrics hold no rate (carp_msvq's) gets its nominal one from its copy.
+    """
     point_dir = Path(point_dir)
     evaluations = referenced_runs(point_dir / EVAL_FOLDER, tasks)
     metrics = json.loads((point_dir / TOKENIZER_METRICS).read_text())
+    if rate and "bits_per_chunk" not in metrics:
+        metrics = {**nominal_rate(point_dir / TOKENIZER_FOLDER), **metrics}
     return StudyPoint(evaluations, metrics, read_replay(point_dir))
 
 
@@ -170,7 +224,8 @@ def run_points(
 
     Args:
         study: the study.
-        layout_marker: tasks, policies and seeds of the workspace (what every point trains and evaluates).
+        layout_marker: tasks, policies and seeds of the workspace (what every point trains and evaluates, less the
+            families a point leaves out: `SettingStudy.point_marker`).
         eval_dir: the workspace's ``reports/eval``.
         tokenizer_metrics: the workspace's ``reports/tokenizer/metrics.json``.
         output_dir: the study's folder; one sub-folder per point.
@@ -182,9 +237,10 @@ def run_points(
     ran = []
     for value in study.values:
         point_dir = Path(output_dir) / study.folder(value)
-        if not is_complete(point_dir, layout_marker, value):
+        marker = study.point_marker(value, layout_marker)
+        if not is_complete(point_dir, marker, value):
             run_experiment(f"{study.name}-{study.folder(value)}", study.overrides(value))
-            harvest_point(eval_dir, tokenizer_metrics, point_dir, layout_marker, value, tokenizer_dir)
+            harvest_point(eval_dir, tokenizer_metrics, point_dir, marker, value, tokenizer_dir)
             ran.append(value)
         if replay is not None:
             replay(point_dir)
@@ -198,7 +254,7 @@ def load_study(study: SettingStudy, folders: Sequence[Path], tasks: Sequence[str
         for folder in folders:
             point_dir = Path(folder) / study.folder(value)
             if (point_dir / COMPLETE_MARKER).is_file():
-                points.setdefault(value, []).append(load_point(point_dir, tasks))
+                points.setdefault(value, []).append(load_point(point_dir, tasks, study.key == "tokenizer.kind"))
     return points
 
 
@@ -260,9 +316,7 @@ def study_sections(
                         "point": study.label(value),
                         "policy": family,
                         **family_rate_cells(runs),
-                        "tokenizer error (% of range)": _metric(tokenizer[value], "rmse_percent_range/mean", "{:.2f}"),
-                        "code usage": _metric(tokenizer[value], "usage/all_scales/mean", "{:.0%}"),
-                        "perplexity": _metric(tokenizer[value], "perplexity/mean", "{:.0f}"),
+                        **tokenizer_cells(study, tokenizer[value], task, runs),
                         "demos replayed through the tokenizer": replay_cell(replays[value], task),
                         "latency per chunk (ms)": "-" if latency is None else f"{latency:.1f}",
                         f"against {study.label(study.reference)}": (
@@ -271,13 +325,15 @@ def study_sections(
                     }
                 )
         paragraphs = [
-            f"Each point is one experiment with `{study.key}` set as named, everything else as the workspace's params; "
+            f"Each point is one experiment with `{study.key}` set as named, everything else as the workspace's params "
+            "(a family that cannot take the point's setting is not trained there); "
             "the family's rate is the mean over training seeds with its 95% t interval over seeds. Each point is "
             f"compared with the same family at {study.label(study.reference)} on the episodes they share, the "
             f"training seed as the unit (at least {min_seeds} seeds a side), all pairs of the study under one "
-            "correction. The tokenizer's figures are on its held-out windows; code usage is the share of the V codes "
-            "used over all scales; the replay column counts demos that still succeed when every executed chunk "
-            "goes through the point's tokenizer open loop (nothing corrects an error once made).",
+            "correction. The tokenizer's figures are on its held-out windows (the error is the task's own where the "
+            "tokenizer serves several tasks); the replay column counts demos that still succeed when every executed "
+            "chunk goes through the point's tokenizer open loop (nothing corrects an error once made).",
+            *([study.note] if study.note else []),
         ]
         paragraphs += [
             f"{comparison.verdict}: {comparison.explanation}"
@@ -291,7 +347,7 @@ def study_sections(
                 tables.append(claims)
         sections.append(
             Section(
-                f"{study.name.capitalize()} study on {task}",
+                f"{study.name.replace('_', ' ').capitalize()} study on {task}",
                 paragraphs=paragraphs,
                 tables=tables,
                 figures=[_plot(study, evaluations, tokenizer, task, figures_dir / f"{study.name}_{task}.png")],
@@ -377,18 +433,47 @@ def _plot(
         if bands:
             band_x, lows, highs = zip(*bands)
             success_axis.fill_between(band_x, lows, highs, color=line.get_color(), alpha=0.2)
-    errors = [(study.axis(v), tokenizer[v].get("rmse_percent_range/mean")) for v in values]
+    errors = [
+        (
+            study.axis(v),
+            tokenizer[v].get(f"task/{task}/rmse_percent_range/mean", tokenizer[v].get("rmse_percent_range/mean")),
+        )
+        for v in values
+    ]
     errors = [(x, e) for x, e in errors if e is not None]
     if errors:
         error_axis.plot(*zip(*errors), marker="s", color="black")
     if study.key == "codebook_size":
         success_axis.set_xscale("log", base=2)
         error_axis.set_xscale("log", base=2)
-    axis_name = "scales K" if study.key == "scales" else "codebook size V"
+    if study.categorical:
+        for axis in (success_axis, error_axis):
+            axis.set_xticks([study.axis(v) for v in values], [study.label(v) for v in values], rotation=30)
+    axis_name = study.axis_name
     success_axis.set(xlabel=axis_name, ylabel="success rate (%)", ylim=(0, 105), title=f"{study.name} ({task})")
     error_axis.set(xlabel=axis_name, ylabel="tokenizer error (% of range)", title="held-out reconstruction")
     figure.tight_layout()
     return finish_figure(figure, success_axis, path)
+
+
+def tokenizer_cells(study: SettingStudy, metrics: Mapping[str, float], task: str, runs: Runs) -> dict[str, str]:
+    """The point's tokenizer columns: its error on `task`, then the figures the study varies (usage, or rate)."""
+    own_error = f"task/{task}/rmse_percent_range/mean"
+    cells = {
+        "tokenizer error (% of range)": _metric(
+            metrics, own_error if own_error in metrics else "rmse_percent_range/mean", "{:.2f}"
+        )
+    }
+    if study.key in ("scales", "codebook_size"):
+        cells["code usage"] = _metric(metrics, "usage/all_scales/mean", "{:.0%}")
+        cells["perplexity"] = _metric(metrics, "perplexity/mean", "{:.0f}")
+    elif study.key == "tokenizer.kind":
+        cells["bits per chunk"] = _metric(metrics, "bits_per_chunk", "{:.0f}")
+        cells["tokens per chunk"] = _metric(metrics, "tokens_per_chunk/mean", "{:.1f}")
+        cells["entropy (bits per chunk)"] = _metric(metrics, "entropy_bits_per_chunk", "{:.0f}")
+        rate = pooled_metrics(runs).get("repaired_chunk_rate")
+        cells["repaired chunks"] = "-" if rate is None else f"{100 * rate:.1f}%"
+    return cells
 
 
 def _median_latency(runs: Runs) -> float | None:
