@@ -3,6 +3,7 @@
 from dataclasses import dataclass
 
 from carp.config.checks import SWEEP_PRUNERS, _distinct_paths, _require, require_registry_alias
+from carp.config.tokenizer_kinds import DEFAULT_TOKENIZER_KIND, TOKENIZER_KINDS
 
 
 @dataclass(frozen=True)
@@ -29,7 +30,16 @@ class StudyConfig:
             only.
         replay_demos: Demos of each task replayed open loop through each point's tokenizer by the scales and codebook
             studies (the first this many of the task's demo file), so the report shows what each point's rate costs
-            in task success before any policy is trained; an integer >= 0, 0 replays none.
+            in task success before any policy is trained; an integer >= 0, 0 replays none. The tokenizer studies
+            replay the same way.
+        tokenizer_kinds: Points of the tokenizer study: one experiment per kind with ``tokenizer.kind`` set to it
+            (each at the rate its ``tokenizer_<kind>`` section sets), every family of ``policies`` that takes the kind
+            trained there and compared with the same family at carp_msvq; at least two distinct kinds of
+            ``tokenizer.kind``'s, carp_msvq among them.
+        reuse_source_tasks: Tasks whose demos train the tokenizer that the reuse study registers and reuses; at
+            least one, distinct, none of ``reuse_target_tasks``.
+        reuse_target_tasks: Tasks the reuse study trains and evaluates twice, with their own tokenizer and with the
+            source tasks' registered one; at least one, distinct, each scored in the simulator.
     """
 
     data_efficiency_sizes: tuple[int, ...] = (30, 60, 100, 200)
@@ -44,6 +54,9 @@ class StudyConfig:
     codebook_sizes: tuple[int, ...] = (64, 256, 512, 1024)
     references: tuple[str, ...] = ()
     replay_demos: int = 50
+    tokenizer_kinds: tuple[str, ...] = TOKENIZER_KINDS
+    reuse_source_tasks: tuple[str, ...] = ("lift", "can", "square", "stack")
+    reuse_target_tasks: tuple[str, ...] = ("nut_assembly", "threading", "stack_three")
 
     def __post_init__(self) -> None:
         _require(self.replay_demos >= 0, "study.replay_demos", self.replay_demos, "must be >= 0 (0 replays none)")
@@ -70,6 +83,33 @@ class StudyConfig:
             "must hold at least two strictly increasing sizes >= 2",
         )
         object.__setattr__(self, "references", _distinct_paths("study.references", self.references))
+        kinds = list(self.tokenizer_kinds)
+        _require(
+            len(kinds) >= 2 and len(set(kinds)) == len(kinds) and DEFAULT_TOKENIZER_KIND in kinds,
+            "study.tokenizer_kinds",
+            kinds,
+            f"must hold at least two distinct kinds, {DEFAULT_TOKENIZER_KIND} (the reference) among them",
+        )
+        for kind in kinds:
+            _require(
+                kind in TOKENIZER_KINDS, "study.tokenizer_kinds", kinds, f"every kind must be one of {TOKENIZER_KINDS}"
+            )
+        for key in ("reuse_source_tasks", "reuse_target_tasks"):
+            tasks = list(getattr(self, key))
+            _require(
+                len(tasks) >= 1 and len(set(tasks)) == len(tasks),
+                f"study.{key}",
+                tasks,
+                "must hold at least one task, each once",
+            )
+            object.__setattr__(self, key, tuple(tasks))
+        shared = sorted(set(self.reuse_source_tasks) & set(self.reuse_target_tasks))
+        _require(
+            not shared,
+            "study.reuse_target_tasks",
+            list(self.reuse_target_tasks),
+            f"must not hold a source task ({', '.join(shared)}): the reused tokenizer is to be new to them",
+        )
 
 
 @dataclass(frozen=True)
