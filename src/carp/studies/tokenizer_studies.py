@@ -69,10 +69,10 @@ def tokenizer_study(
             continue
         families.append((kind, tuple(kept)))
         narrowed = [f"policies={_list(kept)}"]
-        for key, inside in (("register", kept), ("multitask", None)):
-            current = list(lists.get(key, ()))
-            remaining = [f for f in current if (f in inside if inside is not None else takes(f, kind))]
-            if remaining != current:
+        register = [family for family in lists.get("register", ()) if family in kept]
+        multitask = [family for family in lists.get("multitask", ()) if takes(family, kind)]
+        for key, remaining in (("register", register), ("multitask", multitask)):
+            if remaining != list(lists.get(key, ())):
                 narrowed.append(f"{key}={_list(remaining)}")
         overrides.append((kind, tuple(narrowed)))
     return SettingStudy(
