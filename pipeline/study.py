@@ -178,6 +178,9 @@ def run_setting_study(name, params, params_file, layout, output_dir, references,
 def reuse_study(params, output_dir, marker, args):
     """The reuse study's source tokenizer (trained and registered unless already), its arms, tasks and layout."""
     sources, targets = params.study.reuse_source_tasks, params.study.reuse_target_tasks
+    spaces = {task: params.task(task).action_format(params.data.controller).space for task in (*sources, *targets)}
+    if len(set(spaces.values())) > 1:
+        fail(f"{PROJECT_DIR / 'params.yaml'}: study: the source and target tasks must share one action space: {spaces}")
     if not args.report_only:
         original = (PROJECT_DIR / "params.yaml").read_text()
         try:
@@ -195,7 +198,7 @@ def reuse_study(params, output_dir, marker, args):
             (PROJECT_DIR / "params.yaml").write_text(original)
     metrics_file = output_dir / tokenizer_studies.SOURCE_FOLDER / setting_study.TOKENIZER_METRICS
     source_metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
-    name = registered_model_name(params.action_space, params.tokenizer.kind)
+    name = registered_model_name(spaces[sources[0]], params.tokenizer.kind)
     uri = f"models:/{name}@{tokenizer_studies.REUSE_ALIAS}"
     study = tokenizer_studies.reuse_study(targets, sources, uri, source_metrics)
     return study, list(targets), tokenizer_studies.reuse_marker(marker, targets, sources)
