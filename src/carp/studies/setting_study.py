@@ -418,6 +418,7 @@ def _plot(
     figure, (success_axis, error_axis) = plt.subplots(1, 2, figsize=(9, 3.4))
     values = list(evaluations)
     families = sorted({family for by_task in evaluations.values() for family in by_task.get(task, {})})
+    style = "none" if study.categorical else "-"
     for family in families:
         xs, means, bands = [], [], []
         for value in values:
@@ -429,10 +430,13 @@ def _plot(
             rate = family_rate(runs)
             if rate is not None:
                 bands.append((study.axis(value), 100 * rate.low, 100 * rate.high))
-        line = success_axis.plot(xs, means, marker="o", label=family)[0]
+        line = success_axis.plot(xs, means, marker="o", linestyle=style, label=family)[0]
         if bands:
             band_x, lows, highs = zip(*bands)
-            success_axis.fill_between(band_x, lows, highs, color=line.get_color(), alpha=0.2)
+            if study.categorical:  # no line between categories: each point's band is its own bar
+                success_axis.vlines(band_x, lows, highs, color=line.get_color(), alpha=0.4, linewidth=6)
+            else:
+                success_axis.fill_between(band_x, lows, highs, color=line.get_color(), alpha=0.2)
     errors = [
         (
             study.axis(v),
@@ -442,7 +446,7 @@ def _plot(
     ]
     errors = [(x, e) for x, e in errors if e is not None]
     if errors:
-        error_axis.plot(*zip(*errors), marker="s", color="black")
+        error_axis.plot(*zip(*errors), marker="s", linestyle=style, color="black")
     if study.key == "codebook_size":
         success_axis.set_xscale("log", base=2)
         error_axis.set_xscale("log", base=2)
