@@ -1,0 +1,58 @@
+"""`pipeline/study.py tokenizers` and `tokenizer_reuse` as commands: refusals before any experiment, and (slow) the
+tokenizers study over two kinds in a copy of the shared arm pipeline, resumed without running anything again."""
+
+import json
+import sys
+
+import pytest
+
+from carp.studies.data_efficiency import COMPLETE_MARKER
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import make_workspace, run
+
+
+@pytest.mark.parametrize(
+    ("study", "params", "message"),
+    [
+        (
+            "tokenizers",
+            {"policies": ["carp"]},
+            "study.tokenizer_kinds: tokenizer kind binning: no family of policies=['carp'] is trained over its tokens",
+        ),
+        ("tokenizer_reuse", {"study": {"reuse_target_tasks": ["threading", "knitting"]}}, "unknown task 'knitting'"),
+        ("tokenizer_reuse", {"study": {"reuse_target_tasks": ["pusht"]}}, "must share one action space"),
+    ],
+)
+def test_the_study_command_refuses_before_any_experiment(tmp_path, study, params, message):
+    workspace = make_workspace(tmp_path / "carp", params)
+    completed = run([sys.executable, "pipeline/study.py", study], workspace, timeout=300)
+    assert completed.returncode == 1
+    last = completed.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {workspace / 'params.yaml'}: study") and message in last
+    assert not (workspace / "reports").exists()
+
+
+@pytest.mark.slow
+def test_the_tokenizers_study_runs_each_kind_once_and_reports_it_against_carp_msvq(lift_pipeline, tmp_path):
+    params = {
+        "policies": ["carp", "next_token"],
+        "next_token": {"depth": 1, "width": 16, "num_heads": 2, "warmup_steps": 2},
+        "tokenizer_binning": {"bins": 16},
+        "study": {"tokenizer_kinds": ["carp_msvq", "binning"], "replay_demos": 1},
+    }
+    workspace = copy_pipeline(lift_pipeline, tmp_path, params)
+    params_before = (workspace / "params.yaml").read_text()
+    first = run([sys.executable, "pipeline/study.py", "tokenizers"], workspace, timeout=1800)
+    assert first.returncode == 0, first.stderr[-3000:]
+    folder = workspace / "reports/studies/tokenizers"
+    assert sorted(p.name for p in (folder / "binning/eval/lift").iterdir()) == ["next_token"]
+    assert sorted(p.name for p in (folder / "carp_msvq/eval/lift").iterdir()) == ["carp", "next_token"]
+    assert json.loads((folder / "binning/replay.json").read_text())["lift"]["demos"] == 1
+    report = (folder / "report.md").read_text()
+    assert "## Tokenizers study on lift" in report and "not decided (1 training seed)" in report
+    assert (workspace / "params.yaml").read_text() == params_before
+    finished = {kind: (folder / kind / COMPLETE_MARKER).stat().st_mtime_ns for kind in ("carp_msvq", "binning")}
+    again = run([sys.executable, "pipeline/study.py", "tokenizers"], workspace, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.strip().splitlines()[-1] == "wrote reports/studies/tokenizers/report.md"
+    assert {kind: (folder / kind / COMPLETE_MARKER).stat().st_mtime_ns for kind in finished} == finished
