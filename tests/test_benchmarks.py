@@ -31,6 +31,7 @@ def run_benchmark(script: str, *arguments: str, timeout: float = 300) -> subproc
     )
 
 
+@pytest.mark.slow
 def test_tokenizer_throughput_prints_every_variant_with_consistent_numbers():
     completed = run_benchmark(
         "tokenizer_throughput.py",
@@ -125,6 +126,7 @@ def test_policy_speed_prints_every_row_and_training_numbers_that_agree():
         assert speed_up == pytest.approx(2.6 / seconds, rel=0.01, abs=0.005)
 
 
+@pytest.mark.slow
 def test_policy_speed_compares_the_attention_kernels_per_batch_size_with_consistent_ratios():
     completed = run_benchmark(
         "policy_speed.py",
@@ -253,6 +255,7 @@ def test_image_windows_refuses_a_buffer_without_images_in_one_line(tmp_path):
     assert completed.stderr.strip().splitlines() == [f"error: --buffer={tmp_path}: not a zarr replay buffer"]
 
 
+@pytest.mark.slow
 def test_serving_latency_prints_in_process_and_loopback_rows_per_backend():
     completed = run_benchmark(
         "serving_latency.py",

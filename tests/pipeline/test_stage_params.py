@@ -129,6 +129,7 @@ def test_multi_task_stages_fan_out_over_multitask_and_seeds_and_track_the_task_l
     assert "train_policy@can-carp-0" in stages and "train_policy@can-next_token-0" not in stages
 
 
+@pytest.mark.slow
 def test_the_multi_task_stages_refuse_a_family_missing_from_multitask_in_one_line(tmp_path):
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params.update(tasks=["can", "square"], multitask=["carp"])

@@ -72,6 +72,7 @@ with connect(sys.argv[1], compression=None, open_timeout=30, max_size=None) as c
 """
 
 
+@pytest.mark.slow
 def test_a_client_sending_worst_case_frames_leaves_another_clients_p99_within_twice_its_quiet_one(checkpoint):
     model = served_model(checkpoint)
     slow = ServedModel(SlowPolicy(model.policy), model.source, model.inference)

@@ -7,6 +7,7 @@ import socket
 import subprocess
 import sys
 
+import pytest
 from mlflow import MlflowClient
 
 from carp.tracking.runs import HOST_TAG, PID_TAG, ensure_experiment, find_runs, stage_run
@@ -22,6 +23,7 @@ def _create_experiment(uri: str, barrier, results) -> None:
         results.put(f"{type(error).__name__}: {error}")
 
 
+@pytest.mark.slow
 def test_processes_opening_a_new_store_at_once_all_get_the_same_experiment(tmp_path):
     # Without the lock, simultaneous first opens race in MLflow's schema migration or in the experiment's creation.
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
