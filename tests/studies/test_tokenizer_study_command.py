@@ -1,5 +1,6 @@
-"""`pipeline/study.py tokenizers` and `tokenizer_reuse` as commands: refusals before any experiment, and (slow) the
-tokenizers study over two kinds in a copy of the shared arm pipeline, resumed without running anything again."""
+"""`pipeline/study.py tokenizers` and `tokenizer_reuse` as commands: refusals before any experiment, and (slow, in
+copies of the shared Lift pipeline) the tokenizers study over two kinds and the reuse study from Lift to Can, each
+run again without training anything."""
 
 import json
 import sys
@@ -56,3 +57,24 @@ def test_the_tokenizers_study_runs_each_kind_once_and_reports_it_against_carp_ms
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.strip().splitlines()[-1] == "wrote reports/studies/tokenizers/report.md"
     assert {kind: (folder / kind / COMPLETE_MARKER).stat().st_mtime_ns for kind in finished} == finished
+
+
+@pytest.mark.slow
+def test_the_reuse_study_registers_the_source_tokenizer_once_and_runs_both_arms(lift_pipeline, tmp_path):
+    params = {"study": {"reuse_source_tasks": ["lift"], "reuse_target_tasks": ["can"], "replay_demos": 1}}
+    workspace = copy_pipeline(lift_pipeline, tmp_path, {**params, "policies": ["carp"]})
+    first = run([sys.executable, "pipeline/study.py", "tokenizer_reuse"], workspace, timeout=2400)
+    assert first.returncode == 0, first.stderr[-3000:]
+    folder = workspace / "reports/studies/tokenizer_reuse"
+    source = json.loads((folder / "source/tokenizer_ref.json").read_text())
+    assert source["alias"] == "study-reuse-source"
+    assert json.loads((folder / "source/tokenizer/tokenizer.json").read_text())["tasks"] == ["lift"]
+    for arm in ("own", "reused"):
+        assert (folder / arm / "eval/can/carp/seed0.json").is_file()
+    assert json.loads((folder / "reused/tokenizer/tokenizer.json").read_text())["tasks"] == ["lift"]
+    assert json.loads((folder / "own/tokenizer/tokenizer.json").read_text())["tasks"] == ["can"]
+    report = (folder / "report.md").read_text()
+    assert "## Tokenizer reuse study on can" in report and "reused tokenizer" in report
+    again = run([sys.executable, "pipeline/study.py", "tokenizer_reuse"], workspace, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.strip().splitlines()[-1] == "wrote reports/studies/tokenizer_reuse/report.md"
