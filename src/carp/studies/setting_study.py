@@ -326,13 +326,13 @@ def study_sections(
                 )
         paragraphs = [
             f"Each point is one experiment with `{study.key}` set as named, everything else as the workspace's params "
-            "(a family that cannot take the point's setting is not trained there); "
-            "the family's rate is the mean over training seeds with its 95% t interval over seeds. Each point is "
-            f"compared with the same family at {study.label(study.reference)} on the episodes they share, the "
-            f"training seed as the unit (at least {min_seeds} seeds a side), all pairs of the study under one "
-            "correction. The tokenizer's figures are on its held-out windows (the error is the task's own where the "
-            "tokenizer serves several tasks); the replay column counts demos that still succeed when every executed "
-            "chunk goes through the point's tokenizer open loop (nothing corrects an error once made).",
+            "(a family that cannot take the point's setting is not trained there); the family's rate is the mean "
+            "over training seeds with its 95% t interval over seeds. Each point is compared with the same family at "
+            f"the reference point, {study.label(study.reference)}, on the episodes they share, the training seed as "
+            f"the unit (at least {min_seeds} seeds a side), all pairs of the study under one correction. The "
+            "tokenizer's figures are on its held-out windows (the error is the task's own where the tokenizer serves "
+            "several tasks); the replay column counts demos that still succeed when every executed chunk goes "
+            "through the point's tokenizer open loop (nothing corrects an error once made).",
             *([study.note] if study.note else []),
         ]
         paragraphs += [
