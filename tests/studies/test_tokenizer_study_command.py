@@ -1,4 +1,4 @@
-"""`pipeline/study.py tokenizers` and `tokenizer_reuse` as commands: refusals before any experiment, and (slow, in
+"""`pipeline/study.py tokenizers` and `tokenizer_reuse` as commands: refusals before any experiment, and (in
 copies of the shared Lift pipeline) the tokenizers study over two kinds and the reuse study from Lift to Can, each
 run again without training anything."""
 
@@ -10,6 +10,9 @@ import pytest
 from carp.studies.data_efficiency import COMPLETE_MARKER
 from tests.pipeline.shared_workspaces import copy_pipeline
 from tests.pipeline.workspace import make_workspace, run
+
+# A workspace copy and a study process per test (20 s or more on a loaded 2-core CPU, minutes for the studies).
+pytestmark = pytest.mark.slow
 
 
 @pytest.mark.parametrize(
@@ -33,7 +36,6 @@ def test_the_study_command_refuses_before_any_experiment(tmp_path, study, params
     assert not (workspace / "reports").exists()
 
 
-@pytest.mark.slow
 def test_the_tokenizers_study_runs_each_kind_once_and_reports_it_against_carp_msvq(lift_pipeline, tmp_path):
     params = {
         "policies": ["carp", "next_token"],
@@ -59,7 +61,6 @@ def test_the_tokenizers_study_runs_each_kind_once_and_reports_it_against_carp_ms
     assert {kind: (folder / kind / COMPLETE_MARKER).stat().st_mtime_ns for kind in finished} == finished
 
 
-@pytest.mark.slow
 def test_the_reuse_study_registers_the_source_tokenizer_once_and_runs_both_arms(lift_pipeline, tmp_path):
     params = {"study": {"reuse_source_tasks": ["lift"], "reuse_target_tasks": ["can"], "replay_demos": 1}}
     workspace = copy_pipeline(lift_pipeline, tmp_path, {**params, "policies": ["carp"]})
