@@ -42,13 +42,12 @@ def test_predict_action_normalizes_predicts_decodes_and_unnormalizes():
 
 def test_timed_prediction_reports_both_durations():
     policy = tiny_policy()
-    actions, prediction_seconds, decoding_seconds, model_calls, encoding_seconds = policy.predict_action_timed(
-        _raw_obs(policy, 1)
-    )
-    assert actions.shape == (1, 8, 2)
-    assert 0 < prediction_seconds < 5 and 0 < decoding_seconds < 5
-    assert 0 < encoding_seconds < prediction_seconds  # a state policy's encoding is only the normalization
-    assert model_calls == len(policy.spec.scales)
+    timed = policy.predict_action_timed(_raw_obs(policy, 1))
+    assert timed.actions.shape == (1, 8, 2)
+    assert 0 < timed.prediction_seconds < 5 and 0 < timed.decoding_seconds < 5
+    assert 0 < timed.encoding_seconds < timed.prediction_seconds  # a state policy's encoding is only the normalization
+    assert timed.model_calls == len(policy.spec.scales)
+    assert timed.repaired_chunks is None  # CARP's tokens always decode as they are
 
 
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
