@@ -128,13 +128,24 @@ class TokenizerArtifact:
         Raises:
             KeyError: ``task`` is not a training task, or omitted with several; the message names the choices.
         """
-        if task is None and len(self.action_normalizers) == 1:
-            return next(iter(self.action_normalizers.values()))
-        if task is None:
-            raise KeyError(f"the tokenizer was trained on {self.tasks}: name the task whose action statistics to use")
-        if task not in self.action_normalizers:
-            raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {self.tasks}")
-        return self.action_normalizers[task]
+        return task_normalizer(self.action_normalizers, task)
+
+
+def task_normalizer(normalizers: Mapping[str, MinMaxNormalizer], task: str | None) -> MinMaxNormalizer:
+    """The action statistics of `task` among a tokenizer's training tasks; None picks the only one.
+
+    Raises:
+        KeyError: ``task`` is not a training task, or None with several; the message names the choices.
+    """
+    if task is None and len(normalizers) == 1:
+        return next(iter(normalizers.values()))
+    if task is None:
+        raise KeyError(
+            f"the tokenizer was trained on {list(normalizers)}: name the task whose action statistics to use"
+        )
+    if task not in normalizers:
+        raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {list(normalizers)}")
+    return normalizers[task]
 
 
 def weights_sha256(tokenizer: MultiScaleActionTokenizer, action_normalizers: Mapping[str, MinMaxNormalizer]) -> str:

@@ -30,6 +30,7 @@ from carp.tokenizer.artifact import (
     TokenizerMismatchError,
     check_compatible,
     load_tokenizer_artifact,
+    task_normalizer,
 )
 from carp.tokenizer.kinds.base import KIND_FILENAME, ActionTokenizer
 from carp.tokenizer.kinds.registry import load_tokenizer
@@ -63,11 +64,7 @@ class KindArtifact:
         Raises:
             KeyError: ``task`` is not a training task, or omitted with several; the message names the choices.
         """
-        if task is None and len(self.action_normalizers) == 1:
-            return next(iter(self.action_normalizers.values()))
-        if task not in self.action_normalizers:
-            raise KeyError(f"task {task!r} is not one of the tokenizer's training tasks {self.tasks}")
-        return self.action_normalizers[task]
+        return task_normalizer(self.action_normalizers, task)
 
     def kind_files(self) -> dict[str, bytes]:
         """The kind's files, relative POSIX name -> bytes (``tokenizer.json`` left out): what the sha256 covers.
