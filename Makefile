@@ -44,9 +44,11 @@ dry-exp: setup
 	$(BIN)/python tools/dvc_dry.py exp run $(ARGS)
 
 # Tests run in TEST_WORKERS pytest-xdist processes (one per core of a 2-core CPU); a module's tests stay in one
-# process, so its module-scoped fixtures are built once. `make test TEST_WORKERS=0` runs them in this process.
+# process, so its module-scoped fixtures are built once. Modules are handed out in the order tests/conftest.py gives
+# them (the long end-to-end ones first, so that the short ones even out the workers' ends), not xdist's default
+# order by number of tests. `make test TEST_WORKERS=0` runs them in this process.
 TEST_WORKERS ?= 2
-PYTEST := $(BIN)/python -m pytest $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope)
+PYTEST := $(BIN)/python -m pytest $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder)
 
 test: setup
 	$(PYTEST)

@@ -72,7 +72,8 @@ def synthetic_file(tmp_path: Path) -> Path:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Modules holding slow tests run first (each module keeps its order): under pytest-xdist the long end-to-end
-    modules start at once and the quick ones fill the workers' time at the end."""
+    """Modules holding slow tests run first (each module keeps its order): under pytest-xdist with
+    ``--no-loadscope-reorder`` (the Makefile's) the long end-to-end modules start at once and the quick ones fill the
+    workers' time at the end."""
     slow_modules = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
     items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow_modules)
