@@ -1,5 +1,6 @@
 """Every tokenizer kind trains through `dvc repro`, registers under its kind, reloads from the registry and
-round-trips; a registered kind is reused through tokenizer.source, and one of another kind is refused in one line."""
+round-trips; a registered kind is reused through tokenizer.source, and one of another kind is refused in one line.
+The run starts from a copy of the shared demos workspace (``lift_demos``): its demos stand."""
 
 from pathlib import Path
 
@@ -10,7 +11,8 @@ import yaml
 from carp.config.tokenizer_kinds import TOKENIZER_KINDS
 from carp.tokenizer.kinds.artifact import artifact_kind, load_any_artifact
 from carp.tracking.registry import fetch_registered_tokenizer
-from tests.pipeline.workspace import dvc, make_workspace, run, stages_run
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import dvc, run, stages_run
 
 pytestmark = pytest.mark.slow
 
@@ -38,8 +40,8 @@ def set_tokenizer(workspace: Path, **values) -> None:
     (workspace / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
-def test_every_kind_trains_registers_reloads_and_round_trips(tmp_path):
-    workspace = make_workspace(tmp_path / "ws", TINY_KINDS)
+def test_every_kind_trains_registers_reloads_and_round_trips(lift_demos, tmp_path):
+    workspace = copy_pipeline(lift_demos, tmp_path, TINY_KINDS)
     uri = f"sqlite:///{workspace / 'mlflow.db'}"
     references = {}
     for kind in TOKENIZER_KINDS:
