@@ -1,8 +1,9 @@
 """`kill -9` of a stage mid-way, then the stage again: the result is the uninterrupted run's, and no debris is left.
 
-One tiny workspace for the module: `dvc repro evaluate@lift` gives the uninterrupted results; then each stage is
-started again by hand (its dvc.yaml command), its whole process group is killed with SIGKILL once it has written
-something a rerun could pick up (the first training state, the exported ONNX graphs), and it is run once more.
+One tiny workspace for the module, a copy of the shared demos workspace (``lift_demos``): `dvc repro evaluate@lift`
+gives the uninterrupted results; then each stage is started again by hand (its dvc.yaml command), its whole process
+group is killed with SIGKILL once it has written something a rerun could pick up (the first training state, the
+exported ONNX graphs), and it is run once more.
 
 A training state truncated by hand is discarded with one warning, and its stage trains from the first epoch.
 
@@ -25,7 +26,8 @@ import pandas as pd
 import pytest
 import torch
 
-from tests.pipeline.workspace import dvc, make_workspace, tool_env
+from tests.pipeline.shared_workspaces import copy_pipeline
+from tests.pipeline.workspace import dvc, tool_env
 
 TOKENIZER_EPOCHS = 12
 POLICY_EPOCHS = 12
@@ -57,9 +59,9 @@ def _env(temp_directory: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def pipeline(tmp_path_factory) -> dict[str, Path]:
+def pipeline(lift_demos, tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("kill-and-resume")
-    workspace = make_workspace(root / "carp", PARAMS)
+    workspace = copy_pipeline(lift_demos, root, PARAMS)  # its demos stand
     temp_directory = root / "system-tmp"
     temp_directory.mkdir()
     completed = subprocess.run(
