@@ -7,8 +7,13 @@ import shutil
 
 import numpy as np
 import pytest
+import yaml
 
+from carp.policies.base import count_parameters
+from carp.policies.context import MsvqLayout
+from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.kind_policy import NextTokenKindPolicy
+from carp.policies.next_token.matched_size import msvq_parameters, width_nearest
 from carp.policies.registry import load_policy
 from tests.pipeline.shared_workspaces import copy_pipeline
 from tests.pipeline.workspace import dvc, run, stages_run
@@ -40,6 +45,16 @@ def test_fast_tokens_train_and_evaluate_with_the_next_token_family(lift_pipeline
     policy = load_policy(checkpoint)
     shutil.move(tmp_path / "tokenizer", workspace / "models" / "tokenizer")
     assert isinstance(policy, NextTokenKindPolicy) and policy.tokenizer.kind == "fast"
+    # Trained at the width whose size matches the section's over carp_msvq's tokens (next_token.match_size).
+    params = yaml.safe_load((workspace / "params.yaml").read_text())
+    layout = MsvqLayout(tuple(params["scales"]), params["codebook_size"])
+    section, transformer = NextTokenConfig(**PARAMS["next_token"]), policy.transformer
+    target = msvq_parameters(section, transformer.obs_dim, 2, 10, layout)
+    matched, _ = width_nearest(
+        section, target, lambda config: policy.transformer_for(config, transformer.obs_dim, 2, policy.tokenizer)
+    )
+    assert transformer.config.width == matched.width
+    assert abs(count_parameters(transformer) - target) <= 0.1 * target
     obs = np.zeros((1, 2, policy.obs_normalizer.num_features), dtype=np.float32)
     assert policy.predict_action(obs).shape == (1, 16, 10)
 

@@ -56,6 +56,11 @@ def require_positive_int(key: str, value: Any) -> None:
     )
 
 
+def require_bool(key: str, value: Any) -> None:
+    """Refuse anything but true or false at `key` (a 0 or 1 included)."""
+    _require(isinstance(value, bool), key, value, "must be true or false")
+
+
 def require_optimizer_settings(section: str, config: Any) -> None:
     """Check the optimizer fields every policy family's section has, naming them under `section`.
 
@@ -71,7 +76,7 @@ def require_optimizer_settings(section: str, config: Any) -> None:
         config.warmup_steps,
         "must be an integer >= 0",
     )
-    _require(isinstance(config.use_ema, bool), f"{section}.use_ema", config.use_ema, "must be true or false")
+    require_bool(f"{section}.use_ema", config.use_ema)
 
 
 def _is_int(value: Any) -> bool:

@@ -2,7 +2,7 @@
 
 from dataclasses import dataclass, field
 
-from carp.config.checks import EVAL_BACKENDS, SELECTION_RULES, _require, require_positive_int
+from carp.config.checks import EVAL_BACKENDS, SELECTION_RULES, _require, require_bool, require_positive_int
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,7 @@ class EvalConfig:
             self.ensemble_m,
             "must be null or a number >= 0",
         )
-        _require(isinstance(self.run_test, bool), "eval.run_test", self.run_test, "must be true or false")
+        require_bool("eval.run_test", self.run_test)
         _require(
             self.run_test or self.validation_episodes >= 1,
             "eval.run_test",

@@ -14,6 +14,19 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
+class MsvqLayout:
+    """The carp_msvq token grid the params ask for: what a family over another tokenizer kind may be sized against.
+
+    Attributes:
+        scales: `(s_1, ..., s_K)`, the params' scale schedule.
+        codebook_size: `V`, the params' codes per action dimension.
+    """
+
+    scales: tuple[int, ...]
+    codebook_size: int
+
+
+@dataclass(frozen=True)
 class PolicyContext:
     """Everything a policy is sized by that does not come from its own params section.
 
@@ -29,6 +42,8 @@ class PolicyContext:
             single-task policy. Recorded in `metadata`, through which every family's policy receives it.
         metadata: plain values stored in the checkpoint (task, tokenizer reference, tracking run; the tasks).
         image_encoder: the camera encoder's settings for a policy that sees images; None for state observations.
+        msvq_layout: the params' carp_msvq scales and codebook size, which the next-token family sizes its network
+            against over another kind (`next_token.match_size`); None where no params are at hand.
     """
 
     obs_normalizer: MinMaxNormalizer
@@ -39,6 +54,7 @@ class PolicyContext:
     tasks: PolicyTasks | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     image_encoder: ImageEncoderConfig | None = None
+    msvq_layout: MsvqLayout | None = None
 
     def __post_init__(self) -> None:
         if self.tasks is not None:

@@ -6,7 +6,7 @@ that one path (`carp.training.task_policy`) trains either.
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import torch
 
@@ -26,7 +26,7 @@ from carp.data.ingest import BUFFER_DIRNAME
 from carp.data.obs_padding import padded_layout
 from carp.evaluation.offline import held_out_action_errors
 from carp.policies.base import Policy
-from carp.policies.context import PolicyContext
+from carp.policies.context import MsvqLayout, PolicyContext
 from carp.policies.tasks import DEFAULT_TASK_EMBEDDING_DIM, PolicyTasks
 from carp.serving.protocol import SERVING_METADATA_KEY, ProtocolError, training_protocol
 from carp.tasks import task_for_env_args
@@ -35,10 +35,6 @@ from carp.tokenizer.kinds.artifact import KindArtifact, is_kind_artifact, load_k
 from carp.tokenizer.kinds.base import read_kind_file
 from carp.tracking.registry import TokenizerReference
 from carp.training.loop import PolicyTrainingData
-
-if TYPE_CHECKING:
-    pass
-
 
 IMAGE_PRELOAD_LIMIT_BYTES = 4 << 30
 """Decoded camera frames a training split may hold in memory (per split); larger splits are read per batch."""
@@ -76,6 +72,7 @@ class TaskPolicyInputs:
         image_encoder: the camera encoder's settings of an image policy; None for state observations.
         train_images: the camera images of `windows`' training windows, in the same order; None for state.
         valid_images: the same for the held-out windows.
+        msvq_layout: the params' carp_msvq scales and codebook size (`PolicyContext.msvq_layout`); None without params.
     """
 
     task: str
@@ -85,6 +82,7 @@ class TaskPolicyInputs:
     image_encoder: ImageEncoderConfig | None = None
     train_images: ImageWindowReader | None = None
     valid_images: ImageWindowReader | None = None
+    msvq_layout: MsvqLayout | None = None
 
     @property
     def label(self) -> str:
@@ -117,6 +115,7 @@ class TaskPolicyInputs:
                 ),
             },
             image_encoder=self.image_encoder,
+            msvq_layout=self.msvq_layout,
         )
         return train_data, context
 
@@ -142,12 +141,14 @@ class MultiTaskPolicyInputs:
         artifact: the referenced tokenizer (shared by the tasks).
         windows: task -> its low-dim windows, in task-id order, checked to agree (`carp.data.dataset`).
         task_embedding_dim: width of the learned task embedding the policy is conditioned on.
+        msvq_layout: the params' carp_msvq scales and codebook size (`PolicyContext.msvq_layout`); None without params.
     """
 
     reference: TokenizerReference
     artifact: TokenizerArtifact | KindArtifact
     windows: dict[str, TaskWindows]
     task_embedding_dim: int = DEFAULT_TASK_EMBEDDING_DIM
+    msvq_layout: MsvqLayout | None = None
 
     @property
     def tasks(self) -> tuple[str, ...]:
@@ -199,6 +200,7 @@ class MultiTaskPolicyInputs:
                     data, first.buffer.attrs, control_frequency_hz=_control_frequency(first.buffer.attrs)
                 ),
             },
+            msvq_layout=self.msvq_layout,
         )
         return train_data, context
 
@@ -245,6 +247,11 @@ class ReferencedTokenizer:
     scales: tuple[int, ...]
     codebook_size: int
     kinds: tuple[str, ...] = (DEFAULT_TOKENIZER_KIND,)
+
+    @property
+    def msvq_layout(self) -> MsvqLayout:
+        """The params' carp_msvq scales and codebook size, whatever the referenced tokenizer's kind."""
+        return MsvqLayout(tuple(self.scales), self.codebook_size)
 
     def load(self) -> tuple[TokenizerReference, TokenizerArtifact | KindArtifact]:
         """The reference and the artifact, checked against each other and the params.
@@ -328,8 +335,9 @@ def load_task_policy_inputs(
     except ProtocolError as error:
         raise ValueError(f"{Path(task_dir) / BUFFER_DIRNAME}: {error}") from None
     task = Path(task_dir).name if task is None else task
+    layout = tokenizer.msvq_layout
     if image_encoder is None:
-        return TaskPolicyInputs(task, reference, artifact, windows)
+        return TaskPolicyInputs(task, reference, artifact, windows, msvq_layout=layout)
     store = Path(task_dir) / BUFFER_DIRNAME
     readers = {
         split: ImageWindowReader(
@@ -343,7 +351,9 @@ def load_task_policy_inputs(
             f"{store}: stores images {list(stored[0])} at {stored[1]} px, the encoder expects "
             f"{list(image_encoder.image_keys)} at {image_encoder.image_size} px (ingest again)"
         )
-    return TaskPolicyInputs(task, reference, artifact, windows, image_encoder, readers["train"], readers["valid"])
+    return TaskPolicyInputs(
+        task, reference, artifact, windows, image_encoder, readers["train"], readers["valid"], msvq_layout=layout
+    )
 
 
 def load_multitask_policy_inputs(
@@ -365,4 +375,4 @@ def load_multitask_policy_inputs(
     reference, artifact = tokenizer.load()
     check_kind_horizon(artifact, data)
     windows = load_multitask_windows(task_dirs, data.action_horizon, data.obs_steps, data.action_steps)
-    return MultiTaskPolicyInputs(reference, artifact, windows)
+    return MultiTaskPolicyInputs(reference, artifact, windows, msvq_layout=tokenizer.msvq_layout)

@@ -1,15 +1,19 @@
 """The next-token family over a fixed-length kind (binning) and a variable-length one (FAST) on synthetic chunks."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from carp.data.normalizer import MinMaxNormalizer
-from carp.policies.context import PolicyContext
+from carp.policies.base import count_parameters
+from carp.policies.context import MsvqLayout, PolicyContext
 from carp.policies.next_token.config import NextTokenConfig
 from carp.policies.next_token.family import FAMILY, build
 from carp.policies.next_token.generation import generate_sequences
 from carp.policies.next_token.kind_policy import IGNORED, KindSequence, NextTokenKindPolicy
+from carp.policies.next_token.matched_size import msvq_parameters, width_nearest
 from carp.policies.registry import load_policy
 from carp.tokenizer.artifact import TokenizerMismatchError
 from carp.tokenizer.kinds.artifact import load_kind_artifact, save_kind_artifact
@@ -17,7 +21,8 @@ from carp.tokenizer.kinds.base import PADDING_ID, TokenBatch
 from tests.tokenizer.kinds.conftest import A, H, fitted, smooth_chunks
 
 OBS_STEPS, OBS_DIM = 2, 4
-TINY = NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=2)
+TINY = NextTokenConfig(depth=1, width=16, num_heads=2, warmup_steps=2, match_size=False)
+MSVQ = MsvqLayout(scales=(1, 2, 4), codebook_size=256)
 ACTIONS = MinMaxNormalizer(minimum=np.full(A, -2.0), maximum=np.full(A, 2.0))
 OBSERVATIONS = MinMaxNormalizer(minimum=np.full(OBS_DIM, -1.0), maximum=np.full(OBS_DIM, 1.0))
 
@@ -34,10 +39,21 @@ def artifact(request, chunks, tmp_path_factory):
     return load_kind_artifact(directory)
 
 
+def _context(artifact, msvq_layout: MsvqLayout | None = None) -> PolicyContext:
+    return PolicyContext(
+        OBSERVATIONS,
+        ACTIONS,
+        OBS_STEPS,
+        H,
+        tokenizer_artifact=artifact,
+        metadata={"task": "lift"},
+        msvq_layout=msvq_layout,
+    )
+
+
 def _policy(artifact, seed: int = 0, scrambled: bool = True) -> NextTokenKindPolicy:
     torch.manual_seed(seed)
-    context = PolicyContext(OBSERVATIONS, ACTIONS, OBS_STEPS, H, tokenizer_artifact=artifact, metadata={"task": "lift"})
-    policy = build(TINY, context)
+    policy = build(TINY, _context(artifact))
     if scrambled:  # the default initialization gives near-uniform logits: scrambled weights make varied choices
         with torch.no_grad():
             for parameter in policy.transformer.parameters():
@@ -177,6 +193,56 @@ def test_parameter_counts_are_reported_per_kind(artifact):
     assert transformer.head.weight.numel() == sequence.output_size * TINY.width
     assert transformer.position_embedding.numel() == sequence.positions * TINY.width
     assert policy.num_parameters == sum(p.numel() for p in policy.parameters() if p.requires_grad)
+
+
+def test_match_size_widens_the_network_to_its_size_over_carp_msvq(artifact, tmp_path):
+    matched = dataclasses.replace(TINY, match_size=True)
+    target = msvq_parameters(matched, OBS_DIM, OBS_STEPS, A, MSVQ)
+    unmatched = _policy(artifact, scrambled=False)
+    assert count_parameters(unmatched.transformer) < 0.8 * target  # the gap the setting closes: one vocabulary against A of them
+    torch.manual_seed(0)
+    policy = build(matched, _context(artifact, MSVQ))
+    width = policy.transformer.config.width
+    assert width % TINY.num_heads == 0 and width > TINY.width
+    assert abs(count_parameters(policy.transformer) - target) <= 0.1 * target
+    # No other multiple of num_heads comes nearer to the target.
+    for other in (width - TINY.num_heads, width + TINY.num_heads):
+        transformer = NextTokenKindPolicy.transformer_for(
+            dataclasses.replace(TINY, width=other), OBS_DIM, OBS_STEPS, artifact.tokenizer
+        )
+        assert abs(count_parameters(transformer) - target) >= abs(count_parameters(policy.transformer) - target)
+    # Sizing consumes no random draws: the weights are the ones an unmatched build at that width draws.
+    torch.manual_seed(0)
+    direct = build(dataclasses.replace(TINY, width=width), _context(artifact))
+    for ours, theirs in zip(policy.transformer.parameters(), direct.transformer.parameters(), strict=True):
+        assert torch.equal(ours, theirs)
+    # The checkpoint records the chosen width and loads without the layout.
+    policy.save(tmp_path / "policy.pt")
+    loaded = load_policy(tmp_path / "policy.pt")
+    assert loaded.transformer.config.width == width and loaded.num_parameters == policy.num_parameters
+
+
+def test_match_size_needs_the_params_layout(artifact):
+    with pytest.raises(ValueError, match="next_token.match_size needs the params' scales and codebook_size"):
+        build(dataclasses.replace(TINY, match_size=True), _context(artifact))
+
+
+def test_width_nearest_picks_the_nearest_multiple_of_the_heads_and_the_narrower_on_a_tie():
+    def square(config: NextTokenConfig) -> torch.nn.Module:  # w * w + w trained parameters
+        return torch.nn.Linear(config.width, config.width)
+
+    config = NextTokenConfig(width=16, num_heads=2)
+    assert width_nearest(config, 1000, square) == (dataclasses.replace(config, width=32), 1056)  # 930 at 30
+    assert width_nearest(config, 993, square)[0].width == 30  # 930 and 1056 are 63 away: the narrower
+    assert width_nearest(config, 1, square) == (dataclasses.replace(config, width=2), 6)
+    assert width_nearest(config, 10**6, square)[0].width == 1000
+    with pytest.raises(ValueError, match="must be >= 1"):
+        width_nearest(config, 0, square)
+
+
+def test_the_section_refuses_a_match_size_that_is_not_a_bool():
+    with pytest.raises(ValueError, match="next_token.match_size=1: must be true or false"):
+        NextTokenConfig(match_size=1)
 
 
 class _FixedVocabulary:

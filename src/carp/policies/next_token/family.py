@@ -9,6 +9,7 @@ EMA with a constant decay), so that the two families differ in how many tokens a
 """
 
 import dataclasses
+import logging
 from typing import Any
 
 from torch import nn
@@ -17,6 +18,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from carp.policies.context import PolicyContext
 from carp.policies.next_token.config import NextTokenConfig, NextTokenInference
 from carp.policies.next_token.kind_policy import TOKENIZER_KEY, NextTokenKindPolicy
+from carp.policies.next_token.matched_size import msvq_parameters, width_nearest
 from carp.policies.next_token.policy import POLICY_TYPE, NextTokenPolicy
 from carp.policies.next_token.transformer import NextTokenTransformer
 from carp.policies.policy_family import PolicyFamily
@@ -26,23 +28,49 @@ from carp.training.run import TrainingRun
 from carp.training.runtime import seed_everything
 
 ADAM_BETAS = (0.9, 0.95)
+logger = logging.getLogger(__name__)
 
 
 def build(config: NextTokenConfig, context: PolicyContext) -> NextTokenPolicy | NextTokenKindPolicy:
     """An untrained next-token policy sized by `config` for the data and tokenizer of `context`.
 
     carp_msvq's artifact gives :class:`NextTokenPolicy` (per-dimension vocabularies, CARP's token order); any other
-    kind's gives :class:`NextTokenKindPolicy` (one shared vocabulary, an end token for a variable-length kind).
+    kind's gives :class:`NextTokenKindPolicy` (one shared vocabulary, an end token for a variable-length kind), at
+    the width that matches carp_msvq's size when `config.match_size` (`carp.policies.next_token.matched_size`).
+
+    Raises:
+        ValueError: no tokenizer in the context, or a size to match without the context's `msvq_layout`.
     """
     if context.tokenizer_artifact is None:
         raise ValueError("a next_token policy needs the registered tokenizer")
     if isinstance(context.tokenizer_artifact, KindArtifact):
-        transformer = NextTokenKindPolicy.transformer_for(
-            config, context.feature_dim, context.obs_steps, context.tokenizer_artifact.tokenizer
-        )
+        tokenizer = context.tokenizer_artifact.tokenizer
+
+        def kind_transformer(sized: NextTokenConfig) -> NextTokenTransformer:
+            return NextTokenKindPolicy.transformer_for(sized, context.feature_dim, context.obs_steps, tokenizer)
+
+        if config.match_size:
+            if context.msvq_layout is None:
+                raise ValueError(
+                    "next_token.match_size needs the params' scales and codebook_size (the context's msvq_layout)"
+                )
+            target = msvq_parameters(
+                config, context.feature_dim, context.obs_steps, context.action_dim, context.msvq_layout
+            )
+            width = config.width
+            config, matched = width_nearest(config, target, kind_transformer)
+            logger.info(
+                "next_token over %s at width %d: %d trained parameters, %.2f x its %d over carp_msvq at width %d",
+                tokenizer.kind,
+                config.width,
+                matched,
+                matched / target,
+                target,
+                width,
+            )
         return NextTokenKindPolicy(
             context.tokenizer_artifact,
-            transformer,
+            kind_transformer(config),
             context.obs_normalizer,
             context.action_normalizer,
             context.metadata,
