@@ -25,6 +25,7 @@ def test_every_field_of_every_config_section_is_documented():
         "tokenizer_bspline.",
         "tokenizer_fsq.",
         "tokenizer_joint_msvq.",
+        "tokenizer_residual_vq.",
         "training.",
         "eval.",
         "tracking.",

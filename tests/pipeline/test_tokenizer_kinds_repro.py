@@ -31,6 +31,14 @@ TINY_KINDS = {
         "steps": 20,
         "batch_size": 32,
     },
+    "tokenizer_residual_vq": {
+        "num_layers": 2,
+        "num_codes": 8,
+        "latent_width": 8,
+        "hidden_width": 16,
+        "steps": 20,
+        "batch_size": 32,
+    },
 }
 
 

@@ -17,6 +17,7 @@ from carp.config.tokenizer_kinds import (
     FastConfig,
     FsqConfig,
     JointMsvqConfig,
+    ResidualVqConfig,
     kind_section,
 )
 from carp.config.training import TrainingConfig
@@ -80,6 +81,7 @@ class Params:
         tokenizer_bspline: Settings of the ``bspline`` kind.
         tokenizer_fsq: Settings of the ``fsq`` kind.
         tokenizer_joint_msvq: Settings of the ``joint_msvq`` kind.
+        tokenizer_residual_vq: Settings of the ``residual_vq`` kind.
         training: The training loop shared by every policy family.
         eval: Simulated evaluation.
         tracking: MLflow tracking.
@@ -112,6 +114,7 @@ class Params:
     tokenizer_bspline: BSplineConfig = field(default_factory=BSplineConfig)
     tokenizer_fsq: FsqConfig = field(default_factory=FsqConfig)
     tokenizer_joint_msvq: JointMsvqConfig = field(default_factory=JointMsvqConfig)
+    tokenizer_residual_vq: ResidualVqConfig = field(default_factory=ResidualVqConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)

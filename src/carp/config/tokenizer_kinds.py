@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from carp.config.checks import _require, require_positive_int
 
 DEFAULT_TOKENIZER_KIND = "carp_msvq"
-TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq", "joint_msvq")
+TOKENIZER_KINDS = (DEFAULT_TOKENIZER_KIND, "binning", "fast", "bspline", "fsq", "joint_msvq", "residual_vq")
 """Every registered kind, the default first."""
 
 
@@ -218,3 +218,51 @@ class JointMsvqConfig:
             "must be >= 0",
         )
         _require(self.learning_rate > 0, "tokenizer_joint_msvq.learning_rate", self.learning_rate, "must be > 0")
+
+
+@dataclass(frozen=True)
+class ResidualVqConfig:
+    """VQ-BeT's residual VQ over a whole chunk: one code per layer (`carp.tokenizer.kinds.residual_vq`).
+
+    The defaults are the VQ-BeT family's VQ-VAE (the `vq_bet` section).
+
+    Attributes:
+        num_layers: ``R``, residual layers, which is also the number of tokens per chunk; an integer >= 1.
+        num_codes: ``N``, codes per layer, which is also the vocabulary; an integer >= 2.
+        latent_width: Width of the latent and of every code; an integer >= 1.
+        hidden_width: Width of the hidden layers of the MLP encoder and decoder; an integer >= 1.
+        codebook_decay: EMA decay of the codebooks per step; a number in (0, 1).
+        commitment_weight: Weight of the commitment loss next to the L1 reconstruction; a number >= 0.
+        steps: Adam steps of training; an integer >= 1.
+        batch_size: Windows per step; an integer >= 1.
+        learning_rate: Adam's learning rate; a number > 0.
+        weight_decay: Adam's (L2) weight decay; a number >= 0.
+        seed: Seeds the initialization, the first codes and the batches; any integer.
+    """
+
+    num_layers: int = 2
+    num_codes: int = 16
+    latent_width: int = 256
+    hidden_width: int = 128
+    codebook_decay: float = 0.99
+    commitment_weight: float = 1.0
+    steps: int = 20000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        section = kind_section("residual_vq")
+        for name in ("num_layers", "latent_width", "hidden_width", "steps", "batch_size"):
+            require_positive_int(f"{section}.{name}", getattr(self, name))
+        _require(
+            isinstance(self.num_codes, int) and self.num_codes >= 2,
+            f"{section}.num_codes",
+            self.num_codes,
+            "must be an integer >= 2",
+        )
+        _require(0.0 < self.codebook_decay < 1.0, f"{section}.codebook_decay", self.codebook_decay, "must be in (0, 1)")
+        _require(self.commitment_weight >= 0, f"{section}.commitment_weight", self.commitment_weight, "must be >= 0")
+        _require(self.learning_rate > 0, f"{section}.learning_rate", self.learning_rate, "must be > 0")
+        _require(self.weight_decay >= 0, f"{section}.weight_decay", self.weight_decay, "must be >= 0")

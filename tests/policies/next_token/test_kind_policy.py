@@ -199,7 +199,8 @@ def test_match_size_widens_the_network_to_its_size_over_carp_msvq(artifact, tmp_
     matched = dataclasses.replace(TINY, match_size=True)
     target = msvq_parameters(matched, OBS_DIM, OBS_STEPS, A, MSVQ)
     unmatched = _policy(artifact, scrambled=False)
-    assert count_parameters(unmatched.transformer) < 0.8 * target  # the gap the setting closes: one vocabulary against A of them
+    # The gap the setting closes: one vocabulary against A of them.
+    assert count_parameters(unmatched.transformer) < 0.8 * target
     torch.manual_seed(0)
     policy = build(matched, _context(artifact, MSVQ))
     width = policy.transformer.config.width

@@ -9,6 +9,7 @@ from carp.tokenizer.kinds.carp_msvq import CarpMsvqTokenizer
 from carp.tokenizer.kinds.fast import FastTokenizer
 from carp.tokenizer.kinds.fsq import FsqTokenizer
 from carp.tokenizer.kinds.joint_msvq import JointMsvqTokenizer
+from carp.tokenizer.kinds.residual_vq import ResidualVqTokenizer
 from carp.tokenizer.spec import TokenizerSpec
 from carp.tokenizer.tokenizer import MultiScaleActionTokenizer
 
@@ -48,6 +49,9 @@ def build(kind: str):
         "fsq": lambda: FsqTokenizer(A, H, levels=(5, 4), downsampling=4, hidden_channels=8, steps=30, batch_size=32),
         "joint_msvq": lambda: JointMsvqTokenizer(
             A, H, scales=(1, 2, 4), codebook_size=16, latent_channels=4, hidden_channels=8, steps=20, batch_size=32
+        ),
+        "residual_vq": lambda: ResidualVqTokenizer(
+            A, H, num_layers=3, num_codes=16, latent_width=16, hidden_width=32, steps=30, batch_size=32
         ),
     }[kind]()
 

@@ -10,6 +10,7 @@ from carp.tokenizer.kinds.bspline import BSplineTokenizer
 from carp.tokenizer.kinds.fast import FastTokenizer
 from carp.tokenizer.kinds.fsq import FiniteScalarQuantizer, FsqTokenizer
 from carp.tokenizer.kinds.joint_msvq import JointMsvqTokenizer
+from carp.tokenizer.kinds.residual_vq import ResidualVqTokenizer
 from tests.tokenizer.kinds.conftest import A, H, smooth_chunks
 
 
@@ -130,3 +131,31 @@ def test_the_joint_multi_scale_vq_has_one_token_per_scale_position_and_learns(tr
         for name, model in (("untrained", untrained), ("trained", trained))
     }
     assert error["trained"] < 0.75 * error["untrained"]  # a joint codebook learns slowly; this much takes 150 steps
+
+
+def test_the_residual_vq_tokens_are_vq_bets_codes_and_more_layers_err_less(training_chunks, held_out_chunks):
+    settings = {"num_codes": 16, "latent_width": 16, "hidden_width": 64, "steps": 300, "batch_size": 64}
+    error = {}
+    for layers in (1, 4):
+        tokenizer = ResidualVqTokenizer(A, H, num_layers=layers, **settings)
+        tokenizer.fit(training_chunks)
+        tokens = tokenizer.encode(held_out_chunks)
+        assert tokens.ids.shape == (len(held_out_chunks), layers)
+        # The kind is the VQ-BeT family's network: its tokens are the codes, its chunks the decoded codes.
+        assert torch.equal(tokens.ids, tokenizer.module.encode_to_ids(held_out_chunks))
+        decoded = tokenizer.decode(tokens).actions
+        assert torch.equal(decoded, tokenizer.module.decode_ids(tokens.ids))
+        error[layers] = float((decoded - held_out_chunks).pow(2).mean())
+    assert error[4] < 0.8 * error[1]
+
+
+def test_the_residual_vq_repairs_and_flags_ids_outside_a_layers_codebook(training_chunks, held_out_chunks):
+    tokenizer = ResidualVqTokenizer(A, H, num_layers=2, num_codes=8, latent_width=8, hidden_width=16, steps=5)
+    tokenizer.fit(training_chunks)
+    tokens = tokenizer.encode(held_out_chunks[:3])
+    broken = tokens.ids.clone()
+    broken[0, 1] = 8  # past the codebook
+    short = TokenBatch(broken, torch.tensor([2, 1, 2]))  # row 1 lacks its second layer's code
+    decoded = tokenizer.decode(short)
+    assert decoded.invalid.tolist() == [True, True, False] and torch.isfinite(decoded.actions).all()
+    assert torch.equal(decoded.actions[2], tokenizer.decode(tokens).actions[2])

@@ -12,6 +12,7 @@ from carp.config.tokenizer_kinds import (
     FastConfig,
     FsqConfig,
     JointMsvqConfig,
+    ResidualVqConfig,
     kind_section,
 )
 from carp.tokenizer.kinds.registry import build_tokenizer, kind_class, kind_names, load_tokenizer
@@ -29,9 +30,8 @@ def test_every_kind_is_a_class_named_after_it():
 
 
 def test_an_unknown_kind_is_refused_naming_the_known_ones():
-    with pytest.raises(
-        KeyError, match=r"unknown tokenizer kind 'vq' \(known: carp_msvq, binning, fast, bspline, fsq, joint_msvq\)"
-    ):
+    known = "carp_msvq, binning, fast, bspline, fsq, joint_msvq, residual_vq"
+    with pytest.raises(KeyError, match=rf"unknown tokenizer kind 'vq' \(known: {known}\)"):
         kind_class("vq")
 
 
@@ -39,7 +39,9 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
     with pytest.raises(ConfigError) as raised:
         TokenizerConfig(kind="vq")
     message = str(raised.value)
-    assert message == "tokenizer.kind='vq': must be one of carp_msvq, binning, fast, bspline, fsq, joint_msvq"
+    assert message == (
+        "tokenizer.kind='vq': must be one of carp_msvq, binning, fast, bspline, fsq, joint_msvq, residual_vq"
+    )
     assert "\n" not in message
 
 
@@ -57,6 +59,9 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
         (lambda: FsqConfig(downsampling=3), r"tokenizer_fsq.downsampling=3: must be a power of two"),
         (lambda: JointMsvqConfig(scales=(2, 1)), r"tokenizer_joint_msvq.scales=\[2, 1\]: must be strictly increasing"),
         (lambda: JointMsvqConfig(downsampling=1), r"tokenizer_joint_msvq.downsampling=1: must be a power of two >= 2"),
+        (lambda: ResidualVqConfig(num_codes=1), r"tokenizer_residual_vq.num_codes=1: must be an integer >= 2"),
+        (lambda: ResidualVqConfig(num_layers=0), r"tokenizer_residual_vq.num_layers=0: must be an integer >= 1"),
+        (lambda: ResidualVqConfig(codebook_decay=1.0), r"tokenizer_residual_vq.codebook_decay=1.0: must be in \(0, 1"),
     ],
 )
 def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message):
@@ -64,7 +69,7 @@ def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message
         section()
 
 
-@pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq", "joint_msvq"])
+@pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq", "joint_msvq", "residual_vq"])
 def test_each_kind_builds_from_its_default_section(kind):
     tokenizer = build_tokenizer(kind, getattr(Params(), kind_section(kind)), A, H)
     assert (tokenizer.kind, tokenizer.action_dim, tokenizer.action_horizon) == (kind, A, H)

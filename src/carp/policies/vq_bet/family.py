@@ -1,6 +1,6 @@
 """The VQ-BeT entry of the policy registry, and its two-phase training.
 
-Phase 1 fits the action VQ-VAE (`carp.policies.vq_bet.autoencoder`) on the training chunks, deterministic given the
+Phase 1 fits the action VQ-VAE (`carp.tokenizer.kinds.chunk_vqvae`) on the training chunks, deterministic given the
 seed, and keeps it in the run's checkpoint directory (`action_vqvae.pt`, with what it was trained from): a resumed
 or repeated run of the same setup loads it instead of refitting. Phase 2 trains the GPT and its heads against the
 frozen VQ-VAE's codes in the shared resumable loop (`carp.training.loop`), with VQ-BeT's AdamW (betas 0.9, 0.95; no
@@ -20,10 +20,10 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from carp.policies.context import PolicyContext
 from carp.policies.policy_family import PolicyFamily
-from carp.policies.vq_bet.autoencoder import ActionAutoencoder, AutoencoderTraining, train_autoencoder
 from carp.policies.vq_bet.config import VqBetConfig, VqBetInference
 from carp.policies.vq_bet.policy import POLICY_TYPE, VqBetPolicy, autoencoder_shape
 from carp.policies.vq_bet.transformer import BehaviorTransformer
+from carp.tokenizer.kinds.chunk_vqvae import ActionAutoencoder, AutoencoderTraining, train_autoencoder
 from carp.training import distributed
 from carp.training.checkpoint import CheckpointError, atomic_torch_save, read_checkpoint
 from carp.training.loop import OptimizerRecipe, data_digest, matrix_decay_groups

@@ -20,10 +20,10 @@ from carp.data.normalizer import MinMaxNormalizer
 from carp.policies.base import TimedPrediction
 from carp.policies.carp.sampling import gumbel_top_k, sampling_uniforms
 from carp.policies.observations import checkpoint_image_encoder, restore_observation_encoder
-from carp.policies.vq_bet.autoencoder import ActionAutoencoder, AutoencoderShape
 from carp.policies.vq_bet.config import CODE_CHOICES, VqBetConfig
 from carp.policies.vq_bet.transformer import BehaviorTransformer, code_losses
 from carp.policies.wrapper import PolicyModule, check_policy_type, checkpoint_normalizers
+from carp.tokenizer.kinds.chunk_vqvae import ActionAutoencoder, AutoencoderShape
 
 POLICY_TYPE = "vq_bet"
 

@@ -23,9 +23,9 @@ from torch import nn
 
 from carp.policies.base import check_dimensions
 from carp.policies.carp.blocks import FeedForward, SelfAttention
-from carp.policies.vq_bet.autoencoder import multilayer_perceptron
 from carp.policies.vq_bet.config import VqBetConfig
 from carp.policies.vq_bet.losses import focal_loss
+from carp.tokenizer.kinds.chunk_vqvae import multilayer_perceptron
 
 INITIAL_STD = 0.02
 """Standard deviation of the GPT's initial weights (nanoGPT's, which VQ-BeT's GPT inherits)."""

@@ -19,6 +19,7 @@ KIND_MODULES = {
     "bspline": "carp.tokenizer.kinds.bspline:BSplineTokenizer",
     "fsq": "carp.tokenizer.kinds.fsq:FsqTokenizer",
     "joint_msvq": "carp.tokenizer.kinds.joint_msvq:JointMsvqTokenizer",
+    "residual_vq": "carp.tokenizer.kinds.residual_vq:ResidualVqTokenizer",
 }
 """Kind name -> `module:attribute` of its tokenizer class."""
 

@@ -3,13 +3,13 @@
 import pytest
 import torch
 
-from carp.policies.vq_bet.autoencoder import (
+from carp.tokenizer.kinds.chunk_vqvae import (
     ActionAutoencoder,
     AutoencoderShape,
     AutoencoderTraining,
     train_autoencoder,
 )
-from carp.policies.vq_bet.quantizer import ResidualVectorQuantizer
+from carp.tokenizer.kinds.residual_quantizer import ResidualVectorQuantizer
 
 SHAPE = AutoencoderShape(
     action_horizon=4, action_dim=2, hidden_width=16, latent_width=8, num_layers=2, num_codes=4, codebook_decay=0.9

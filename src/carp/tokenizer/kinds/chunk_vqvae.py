@@ -1,10 +1,11 @@
 """VQ-BeT's action tokenizer: an MLP VQ-VAE over whole action chunks, with a residual quantizer between.
 
 An encoder maps a chunk of H actions (normalized, flattened to H * A values) to one latent, the residual quantizer
-(`carp.policies.vq_bet.quantizer`) turns it into one code per layer, and a decoder maps the quantized latent back to
-the chunk. Trained on L1 reconstruction plus a weighted commitment loss, with Adam, before the GPT and frozen after
-(VQ-BeT's first phase). It is the family's own tokenizer, unrelated to CARP's multi-scale one, and lives in the
-policy's checkpoint.
+(`carp.tokenizer.kinds.residual_quantizer`) turns it into one code per layer, and a decoder maps the quantized latent
+back to the chunk. Trained on L1 reconstruction plus a weighted commitment loss, with Adam. Two users: the VQ-BeT
+family (`carp.policies.vq_bet`) trains one before its GPT, freezes it and keeps it in the policy's checkpoint; the
+`residual_vq` tokenizer kind (`carp.tokenizer.kinds.residual_vq`) trains one on the pipeline's training windows and
+serves its codes as tokens to the next-token family.
 
 Source: Lee et al., "Behavior Generation with Latent Actions" (ICML 2024) and its public code (`vqvae.py`: MLP
 encoder and decoder with 128-wide hidden layers). Deviations: the chunk is the pipeline's horizon H rather than
@@ -20,7 +21,7 @@ from einops import rearrange
 from torch import nn
 from tqdm.auto import tqdm
 
-from carp.policies.vq_bet.quantizer import ResidualVectorQuantizer
+from carp.tokenizer.kinds.residual_quantizer import ResidualVectorQuantizer
 
 logger = logging.getLogger(__name__)
 
@@ -139,7 +140,7 @@ def train_autoencoder(autoencoder: ActionAutoencoder, actions: torch.Tensor, tra
     optimizer = torch.optim.Adam(
         autoencoder.parameters(), lr=training.learning_rate, weight_decay=training.weight_decay
     )
-    progress = tqdm(range(training.steps), desc="vq_bet action VQ-VAE", leave=False)
+    progress = tqdm(range(training.steps), desc="residual VQ-VAE", leave=False)
     for step in progress:
         rows = torch.randint(count, (training.batch_size,), generator=generator).to(device)
         reconstruction, commitment = autoencoder.losses(actions[rows])
@@ -149,5 +150,5 @@ def train_autoencoder(autoencoder: ActionAutoencoder, actions: torch.Tensor, tra
         optimizer.step()
         if step % 100 == 0:
             progress.set_postfix(l1=f"{reconstruction.item():.4f}")
-    logger.info("vq_bet VQ-VAE after %d steps: l1=%.4g", training.steps, float(reconstruction.detach()))
+    logger.info("residual VQ-VAE after %d steps: l1=%.4g", training.steps, float(reconstruction.detach()))
     autoencoder.eval().requires_grad_(False)
