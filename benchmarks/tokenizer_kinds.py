@@ -40,7 +40,7 @@ KNOBS = {
     "fsq": ("levels", [(5, 5, 5), (8, 6, 5), (8, 8, 8, 6, 5)]),
     "carp_msvq": ("codebook_size", [64, 512]),
     "joint_msvq": ("codebook_size", [64, 512]),
-    "residual_vq": ("num_layers", [2, 8, 32]),
+    "residual_vq": ("num_layers", [2, 4, 8]),
 }
 """Kind -> (its rate knob, the settings swept)."""
 

@@ -224,7 +224,8 @@ class JointMsvqConfig:
 class ResidualVqConfig:
     """VQ-BeT's residual VQ over a whole chunk: one code per layer (`carp.tokenizer.kinds.residual_vq`).
 
-    The defaults are the VQ-BeT family's VQ-VAE (the `vq_bet` section).
+    The defaults are VQ-BeT's (2 layers of 16 codes, 128-wide MLPs); the `vq_bet` family's VQ-VAE settings take
+    them as their defaults too.
 
     Attributes:
         num_layers: ``R``, residual layers, which is also the number of tokens per chunk; an integer >= 1.

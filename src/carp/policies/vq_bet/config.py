@@ -12,9 +12,12 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from carp.config.checks import _require, require_optimizer_settings, require_positive_int
+from carp.config.tokenizer_kinds import ResidualVqConfig
 
 SECTION = "vq_bet"
 CODE_CHOICES = ("sample", "greedy")
+# The VQ-VAE is the residual_vq tokenizer kind's network: its defaults have one home, that kind's section.
+_VQ_VAE = ResidualVqConfig()
 
 
 @dataclass(frozen=True)
@@ -58,16 +61,16 @@ class VqBetConfig:
         ema_decay: Decay of that average per optimizer step, used only with ``use_ema``; a number in (0, 1).
     """
 
-    num_codes: int = 16
-    num_residual_layers: int = 2
-    latent_width: int = 256
-    encoder_hidden_width: int = 128
-    codebook_decay: float = 0.99
-    commitment_weight: float = 1.0
-    vq_training_steps: int = 20000
-    vq_batch_size: int = 256
-    vq_learning_rate: float = 1e-3
-    vq_weight_decay: float = 1e-4
+    num_codes: int = _VQ_VAE.num_codes
+    num_residual_layers: int = _VQ_VAE.num_layers
+    latent_width: int = _VQ_VAE.latent_width
+    encoder_hidden_width: int = _VQ_VAE.hidden_width
+    codebook_decay: float = _VQ_VAE.codebook_decay
+    commitment_weight: float = _VQ_VAE.commitment_weight
+    vq_training_steps: int = _VQ_VAE.steps
+    vq_batch_size: int = _VQ_VAE.batch_size
+    vq_learning_rate: float = _VQ_VAE.learning_rate
+    vq_weight_decay: float = _VQ_VAE.weight_decay
     depth: int = 6
     num_heads: int = 6
     width: int = 120
