@@ -78,6 +78,7 @@ class FakePipeline:
         latent = np.where(generator.random(EPISODES) < shared, states, generator.random(EPISODES))
         success = latent < rate + 0.05 * np.random.default_rng(seed).standard_normal()
         summary = {"successes": int(success.sum()), "episodes": EPISODES, "latency_predict_ms_median": 3.0}
+        summary["num_parameters"] = 1_000_000 + 1000 * len(point) + (0 if family == "carp" else 7)
         if repairs:
             summary.update(repaired_chunks=2 if point == "fast" else 0, predicted_chunks=100)
         path = self.eval_dir / task / family / f"seed{seed}.json"
@@ -130,9 +131,10 @@ def test_the_report_shows_rate_distortion_and_each_kind_against_carp_msvq_under_
     run(FakePipeline(tmp_path), study, output)
     section = study_sections(study, load_study(study, [output], ["square"]), 0.05, 0.05, tmp_path / "figures")[0]
     table = section.tables[0].set_index(["point", "policy"])
-    assert list(table.columns[-8:]) == [
+    assert list(table.columns[-9:]) == [
         "tokenizer error (% of range)", "bits per chunk", "tokens per chunk", "entropy (bits per chunk)",
-        "repaired chunks", "demos replayed through the tokenizer", "latency per chunk (ms)", "against carp_msvq",
+        "repaired chunks", "parameters", "demos replayed through the tokenizer", "latency per chunk (ms)",
+        "against carp_msvq",
     ]  # fmt: skip
     assert list(table.index) == [("carp_msvq", "carp"), ("carp_msvq", "next_token"), ("fast", "next_token"),
                                  ("fsq", "next_token")]  # fmt: skip
@@ -142,6 +144,8 @@ def test_the_report_shows_rate_distortion_and_each_kind_against_carp_msvq_under_
     assert table.loc[("fast", "next_token"), "bits per chunk"] == "301"
     assert table.loc[("fast", "next_token"), "repaired chunks"] == "2.0%"
     assert table.loc[("carp_msvq", "carp"), "repaired chunks"] == "-"
+    assert table.loc[("fast", "next_token"), "parameters"] == "1,004,007"
+    assert table.loc[("carp_msvq", "carp"), "parameters"] == "1,009,000"
     assert table.loc[("fsq", "next_token"), "tokenizer error (% of range)"] == "4.00"
     assert (tmp_path / "figures" / "tokenizers_square.png").exists()
 

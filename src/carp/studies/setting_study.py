@@ -475,8 +475,12 @@ def tokenizer_cells(study: SettingStudy, metrics: Mapping[str, float], task: str
         cells["bits per chunk"] = _metric(metrics, "bits_per_chunk", "{:.0f}")
         cells["tokens per chunk"] = _metric(metrics, "tokens_per_chunk/mean", "{:.1f}")
         cells["entropy (bits per chunk)"] = _metric(metrics, "entropy_bits_per_chunk", "{:.0f}")
-        rate = pooled_metrics(runs).get("repaired_chunk_rate")
+        pooled = pooled_metrics(runs)
+        rate = pooled.get("repaired_chunk_rate")
         cells["repaired chunks"] = "-" if rate is None else f"{100 * rate:.1f}%"
+        # The network's size beside its rate: next_token.match_size keeps it near carp_msvq's at every kind.
+        parameters = pooled.get("num_parameters")
+        cells["parameters"] = "-" if parameters is None else f"{int(parameters):,}"
     return cells
 
 

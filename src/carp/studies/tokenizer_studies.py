@@ -34,7 +34,9 @@ TOKENIZER_REF_FILE = "tokenizer_ref.json"
 KINDS_NOTE = (
     "Bits per chunk are tokens x log2 of the vocabulary (carp_msvq's from its fixed layout); the entropy is that of "
     "the tokens actually used on the held-out windows; repaired chunks are the share of predicted chunks whose tokens "
-    "the tokenizer had to repair before decoding them. Each kind runs at the rate its tokenizer_<kind> section sets."
+    "the tokenizer had to repair before decoding them; parameters are the policy's trained ones (the next-token "
+    "network is widened over another kind to its size over carp_msvq, next_token.match_size). Each kind runs at the "
+    "rate its tokenizer_<kind> section sets."
 )
 
 
