@@ -188,6 +188,9 @@ class Params:
                     f"{horizon}",
                 )
         self.encoder_length  # noqa: B018 (checks that the horizon divides into the encoder's levels)
+        selected_kind = self.tokenizer_kind_config
+        if hasattr(selected_kind, "check_horizon"):  # a kind whose tokens depend on the chunk's length
+            selected_kind.check_horizon(horizon)
         _require(
             len(self.sweep.confirm_seeds) >= self.comparison.min_seeds,
             "sweep.confirm_seeds",

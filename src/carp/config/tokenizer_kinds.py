@@ -90,7 +90,7 @@ class BSplineConfig:
 
     Attributes:
         control_points: ``K``, control points per action dimension (tokens per dimension); an integer >= degree + 1
-            and at most ``data.action_horizon`` (checked when the tokenizer is built).
+            and at most ``data.action_horizon`` (checked with the params when this kind is selected).
         degree: Degree of the spline; an integer >= 1.
         bins: Bins per control point, which is also the vocabulary; an integer >= 2. They span each dimension's
             control-point range on the training windows.
@@ -115,6 +115,15 @@ class BSplineConfig:
             "must be an integer >= 2",
         )
 
+    def check_horizon(self, action_horizon: int) -> None:
+        """Refuse more control points than steps per chunk (`Params` calls it when this kind is selected)."""
+        _require(
+            self.control_points <= action_horizon,
+            "tokenizer_bspline.control_points",
+            self.control_points,
+            f"must be at most data.action_horizon = {action_horizon}",
+        )
+
 
 @dataclass(frozen=True)
 class FsqConfig:
@@ -123,8 +132,8 @@ class FsqConfig:
     Attributes:
         levels: Values each latent channel is rounded to, one entry per channel; integers >= 2. The vocabulary is
             their product (240 for [8, 6, 5]).
-        downsampling: ``H`` over tokens per chunk; a power of two that divides ``data.action_horizon`` (checked when
-            the tokenizer is built).
+        downsampling: ``H`` over tokens per chunk; a power of two that divides ``data.action_horizon`` (checked with
+            the params when this kind is selected).
         hidden_channels: Width of the encoder's and decoder's convolutions; an integer >= 1.
         steps: Adam steps of training; an integer >= 1.
         batch_size: Windows per step; an integer >= 1.
@@ -157,6 +166,15 @@ class FsqConfig:
             require_positive_int(f"tokenizer_fsq.{name}", getattr(self, name))
         _require(self.learning_rate > 0, "tokenizer_fsq.learning_rate", self.learning_rate, "must be > 0")
 
+    def check_horizon(self, action_horizon: int) -> None:
+        """Refuse a downsampling that does not divide the chunk (`Params` calls it when this kind is selected)."""
+        _require(
+            action_horizon % self.downsampling == 0,
+            "tokenizer_fsq.downsampling",
+            self.downsampling,
+            f"must divide data.action_horizon = {action_horizon}",
+        )
+
 
 @dataclass(frozen=True)
 class JointMsvqConfig:
@@ -168,7 +186,7 @@ class JointMsvqConfig:
         codebook_size: Codes of the single codebook, which is also the vocabulary; an integer >= 2.
         latent_channels: Channels of a latent position and of a code; an integer >= 1.
         downsampling: The encoder's temporal downsampling; a power of two >= 2 that divides ``data.action_horizon``
-            (checked when the tokenizer is built).
+            (checked with the params when this kind is selected).
         hidden_channels: Width of the encoder's and decoder's convolutions; an integer >= 1.
         commitment_weight: Weight of the commitment loss relative to the reconstruction loss; a number >= 0.
         steps: Adam steps of training; an integer >= 1.
@@ -218,6 +236,15 @@ class JointMsvqConfig:
             "must be >= 0",
         )
         _require(self.learning_rate > 0, "tokenizer_joint_msvq.learning_rate", self.learning_rate, "must be > 0")
+
+    def check_horizon(self, action_horizon: int) -> None:
+        """Refuse a downsampling that does not divide the chunk (`Params` calls it when this kind is selected)."""
+        _require(
+            action_horizon % self.downsampling == 0,
+            "tokenizer_joint_msvq.downsampling",
+            self.downsampling,
+            f"must divide data.action_horizon = {action_horizon}",
+        )
 
 
 @dataclass(frozen=True)

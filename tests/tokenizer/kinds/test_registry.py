@@ -2,7 +2,7 @@
 
 import pytest
 
-from carp.config import Params
+from carp.config import Params, params_from_dict
 from carp.config.checks import ConfigError
 from carp.config.tokenizer import TokenizerConfig
 from carp.config.tokenizer_kinds import (
@@ -67,6 +67,23 @@ def test_the_params_refuse_an_unknown_kind_in_one_line_naming_the_key_and_the_ki
 def test_each_kinds_section_refuses_bad_settings_naming_the_key(section, message):
     with pytest.raises(ConfigError, match=message):
         section()
+
+
+@pytest.mark.parametrize(
+    ("kind", "section", "message"),
+    [
+        ("bspline", {"control_points": 17}, "tokenizer_bspline.control_points=17: must be at most H = 16"),
+        ("fsq", {"downsampling": 32}, "tokenizer_fsq.downsampling=32: must divide H = 16"),
+        ("joint_msvq", {"downsampling": 32}, "tokenizer_joint_msvq.downsampling=32: must divide H = 16"),
+    ],
+)
+def test_the_selected_kinds_length_settings_are_checked_against_the_horizon_in_one_line(kind, section, message):
+    raw = {"tokenizer": {"kind": kind}, "policies": ["next_token"], kind_section(kind): section}
+    with pytest.raises(ConfigError) as raised:
+        params_from_dict(raw)
+    assert str(raised.value) == message.replace("H = ", "data.action_horizon = ")
+    # The same settings stand while another kind is selected: only the selected kind's tokens depend on them.
+    params_from_dict({**raw, "tokenizer": {"kind": "binning"}})
 
 
 @pytest.mark.parametrize("kind", ["binning", "fast", "bspline", "fsq", "joint_msvq", "residual_vq"])
