@@ -2,6 +2,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import types
 
 import mlflow
 import numpy as np
@@ -30,6 +31,7 @@ from carp.tracking.registry import (
     register_confirmed_policy,
     register_tokenizer,
     resolve_alias,
+    set_version_tag,
 )
 from carp.tracking.runs import find_runs, stage_run
 from tests.serving.conftest import save_tiny_checkpoint
@@ -299,3 +301,31 @@ def test_the_confirmed_checkpoint_is_registered_once_tagged_and_served_from_its_
 
     served, _ = load_served_model("models:/carp-policy-lift-carp@candidate", tracking_uri=uri)
     assert (served.source.sha256, served.source.version, served.source.alias) == (snapshot_sha, "1", "candidate")
+
+
+class _RacingClient:
+    """A registry client whose first tag writes fail as PostgreSQL fails the second of two concurrent inserts."""
+
+    def __init__(self, failures: int, other_writer_value: str | None) -> None:
+        self.failures, self.other_writer_value, self.tags, self.writes = failures, other_writer_value, {}, 0
+
+    def set_model_version_tag(self, name, version, key, value):
+        self.writes += 1
+        if self.failures:
+            self.failures -= 1
+            if self.other_writer_value is not None:
+                self.tags[key] = self.other_writer_value
+            raise mlflow.exceptions.MlflowException("duplicate key value violates unique constraint")
+        self.tags[key] = value
+
+    def get_model_version(self, name, version):
+        return types.SimpleNamespace(tags=dict(self.tags))
+
+
+def test_a_tag_another_writer_set_to_the_same_value_is_accepted_and_a_different_one_written_again():
+    same = _RacingClient(failures=1, other_writer_value="panda-abs10")
+    set_version_tag(same, "m", "1", "carp.action_space", "panda-abs10")
+    assert same.writes == 1 and same.tags == {"carp.action_space": "panda-abs10"}
+    other = _RacingClient(failures=2, other_writer_value="panda-delta10")
+    set_version_tag(other, "m", "1", "carp.action_space", "panda-abs10")
+    assert other.writes == 3 and other.tags == {"carp.action_space": "panda-abs10"}

@@ -200,9 +200,29 @@ def _register_version(
             (v for v in _versions(client, name) if v.tags.get(SHA_TAG) == sha256), key=lambda v: int(v.version)
         )
     for key, value in (tags or {}).items():
-        client.set_model_version_tag(name, str(version.version), key, value)
+        set_version_tag(client, name, str(version.version), key, value)
     aliased = point_alias(client, name, alias, str(version.version), sha256)
     return ModelReference(name=name, version=str(aliased.version), alias=alias, run_id=aliased.run_id, sha256=sha256)
+
+
+def set_version_tag(client: MlflowClient, name: str, version: str, key: str, value: str) -> None:
+    """Set tag ``key`` of version ``version`` of ``name`` to ``value``, safe beside writers setting it at once.
+
+    A PostgreSQL store refuses one of two writers that insert the same new tag together (the tag's primary key); the
+    tag is then read back and accepted when it already holds ``value``, otherwise the write is repeated.
+
+    Raises:
+        mlflow.exceptions.MlflowException: the tag could not be set in ``ALIAS_ATTEMPTS`` tries.
+    """
+    for attempt in range(ALIAS_ATTEMPTS - 1):
+        try:
+            client.set_model_version_tag(name, version, key, value)
+            return
+        except mlflow.exceptions.MlflowException:
+            if client.get_model_version(name, version).tags.get(key) == value:
+                return
+            time.sleep(0.05 * 2**attempt)
+    client.set_model_version_tag(name, version, key, value)
 
 
 def point_alias(client: MlflowClient, name: str, alias: str, version: str, sha256: str):
