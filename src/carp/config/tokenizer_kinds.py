@@ -22,6 +22,12 @@ def kind_section(kind: str) -> str:
     return f"tokenizer_{kind}"
 
 
+def _require_divides_horizon(key: str, downsampling: int, action_horizon: int) -> None:
+    _require(
+        action_horizon % downsampling == 0, key, downsampling, f"must divide data.action_horizon = {action_horizon}"
+    )
+
+
 def _require_percentiles(section: str, lower: float, upper: float) -> None:
     _require(0.0 <= lower < 50.0, f"{section}.lower_percentile", lower, "must be in [0, 50)")
     _require(50.0 < upper <= 100.0, f"{section}.upper_percentile", upper, "must be in (50, 100]")
@@ -168,12 +174,7 @@ class FsqConfig:
 
     def check_horizon(self, action_horizon: int) -> None:
         """Refuse a downsampling that does not divide the chunk (`Params` calls it when this kind is selected)."""
-        _require(
-            action_horizon % self.downsampling == 0,
-            "tokenizer_fsq.downsampling",
-            self.downsampling,
-            f"must divide data.action_horizon = {action_horizon}",
-        )
+        _require_divides_horizon("tokenizer_fsq.downsampling", self.downsampling, action_horizon)
 
 
 @dataclass(frozen=True)
@@ -239,12 +240,7 @@ class JointMsvqConfig:
 
     def check_horizon(self, action_horizon: int) -> None:
         """Refuse a downsampling that does not divide the chunk (`Params` calls it when this kind is selected)."""
-        _require(
-            action_horizon % self.downsampling == 0,
-            "tokenizer_joint_msvq.downsampling",
-            self.downsampling,
-            f"must divide data.action_horizon = {action_horizon}",
-        )
+        _require_divides_horizon("tokenizer_joint_msvq.downsampling", self.downsampling, action_horizon)
 
 
 @dataclass(frozen=True)
