@@ -256,7 +256,8 @@ class ResidualVqConfig:
         latent_width: Width of the latent and of every code; an integer >= 1.
         hidden_width: Width of the hidden layers of the MLP encoder and decoder; an integer >= 1.
         codebook_decay: EMA decay of the codebooks per step; a number in (0, 1).
-        commitment_weight: Weight of the commitment loss next to the L1 reconstruction; a number >= 0.
+        commitment_weight: Weight of the commitment loss (summed over the residual layers) next to the L1
+            reconstruction; a number >= 0.
         steps: Adam steps of training; an integer >= 1.
         batch_size: Windows per step; an integer >= 1.
         learning_rate: Adam's learning rate; a number > 0.
@@ -268,8 +269,8 @@ class ResidualVqConfig:
     num_codes: int = 16
     latent_width: int = 256
     hidden_width: int = 128
-    codebook_decay: float = 0.99
-    commitment_weight: float = 1.0
+    codebook_decay: float = 0.8
+    commitment_weight: float = 5.0
     steps: int = 20000
     batch_size: int = 256
     learning_rate: float = 1e-3

@@ -69,6 +69,31 @@ def test_ema_moves_codes_to_their_cluster_means_only_in_training_mode():
     assert torch.allclose(codes[order], means, atol=1e-3)
 
 
+def test_commitment_sums_each_layers_distance_to_its_code_and_reaches_the_latent():
+    quantizer = ResidualVectorQuantizer(2, 2, 1, decay=0.9)
+    quantizer.codebooks.copy_(torch.tensor([[[0.0], [10.0]], [[0.0], [1.0]]]))
+    quantizer.initialized.fill_(True)
+    latent = torch.tensor([[10.75]], requires_grad=True)
+    _, code_ids, commitment = quantizer.eval()(latent)
+    # Layer 0 codes 10 (distance 0.75), layer 1 codes the residual 0.75 with 1 (distance 0.25).
+    assert code_ids.tolist() == [[1, 1]]
+    assert commitment.item() == pytest.approx(0.75**2 + 0.25**2)
+    commitment.backward()
+    assert latent.grad.item() == pytest.approx(2 * 0.75 + 2 * -0.25)
+
+
+def test_the_first_layers_term_holds_the_latents_scale_where_a_loss_on_the_sum_alone_does_not():
+    quantizer = ResidualVectorQuantizer(2, 2, 1, decay=0.9)
+    quantizer.codebooks.copy_(torch.tensor([[[0.0], [1.0]], [[0.0], [100.0]]]))
+    quantizer.initialized.fill_(True)
+    # A latent far beyond the first layer's codes that the second layer codes exactly: the sum of the codes meets it,
+    # so only the per-layer terms see how far it is from the coarsest codes.
+    latent = torch.tensor([[101.0]])
+    quantized, _, commitment = quantizer.eval()(latent)
+    assert quantized.item() == pytest.approx(101.0)
+    assert commitment.item() == pytest.approx(100.0**2)
+
+
 def test_uninitialized_codebooks_refuse_to_quantize():
     with pytest.raises(RuntimeError, match="not initialized"):
         ResidualVectorQuantizer(2, 4, 8, decay=0.9)(torch.zeros(3, 8))

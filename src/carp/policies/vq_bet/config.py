@@ -35,7 +35,8 @@ class VqBetConfig:
         latent_width: Width of the VQ-VAE latent and of every code; an integer >= 1.
         encoder_hidden_width: Width of the hidden layers of the VQ-VAE's MLP encoder and decoder; an integer >= 1.
         codebook_decay: EMA decay of the codebooks per VQ-VAE step; a number in (0, 1).
-        commitment_weight: Weight of the commitment loss next to the L1 reconstruction; a number >= 0.
+        commitment_weight: Weight of the commitment loss (summed over the layers) next to the L1 reconstruction; a
+            number >= 0.
         vq_training_steps: Adam steps of the VQ-VAE phase, before the GPT trains; an integer >= 1.
         vq_batch_size: Action chunks per VQ-VAE step; an integer >= 1.
         vq_learning_rate: Adam learning rate of the VQ-VAE; a number > 0.

@@ -8,7 +8,9 @@ family (`carp.policies.vq_bet`) trains one before its GPT, freezes it and keeps 
 serves its codes as tokens to the next-token family.
 
 Source: Lee et al., "Behavior Generation with Latent Actions" (ICML 2024) and its public code (`vqvae.py`: MLP
-encoder and decoder with 128-wide hidden layers). Deviations: the chunk is the pipeline's horizon H rather than
+encoder and decoder with 128-wide hidden layers, the L1 reconstruction plus 5 times the quantizer's commitment loss,
+and the quantizer package's EMA decay of 0.8, which the defaults of `carp.config.tokenizer_kinds.ResidualVqConfig`
+follow). Deviations: the chunk is the pipeline's horizon H rather than
 VQ-BeT's per-timestep window; training runs a fixed number of steps on batches drawn with a seeded generator.
 """
 
@@ -109,7 +111,7 @@ class AutoencoderTraining:
         batch_size: chunks per step.
         learning_rate: Adam learning rate.
         weight_decay: Adam (L2) weight decay.
-        commitment_weight: weight of the commitment loss next to the L1 reconstruction.
+        commitment_weight: weight of the commitment loss (summed over layers) next to the L1 reconstruction.
         seed: seeds the codebook initialization and the batch draws.
     """
 

@@ -3,7 +3,10 @@
 Each layer quantizes what the layers before it left over (residual VQ, as in SoundStream), so a latent is described
 coarse to fine by one code per layer. Codebooks are not trained by gradients: each code moves towards the mean of the
 latents assigned to it with an exponential moving average (van den Oord et al. 2017, appendix; the EMA variant of
-the `vector-quantize-pytorch` package that VQ-BeT uses). Deviations from VQ-BeT's setup:
+the `vector-quantize-pytorch` package that VQ-BeT uses). The commitment loss is that package's, summed over layers:
+each layer pulls the residual it receives towards its chosen code. The first layer's term ties the latent itself to
+the coarsest codes; a loss on the sum of the codes alone leaves the latent's scale free, and it then grows without
+bound while the first layer's codes collapse to one or two. Deviations from VQ-BeT's setup:
 
 - Codebooks start from latents of the first training batch (each layer from its own residuals, drawn with the
   caller's generator) instead of a k-means initialization: deterministic given the seed and cheap.
@@ -95,25 +98,28 @@ class ResidualVectorQuantizer(nn.Module):
 
         Returns:
             The quantized latent (N, latent_width) with straight-through gradients to `latent`, the code ids
-            (N, num_layers) long, and the commitment loss (scalar): the mean squared distance between `latent` and
-            its (detached) quantization, which pulls the encoder towards the codebooks.
+            (N, num_layers) long, and the commitment loss (scalar): over the layers, the sum of the mean squared
+            distance between the residual a layer receives (a function of `latent`) and its detached code, which
+            pulls the encoder towards the codebooks.
 
         Raises:
             RuntimeError: the codebooks were never initialized.
         """
         if not bool(self.initialized):
             raise RuntimeError("the codebooks are not initialized; call initialize() with training latents first")
-        residual = latent.detach().float()
+        residual = latent.float()  # keeps the graph to `latent`: each layer's commitment term reaches the encoder
         ids = []
+        commitment = latent.new_zeros(())
         for layer in range(self.num_layers):
-            layer_ids = self._nearest(residual, layer)  # (N,)
+            layer_ids = self._nearest(residual.detach(), layer)  # (N,)
             if self.training:
-                self._update_codebook(layer, residual, layer_ids)
-            residual = residual - self.codebooks[layer][layer_ids]
+                self._update_codebook(layer, residual.detach(), layer_ids)
+            code = self.codebooks[layer][layer_ids]  # (N, latent_width), a buffer: no gradient
+            commitment = commitment + F.mse_loss(residual, code)
+            residual = residual - code
             ids.append(layer_ids)
         code_ids = torch.stack(ids, dim=1)  # (N, num_layers)
         quantized = self.ids_to_latent(code_ids).to(latent.dtype)
-        commitment = F.mse_loss(latent, quantized.detach())
         return latent + (quantized - latent).detach(), code_ids, commitment
 
     @torch.no_grad()

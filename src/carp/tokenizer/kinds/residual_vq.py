@@ -34,7 +34,7 @@ class ResidualVqTokenizer:
         latent_width: width of the latent and of every code.
         hidden_width: width of the encoder's and decoder's hidden layers.
         codebook_decay: EMA decay of the codebooks per step, in (0, 1).
-        commitment_weight: weight of the commitment loss next to the L1 reconstruction.
+        commitment_weight: weight of the commitment loss (summed over layers) next to the L1 reconstruction.
         steps: Adam steps of ``fit``.
         batch_size: windows per step.
         learning_rate: Adam's learning rate.
@@ -52,8 +52,8 @@ class ResidualVqTokenizer:
         num_codes: int = 16,
         latent_width: int = 256,
         hidden_width: int = 128,
-        codebook_decay: float = 0.99,
-        commitment_weight: float = 1.0,
+        codebook_decay: float = 0.8,
+        commitment_weight: float = 5.0,
         steps: int = 20000,
         batch_size: int = 256,
         learning_rate: float = 1e-3,
