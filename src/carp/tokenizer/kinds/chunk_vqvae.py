@@ -10,8 +10,8 @@ serves its codes as tokens to the next-token family.
 Source: Lee et al., "Behavior Generation with Latent Actions" (ICML 2024) and its public code (`vqvae.py`: MLP
 encoder and decoder with 128-wide hidden layers, the L1 reconstruction plus 5 times the quantizer's commitment loss,
 and the quantizer package's EMA decay of 0.8, which the defaults of `carp.config.tokenizer_kinds.ResidualVqConfig`
-follow). Deviations: the chunk is the pipeline's horizon H rather than
-VQ-BeT's per-timestep window; training runs a fixed number of steps on batches drawn with a seeded generator.
+follow). Deviations: the chunk is the pipeline's horizon H rather than VQ-BeT's per-timestep window; training runs a
+fixed number of steps on batches drawn with a seeded generator.
 """
 
 import logging
