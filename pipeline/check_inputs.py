@@ -18,7 +18,7 @@ import shutil
 from stage_support import PROJECT_DIR, fail, load, parse_args
 
 from carp.data.sources import SourceError, describe_source
-from carp.policies.registry import get_family
+from carp.policies.sections import teacher_of
 
 INPUTS_DIR = PROJECT_DIR / "data" / "inputs"
 TEACHERS_DIRNAME = "teachers"
@@ -44,7 +44,7 @@ def main() -> None:
         (staging / f"{task}.json").write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
     (staging / TEACHERS_DIRNAME).mkdir()
     for family in params.policies:
-        teacher = get_family(family).teacher
+        teacher = teacher_of(family)
         section = None if teacher is None else {teacher: dataclasses.asdict(params.family_config(teacher))}
         (staging / TEACHERS_DIRNAME / f"{family}.json").write_text(json.dumps(section, indent=2, sort_keys=True) + "\n")
     shutil.rmtree(INPUTS_DIR, ignore_errors=True)
