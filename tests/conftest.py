@@ -1,6 +1,5 @@
 """Shared tiny factories: synthetic robomimic files and tiny model settings."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -9,10 +8,6 @@ import torch
 
 from carp.data.robomimic_io import Episode, write_demonstrations
 from tests.pipeline.shared_workspaces import lift_demos, lift_pipeline, pusht_pipeline  # noqa: F401 (end-to-end tier)
-
-# The test workers share the machine's cores: each stage process they start (and any other child) computes on one
-# thread, as the tests in this process do; spare threads would only spin waiting for a core.
-os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 OBS_KEYS = ("object", "robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 OBS_WIDTHS = {"object": 10, "robot0_eef_pos": 3, "robot0_eef_quat": 4, "robot0_gripper_qpos": 2}
