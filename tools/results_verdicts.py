@@ -1,8 +1,10 @@
 """Recompute the verdicts of the stored evaluations under `results/` with the report's own rules.
 
 Each group below is what one README / docs/results.md row compares: the evaluation folders whose families are set
-side by side. The verdicts are decided as a report decides them (the training seed as the unit, one correction over
-the group's pairs and precision claims), so a row's published verdict can be checked against its episodes at any time.
+side by side. A folder given as ``(folder, setting)`` has its families labelled ``<family> (<setting>)``, so that one
+family trained with two settings (two tokenizers, say) is compared with itself. The verdicts are decided as a
+report decides them (the training seed as the unit, one correction over the group's pairs and precision claims), so a
+row's published verdict can be checked against its episodes at any time.
 
     .venv/bin/python tools/results_verdicts.py [--min-seeds 3] [--alpha 0.05] [--margin 0.05]
 """
@@ -41,6 +43,14 @@ GROUPS = {
         "pusht-consistency_policy/eval",
         "pusht-diffusion_transformer/eval",
     ],
+    "Push-T, CARP over two tokenizers, 20 epochs": [
+        ("pusht-carp-20-epochs/eval", "default tokenizer"),
+        ("pusht-carp-replay-tokenizer/eval", "finest replay tokenizer"),
+    ],
+    "Push-T, next-token over carp_msvq and FAST tokens, 20 epochs": [
+        ("pusht-tokenizers-next_token/carp_msvq/eval", "carp_msvq"),
+        ("pusht-tokenizers-next_token/fast/eval", "FAST scale 50"),
+    ],
 }
 TASKS = ("lift", "can", "square", "stack", "nut_assembly", "stack_three", "threading", "pusht")
 
@@ -54,8 +64,15 @@ def main() -> None:
     arguments = parser.parse_args()
     for title, folders in GROUPS.items():
         runs: dict = {}
-        for folder in folders:
-            runs = merge_runs(runs, referenced_runs(RESULTS / folder, TASKS), folder)
+        for entry in folders:
+            folder, setting = entry if isinstance(entry, tuple) else (entry, None)
+            found = referenced_runs(RESULTS / folder, TASKS)
+            if setting is not None:
+                found = {
+                    task: {f"{label} ({setting})": runs for label, runs in labels.items()}
+                    for task, labels in found.items()
+                }
+            runs = merge_runs(runs, found, folder)
         single, multi = split_multitask(runs, MULTITASK_SUFFIX)
         groups = [(list(single), family_pairs(single)), (list(multi), multitask_pairs(single, multi, MULTITASK_SUFFIX))]
         single_tests = precision_tests(single, arguments.min_seeds)
