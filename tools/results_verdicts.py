@@ -69,7 +69,7 @@ def main() -> None:
             found = referenced_runs(RESULTS / folder, TASKS)
             if setting is not None:
                 found = {
-                    task: {f"{label} ({setting})": runs for label, runs in labels.items()}
+                    task: {f"{label} ({setting})": by_seed for label, by_seed in labels.items()}
                     for task, labels in found.items()
                 }
             runs = merge_runs(runs, found, folder)
