@@ -47,6 +47,7 @@ def main() -> None:
             render_workers=params.data.render_workers or os.cpu_count() or 1,
             subset_size=params.data.subset_size,
             subset_seed=params.data.subset_seed,
+            source_name=str(raw.relative_to(PROJECT_DIR)),
         )
     except (DatasetError, RenderingError) as error:
         fail(str(error))

@@ -38,6 +38,24 @@ def test_ingest_builds_buffer_with_episode_boundaries_and_exact_actions(tmp_path
     np.testing.assert_allclose(buffer.obs[55:95, :10], episodes[2].obs["object"], atol=1e-6)
 
 
+def test_the_output_is_the_same_bytes_wherever_the_file_lies_when_its_source_is_named(tmp_path):
+    # A project copied elsewhere ingests its demos to the same bytes, so DVC finds every later stage up to date.
+    outputs = []
+    for place in ("here", "elsewhere/deeper"):
+        raw = tmp_path / place / "data/raw/lift.hdf5"
+        raw.parent.mkdir(parents=True)
+        write_synthetic_file(raw, lengths=(30, 25, 40, 20))
+        output = tmp_path / place / "processed"
+        summary = ingest_demonstrations(raw, output, OBS_KEYS, source_name="data/raw/lift.hdf5")
+        assert summary.source == "data/raw/lift.hdf5"
+        outputs.append({p.relative_to(output): p.read_bytes() for p in sorted(output.rglob("*")) if p.is_file()})
+    assert outputs[0] == outputs[1]
+    assert ReplayBuffer.load(tmp_path / "here/processed" / BUFFER_DIRNAME).attrs["source"] == "data/raw/lift.hdf5"
+    # Unnamed, the source is the path as given.
+    unnamed = ingest_demonstrations(tmp_path / "here/data/raw/lift.hdf5", tmp_path / "unnamed", OBS_KEYS)
+    assert unnamed.source == str(tmp_path / "here/data/raw/lift.hdf5")
+
+
 def test_ingested_windows_normalize_to_unit_range_and_back(tmp_path, synthetic_file):
     output = tmp_path / "processed"
     ingest_demonstrations(synthetic_file, output, OBS_KEYS)

@@ -71,6 +71,7 @@ def ingest_demonstrations(
     subset_size: int = 0,
     subset_seed: int = 0,
     env_name: str | None = None,
+    source_name: str | None = None,
 ) -> IngestSummary:
     """Convert a robomimic-schema file into ``output_dir/{replay.zarr, normalization.json, summary.json}``.
 
@@ -94,12 +95,16 @@ def ingest_demonstrations(
         subset_size: keep this many of the file's demos (`carp.data.subsets.nested_subset`); 0 keeps every demo.
         subset_seed: seed of the subset's shuffle.
         env_name: the env the file must come from (the pipeline task's ``env_name``); ``None`` accepts any task's.
+        source_name: what the buffer and the summary record as the demos' source; ``None`` records ``raw_path`` as
+            given. A pipeline names the file relative to its project, so that the output's bytes, and with them the
+            hashes of every later stage, do not depend on the folder the project lives in.
 
     Raises:
         DatasetError: one line naming the file, demo and key of the first problem found.
         RenderingError: images must be rendered and rendering is unavailable, or a demo's model is unknown.
     """
     raw_path, output_dir = Path(raw_path), Path(output_dir)
+    source = str(raw_path) if source_name is None else source_name
     action_format = _action_format(raw_path, controller, env_name)
     demos = read_demonstrations(raw_path, obs_keys, action_dim=action_format.stored_dim, filter_key=filter_key)
     if subset_size:
@@ -142,13 +147,13 @@ def ingest_demonstrations(
             "obs_keys": list(obs_keys),
             "obs_widths": [int(first.obs[key].shape[1]) for key in obs_keys],
             "controller": controller,
-            "source": str(raw_path),
+            "source": source,
             "env_args": demos.env_args,
             "demo_names": demos.names,
         },
     )
     summary = IngestSummary(
-        source=str(raw_path),
+        source=source,
         episodes=buffer.num_episodes,
         valid_episodes=int(buffer.valid_episodes.sum()),
         steps=int(total),
