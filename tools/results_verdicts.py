@@ -47,9 +47,13 @@ GROUPS = {
         ("pusht-carp-20-epochs/eval", "default tokenizer"),
         ("pusht-carp-replay-tokenizer/eval", "finest replay tokenizer"),
     ],
-    "Push-T, next-token over carp_msvq and FAST tokens, 20 epochs": [
+    "Push-T, next-token over each tokenizer kind, 20 epochs": [
         ("pusht-tokenizers-next_token/carp_msvq/eval", "carp_msvq"),
         ("pusht-tokenizers-next_token/fast/eval", "FAST scale 50"),
+        ("pusht-tokenizers-next_token/binning/eval", "binning"),
+        ("pusht-tokenizers-next_token/fsq/eval", "FSQ"),
+        ("pusht-tokenizers-next_token/bspline/eval", "B-spline"),
+        ("pusht-tokenizers-next_token/joint_msvq/eval", "joint MSVQ"),
     ],
 }
 TASKS = ("lift", "can", "square", "stack", "nut_assembly", "stack_three", "threading", "pusht")
